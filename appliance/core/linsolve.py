@@ -1,0 +1,85 @@
+"""Factorise a symmetric positive definite system once, solve many right-hand sides accurately.
+
+Conductivity contrasts of 1e6, metal electrodes at 1e4 times the sheet and tiny
+contact impedances make the raw matrix badly scaled. A symmetric diagonal
+scaling ``D K D`` (unit diagonal) removes most of that before SuperLU factorises
+with a symmetric fill-reducing ordering; a step or two of iterative refinement
+against the unscaled matrix then brings the residual down to rounding level.
+
+>>> import scipy.sparse as sp, numpy as np
+>>> K = sp.csr_matrix(np.array([[2.0, -1.0], [-1.0, 2e6]]))
+>>> x, residual = FactorisedSystem(K).solve(np.array([[1.0], [0.0]]))
+>>> bool(residual < 1e-14)
+True
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from appliance.errors import SolverError
+
+RESIDUAL_TARGET = 1e-13
+"""Refinement stops once every column's relative residual is below this."""
+
+
+class FactorisedSystem:
+    """One sparse LU factorisation of a scaled SPD matrix, reused for every right-hand side.
+
+    Raises
+    ------
+    SolverError
+        The matrix has a non-positive or non-finite diagonal, or is singular.
+    """
+
+    def __init__(self, matrix: sp.csr_matrix, *, max_refinements: int = 3):
+        diagonal = matrix.diagonal()
+        bad = np.flatnonzero(~np.isfinite(diagonal) | (diagonal <= 0))
+        if bad.size:
+            raise SolverError(
+                f"system matrix has a non-positive or non-finite diagonal at {bad.size} unknowns "
+                f"(first: unknown {bad[0]}, value {float(diagonal[bad[0]])})"
+            )
+        self.matrix = matrix
+        self.scale = 1.0 / np.sqrt(diagonal)
+        scaled = sp.csc_matrix(matrix.multiply(self.scale[:, None]).multiply(self.scale[None, :]))
+        try:
+            self._lu = spla.splu(scaled, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                 options={"SymmetricMode": True})
+        except RuntimeError as exc:
+            raise SolverError(f"system matrix is singular: {exc}") from None
+        self.max_refinements = max_refinements
+
+    def solve(self, rhs: np.ndarray) -> tuple[np.ndarray, float]:
+        """Solve ``K X = rhs`` for every column of ``rhs`` (shape (n, k)).
+
+        Returns
+        -------
+        X : ndarray, shape (n, k)
+        relative_residual : float
+            max over columns of ||rhs - K X||_2 / ||rhs||_2.
+        """
+        rhs = np.asarray(rhs, dtype=np.float64)
+        norms = np.linalg.norm(rhs, axis=0)
+        norms[norms == 0] = 1.0
+        x = self._apply(rhs)
+        residual = rhs - self.matrix @ x
+        worst = float(np.max(np.linalg.norm(residual, axis=0) / norms)) if rhs.size else 0.0
+        for _ in range(self.max_refinements):
+            if worst < RESIDUAL_TARGET:
+                break
+            candidate = x + self._apply(residual)
+            new_residual = rhs - self.matrix @ candidate
+            new_worst = float(np.max(np.linalg.norm(new_residual, axis=0) / norms))
+            if not new_worst < worst:
+                break
+            x, residual, worst = candidate, new_residual, new_worst
+        if not np.all(np.isfinite(x)):
+            raise SolverError("linear solve produced non-finite values")
+        return x, worst
+
+    def _apply(self, rhs: np.ndarray) -> np.ndarray:
+        scaled = self._lu.solve(rhs * self.scale[:, None])
+        return scaled * self.scale[:, None]
