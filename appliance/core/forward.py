@@ -3,8 +3,10 @@
 A :class:`ForwardModel` is what :mod:`appliance.core.fem` (finite elements with
 the complete electrode model) and :mod:`appliance.core.network` (the thesis's
 resistor network) build. Conductivity is always an argument, never stored: a
-call factorises the system once and solves every drive pattern of the protocol
-as one multi-column right-hand side.
+call factorises the system once and solves a unit current into each electrode
+as one multi-column right-hand side; every drive pattern is a difference of
+those columns, and every reading of any protocol follows from the electrodes'
+transfer impedances.
 
 >>> import numpy as np
 >>> from appliance.core.layouts import get_layout
@@ -84,25 +86,48 @@ class ForwardModel:
 
 
 @dataclass(frozen=True)
-class DriveSolution:
-    """Potentials for a set of drive patterns at one conductivity.
+class ElectrodeFields:
+    """The model solved once per electrode at one conductivity.
+
+    Column l of ``solution`` is the potential for a unit current into electrode l
+    and out through the ground; by linearity the field of any drive (a, b) is
+    column a minus column b, and every reading of every protocol follows from the
+    transfer impedances ``transfer[m, l]``: the voltage of electrode m for a unit
+    current into electrode l.
 
     Attributes
     ----------
-    drives : ndarray, shape (n_drives, 2)
-        Electrode numbers (1-based) of current in and current out.
-    current_a : float
-    solution : ndarray, shape (n_unknowns, n_drives)
-    electrode_volts : ndarray, shape (n_electrodes, n_drives)
+    solution : ndarray, shape (n_unknowns, n_electrodes)
+    transfer : ndarray, shape (n_electrodes, n_electrodes), ohm
     relative_residual : float
-        max over drives of ||b - K x|| / ||b|| of the solved system.
+        max over columns of ||b - K x|| / ||b|| of the solved system.
     """
 
-    drives: np.ndarray
-    current_a: float
     solution: np.ndarray
-    electrode_volts: np.ndarray
+    transfer: np.ndarray
     relative_residual: float
+
+    def drive_potentials(self, drives) -> np.ndarray:
+        """Solutions for unit current into the first electrode of each pair and out of the
+        second; ``drives`` (n_drives, 2) holds 1-based numbers. Shape (n_unknowns, n_drives)."""
+        drives = _pairs(drives, self.transfer.shape[0])
+        return self.solution[:, drives[:, 0] - 1] - self.solution[:, drives[:, 1] - 1]
+
+    def readings(self, protocol: Protocol, current_a: float = 1.0) -> np.ndarray:
+        """The protocol's readings V(meas+) - V(meas-) in volts for ``current_a``; shape (n_readings,)."""
+        if protocol.n_electrodes != self.transfer.shape[0]:
+            raise ProtocolInvalid(f"protocol {protocol.name!r} is for {protocol.n_electrodes} electrodes, the "
+                                  f"model has {self.transfer.shape[0]}")
+        a, b, c, d = (protocol.readings - 1).T
+        z = self.transfer
+        return current_a * (z[c, a] - z[c, b] - z[d, a] + z[d, b])
+
+
+def _pairs(drives, n_electrodes: int) -> np.ndarray:
+    drives = np.asarray(drives, dtype=np.int64).reshape(-1, 2)
+    if drives.size and (drives.min() < 1 or drives.max() > n_electrodes):
+        raise ProtocolInvalid(f"drive names an electrode outside 1..{n_electrodes}")
+    return drives
 
 
 def check_conductivity(model: ForwardModel, sigma) -> np.ndarray:
@@ -126,43 +151,22 @@ def check_conductivity(model: ForwardModel, sigma) -> np.ndarray:
 
 
 def factorise(model: ForwardModel, sigma) -> FactorisedSystem:
-    """Assemble and factorise K(sigma) once, for any number of drive patterns."""
+    """Assemble and factorise K(sigma) once."""
     return FactorisedSystem(model.system.matrix(check_conductivity(model, sigma)))
 
 
-def solve_drives(model: ForwardModel, sigma, drives, current_a: float = 1.0,
-                 factorised: FactorisedSystem | None = None) -> DriveSolution:
-    """Solve every drive pattern at conductivity ``sigma`` with one factorisation.
+def solve_electrodes(model: ForwardModel, sigma, factorised: FactorisedSystem | None = None) -> ElectrodeFields:
+    """Solve a unit current into each electrode with one factorisation of K(sigma).
 
-    Parameters
-    ----------
-    drives : array_like, shape (n_drives, 2)
-        Electrode numbers (1-based): current enters at the first, leaves at the second.
-    current_a : float
-        Drive current, A.
-    factorised : FactorisedSystem, optional
-        A factorisation of this model at ``sigma`` to reuse.
+    Electrodes the ground absorbs (the grounded electrode of the CEM model) need no
+    solve: their column is zero.
     """
-    drives = np.asarray(drives, dtype=np.int64).reshape(-1, 2)
-    if drives.size and (drives.min() < 1 or drives.max() > model.n_electrodes):
-        raise ProtocolInvalid(f"drive names an electrode outside 1..{model.n_electrodes}")
     system = factorised or factorise(model, sigma)
-    rhs = current_a * (model.electrodes[:, drives[:, 0] - 1] - model.electrodes[:, drives[:, 1] - 1])
-    x, residual = system.solve(rhs.toarray())
-    volts = model.electrode_voltage_operator @ x
-    return DriveSolution(drives, current_a, x, volts, residual)
-
-
-def readings_from(solution: DriveSolution, protocol: Protocol) -> np.ndarray:
-    """The protocol's readings, V(meas+) - V(meas-), from solved drives; shape (n_readings,)."""
-    lookup = {tuple(p): i for i, p in enumerate(solution.drives.tolist())}
-    try:
-        column = np.array([lookup[tuple(p)] for p in protocol.drives.tolist()])[protocol.drive_index]
-    except KeyError as exc:
-        raise ProtocolInvalid(f"drive {exc.args[0]} was not solved") from None
-    r = protocol.readings
-    v = solution.electrode_volts
-    return v[r[:, 2] - 1, column] - v[r[:, 3] - 1, column]
+    columns = np.flatnonzero(np.diff(model.electrodes.indptr))
+    x = np.zeros((model.system.n, model.n_electrodes))
+    x[:, columns], residual = system.solve(model.electrodes[:, columns].toarray())
+    transfer = model.electrode_voltage_operator @ x
+    return ElectrodeFields(x, transfer, residual)
 
 
 def simulate(model: ForwardModel, sigma, protocol: Protocol, current_a: float = 1.0) -> np.ndarray:
@@ -170,19 +174,24 @@ def simulate(model: ForwardModel, sigma, protocol: Protocol, current_a: float = 
     if protocol.n_electrodes != model.n_electrodes:
         raise ProtocolInvalid(f"protocol {protocol.name!r} is for {protocol.n_electrodes} electrodes, the "
                               f"model has {model.n_electrodes}")
-    return readings_from(solve_drives(model, sigma, protocol.drives, current_a), protocol)
+    return solve_electrodes(model, sigma).readings(protocol, current_a)
 
 
-def electrode_currents(model: ForwardModel, sigma, solution: DriveSolution) -> np.ndarray:
-    """Current each electrode feeds into the sheet, recovered from the potentials.
+def electrode_currents(model: ForwardModel, sigma, potentials: np.ndarray) -> np.ndarray:
+    """Current each electrode feeds into the sheet, recovered from solved ``potentials``.
 
     Summing the sheet's own currents at each electrode's contact nodes checks a
     solution independently of how it was computed: it must equal the drive
     current at the drive electrodes and zero elsewhere.
 
+    Parameters
+    ----------
+    potentials : ndarray, shape (n_unknowns, k)
+        Solutions, such as :meth:`ElectrodeFields.drive_potentials`.
+
     Returns
     -------
-    ndarray, shape (n_electrodes, n_drives), A
+    ndarray, shape (n_electrodes, k), A
     """
-    nodal = model.sheet.matrix(check_conductivity(model, sigma)) @ (model.node_map @ solution.solution)
+    nodal = model.sheet.matrix(check_conductivity(model, sigma)) @ (model.node_map @ potentials)
     return np.array([nodal[nodes].sum(axis=0) for nodes in model.contact_nodes])
