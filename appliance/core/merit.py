@@ -67,3 +67,19 @@ def calibration_sensitivity(model: ForwardModel, protocol: Protocol, centres_mm:
         sigma = conductivity(model, [Inclusion("rect", x, y, object_mm, object_mm, contrast)], background)
         rows.append(np.abs(simulate(model, sigma, protocol)) - homogeneous)
     return np.array(rows)
+
+
+def sensitivity_profile(sensitivity: np.ndarray) -> np.ndarray:
+    """The thesis's sensitivity of each position: S summed over all readings.
+
+    This is the normaliser of the backprojection of eq. 3.4.2, and what the
+    thesis's sensitivity profiles (Figs. 3.4.17, 3.4.18, 5.3.3) and its peak values
+    (4533 for B, 9735 for C) show. Changes of opposite sign cancel in it, which is
+    why C's edge, where nearby readings rise and fall together, scores low.
+
+    Parameters
+    ----------
+    sensitivity : ndarray, shape (n_positions, n_readings)
+        From :func:`calibration_sensitivity`.
+    """
+    return np.asarray(sensitivity).sum(axis=1)
