@@ -21,7 +21,7 @@ from appliance.core.phantoms import Inclusion, conductivity
 from appliance.core.protocols import default_protocol
 
 sys.path.insert(0, str(Path(__file__).parent))
-from report import machine, median_seconds, table  # noqa: E402
+from report import machine, median_seconds, pyplot, save_figure, table  # noqa: E402
 
 HERE = Path(__file__).parent
 COMMAND = "python benchmarks/forward.py"
@@ -177,10 +177,7 @@ def default_section():
 
 
 def plot(scaling, curves):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.2))
     for k, label in enumerate(["assemble", "factorise", "solve electrode fields", "total"], start=1):
         left.loglog(scaling[:, 0], scaling[:, k] * 1e3, "o-", label=label)
@@ -198,8 +195,7 @@ def plot(scaling, curves):
     right.legend()
     right.grid(True, which="both", lw=0.3)
     right.set_title("speed against error (labels: mesh density)", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(HERE / "forward.png", dpi=110)
+    save_figure(fig, HERE / "forward.png", dpi=110)
 
 
 def main():

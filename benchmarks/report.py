@@ -39,3 +39,22 @@ def machine() -> str:
         commit = "unknown"
     return (f"{date.today().isoformat()}, commit {commit}, {platform.machine()} {platform.processor() or ''} "
             f"Python {platform.python_version()}, numpy {np.__version__}, scipy {scipy.__version__}").replace("  ", " ")
+
+
+def pyplot():
+    """matplotlib's pyplot, drawing off-screen (benchmarks run without a display)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, path, title: str | None = None, dpi: int = 100) -> None:
+    """Title, lay out, write and close ``fig``."""
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    pyplot().close(fig)

@@ -25,7 +25,7 @@ from appliance.core.phantoms import Inclusion, conductivity
 from appliance.core.protocols import default_protocol
 
 sys.path.insert(0, str(Path(__file__).parent))
-from report import machine, table  # noqa: E402
+from report import machine, pyplot, save_figure, table  # noqa: E402
 
 HERE = Path(__file__).parent
 COMMAND = "python benchmarks/thesis_chapter5.py"
@@ -218,10 +218,7 @@ def cross_section(values: np.ndarray) -> np.ndarray:
 # Plots
 
 def plot_curves(results, kind, path):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, axes = plt.subplots(2, 3, figsize=(14, 7.5), sharex=True)
     for col, letter in enumerate(LETTERS):
         r = results[kind, letter]
@@ -240,17 +237,11 @@ def plot_curves(results, kind, path):
     axes[0, 0].set_ylabel("visibility Q (eq. 5.2.4)")
     axes[1, 0].set_ylabel("dV/V (eq. 5.2.3), symlog")
     model_name = "the thesis's resistor network" if kind == "network" else "our finite-element model (CEM)"
-    fig.suptitle(f"Figs. 5.4.12 to 5.4.17 reproduced with {model_name}: centred anomalies")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, f"Figs. 5.4.12 to 5.4.17 reproduced with {model_name}: centred anomalies")
 
 
 def plot_area(results, path):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(14, 4))
     for ax, index in zip(axes, (0, 10, 24)):
         title = f"contrast {CONTRASTS[index]:.3g}" + {0: " (insulating)", 24: " (conducting)"}.get(index, "")
@@ -264,17 +255,11 @@ def plot_area(results, path):
         ax.grid(True, lw=0.3)
     axes[0].set_ylabel("visibility Q")
     axes[0].legend(fontsize=7, ncol=2)
-    fig.suptitle("Fig. 5.4.19 generalised: visibility against anomaly area (C > B > A)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, "Fig. 5.4.19 generalised: visibility against anomaly area (C > B > A)")
 
 
 def plot_sensitivity(maps, path):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, axes = plt.subplots(2, 4, figsize=(16, 7.5))
     for row, kind in enumerate(("network", "fem")):
         for col, letter in enumerate(LETTERS):
@@ -293,10 +278,8 @@ def plot_sensitivity(maps, path):
         ax.set_title("Fig. 5.3.3: cross-section")
         ax.legend()
         ax.grid(True, lw=0.3)
-    fig.suptitle("Sensitivity profiles (eq. 3.4.1, summed over readings): an insulating rod moved over 15 x 15 pixels")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, "Sensitivity profiles (eq. 3.4.1, summed over readings): an insulating rod moved over "
+                "15 x 15 pixels")
 
 
 # ---------------------------------------------------------------------------

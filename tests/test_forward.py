@@ -101,9 +101,13 @@ def test_mesh_convergence_of_electrode_voltages():
     layout = get_layout("grid-4x4")
     protocol = default_protocol(layout)
     densities = (0.5, 1, 2, 4)
-    readings = [simulate(build_fem_model(layout, density=d), None if False else np.ones(
-        build_fem_model(layout, density=d).n_elements), protocol) for d in densities]
-    reference = simulate(m := build_fem_model(layout, density=8), np.ones(m.n_elements), protocol)
+
+    def homogeneous(density):
+        model = build_fem_model(layout, density=density)
+        return simulate(model, np.ones(model.n_elements), protocol)
+
+    readings = [homogeneous(d) for d in densities]
+    reference = homogeneous(8)
     errors = [np.abs(v - reference).max() / np.abs(reference).max() for v in readings]
     order = np.polyfit(np.log(1 / np.array(densities)), np.log(errors), 1)[0]
     print(f"grid-4x4 reading errors {['%.2e' % e for e in errors]}, observed order {order:.2f}")

@@ -23,7 +23,7 @@ from functools import cached_property
 
 import numpy as np
 
-from appliance.core.layouts import DiscSheet, Layout, SectorElectrode, polar_clockwise
+from appliance.core.layouts import DiscSheet, Layout, SectorElectrode
 from appliance.errors import LayoutInvalid
 
 
