@@ -60,6 +60,19 @@ class Assembler:
         data = np.bincount(self.slot, weights=sigma[self.element] * self.value, minlength=self.nnz)
         return sp.csr_matrix((data + self.fixed, self.indices, self.indptr), shape=(self.n, self.n))
 
+    def permuted(self, order: np.ndarray) -> "Assembler":
+        """The assembler of P K P^T: unknown ``order[i]`` becomes unknown i."""
+        position = np.empty_like(order)
+        position[order] = np.arange(len(order))
+        rows = position[np.repeat(np.arange(self.n), np.diff(self.indptr))]
+        cols = position[self.indices]
+        sort = np.lexsort((cols, rows))
+        where = np.empty_like(sort)
+        where[sort] = np.arange(len(sort))
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=self.n))]).astype(np.int32)
+        return Assembler(self.n, indptr, cols[sort].astype(np.int32), where[self.slot], self.element, self.value,
+                         self.fixed[sort])
+
 
 def build_assembler(n: int, element_dofs: np.ndarray, element_matrices: np.ndarray,
                     fixed: sp.spmatrix | None = None, keep: np.ndarray | None = None) -> Assembler:

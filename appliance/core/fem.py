@@ -33,7 +33,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from appliance.core.assembly import build_assembler, offset_variables
-from appliance.core.forward import ForwardModel
+from appliance.core.forward import ForwardModel, with_fill_reducing_order
 from appliance.core.layouts import Layout
 from appliance.core.mesh import Mesh, mesh_layout
 from appliance.errors import LayoutInvalid, ModelInputInvalid
@@ -123,8 +123,9 @@ def build_fem_model(layout: Layout, mesh: Mesh | None = None, *, density: float 
           np.concatenate([np.arange(n_nodes), n_nodes + face_of_node[face_nodes[on_face]]]))),
         shape=(n_nodes, n_unknowns - 1))
     sheet = build_assembler(n_nodes, tri, local)
-    return ForwardModel("fem", system, electrodes, mesh.centroids_mm, mesh.areas_mm2,
-                        np.zeros(mesh.n_triangles, dtype=bool), node_map, sheet, contact_nodes)
+    return with_fill_reducing_order(ForwardModel("fem", system, electrodes, mesh.centroids_mm, mesh.areas_mm2,
+                                                 np.zeros(mesh.n_triangles, dtype=bool), node_map, sheet,
+                                                 contact_nodes))
 
 
 def _face_nodes(mesh: Mesh, n_electrodes: int) -> tuple[np.ndarray, tuple]:

@@ -32,13 +32,22 @@ rounding, two orders below what the forward model promises (1e-10)."""
 class FactorisedSystem:
     """One sparse LU factorisation of a scaled SPD matrix, reused for every right-hand side.
 
+    Parameters
+    ----------
+    matrix : sparse matrix
+        Symmetric positive definite.
+    ordering : str
+        SuperLU's column ordering: ``"MMD_AT_PLUS_A"`` (minimum degree on the
+        symmetric pattern) or ``"NATURAL"`` for a matrix already numbered in a
+        fill-reducing order (see :attr:`fill_order`).
+
     Raises
     ------
     SolverError
         The matrix has a non-positive or non-finite diagonal, or is singular.
     """
 
-    def __init__(self, matrix: sp.csr_matrix, *, max_refinements: int = 3):
+    def __init__(self, matrix: sp.csr_matrix, *, ordering: str = "MMD_AT_PLUS_A", max_refinements: int = 3):
         diagonal = matrix.diagonal()
         bad = np.flatnonzero(~np.isfinite(diagonal) | (diagonal <= 0))
         if bad.size:
@@ -50,12 +59,18 @@ class FactorisedSystem:
         self.scale = 1.0 / np.sqrt(diagonal)
         scaled = sp.csc_matrix(matrix.multiply(self.scale[:, None]).multiply(self.scale[None, :]))
         try:
-            self._lu = spla.splu(scaled, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+            self._lu = spla.splu(scaled, permc_spec=ordering, diag_pivot_thresh=0.0,
                                  options={"SymmetricMode": True})
         except RuntimeError as exc:
             raise SolverError(f"system matrix is singular: {exc}") from None
         self.max_refinements = max_refinements
         self._matrix_extended = None
+
+    @property
+    def fill_order(self) -> np.ndarray:
+        """The unknowns in the order the factorisation eliminated them: numbering a matrix
+        of the same pattern this way lets later factorisations skip the ordering step."""
+        return np.argsort(self._lu.perm_c)
 
     def solve(self, rhs: np.ndarray) -> tuple[np.ndarray, float]:
         """Solve ``K X = rhs`` for every column of ``rhs`` (shape (n, k)).

@@ -115,7 +115,7 @@ def mesh_layout(layout: Layout, density: float = 1.0, spec: MeshSpec | None = No
     """Mesh ``layout``'s sheet, electrode faces resolved; ``spec`` overrides ``density``."""
     spec = spec or default_spec(layout, density)
     if isinstance(layout.sheet, DiscSheet):
-        nodes, triangles = _disc_mesh(layout, spec)
+        nodes, triangles = _row_major(*_disc_mesh(layout, spec))
     else:
         nodes, triangles = _rect_mesh(layout, spec)
     mesh = Mesh(nodes, triangles, np.full(len(triangles), -1))
@@ -309,6 +309,19 @@ def _zip_rings(inner: np.ndarray, inner_start: int, outer: np.ndarray, outer_sta
             tris.append((ii[i % m], oi[(j + 1) % n], oi[j % n]))
             j += 1
     return np.array(tris)
+
+
+def _row_major(nodes: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Renumber nodes top to bottom, left to right.
+
+    The fill-reducing ordering breaks ties by the initial numbering; from a
+    ring-by-ring numbering it yields a factor as sparse but three times slower
+    to compute than from a row-major one (measured on the disc meshes).
+    """
+    order = np.lexsort((nodes[:, 0], np.round(nodes[:, 1], 9)))
+    new = np.empty_like(order)
+    new[order] = np.arange(len(order))
+    return nodes[order], new[triangles]
 
 
 def _counter_clockwise(nodes: np.ndarray, triangles: np.ndarray) -> np.ndarray:

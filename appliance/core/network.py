@@ -30,7 +30,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from appliance.core.assembly import build_assembler, offset_variables
-from appliance.core.forward import ForwardModel
+from appliance.core.forward import ForwardModel, with_fill_reducing_order
 from appliance.core.layouts import DiscSheet, Layout, RectElectrode
 from appliance.errors import LayoutInvalid
 
@@ -164,8 +164,9 @@ def build_network_model(grid: NetworkGrid, electrode_conductance: float = ELECTR
                                np.concatenate([np.arange(n_nodes), master[offsets]]))),
                              shape=(n_nodes, n_nodes))[:, :-1]
     sheet = build_assembler(n_nodes, np.where(metal[:, None], -1, topo), np.array(local))
-    return ForwardModel("network", system, sp.csc_matrix(spread[:-1]), grid.centroids_mm, grid.areas_mm2, metal,
-                        sp.csr_matrix(node_map), sheet, contact_nodes)
+    return with_fill_reducing_order(ForwardModel("network", system, sp.csc_matrix(spread[:-1]), grid.centroids_mm,
+                                                 grid.areas_mm2, metal, sp.csr_matrix(node_map), sheet,
+                                                 contact_nodes))
 
 
 def appendix_b_electrode_volts(grid: NetworkGrid, conductance: np.ndarray, source: int, sink: int,
