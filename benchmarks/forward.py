@@ -8,6 +8,7 @@ Timings are medians of repeated runs on one machine in one run; compare ratios.
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -29,18 +30,31 @@ LAYOUTS = ("circular-16", "square-16", "grid-4x4")
 
 
 def phase_times(layout, density):
-    """Model build, assembly, factorisation and all-drive solve times on one mesh."""
+    """Model build, assembly, factorisation, field solves and a whole frame on one mesh.
+
+    The phases are timed in turn within each repeat, so that the machine's drift
+    falls on all of them alike; each figure is a median over the repeats.
+    """
     protocol = default_protocol(layout)
     mesh = mesh_layout(layout, density)
-    repeats = 30 if mesh.n_nodes < 20_000 else 5
+    repeats = 30 if mesh.n_nodes < 20_000 else 7
     build = median_seconds(lambda: build_fem_model(layout, mesh), max(3, repeats // 5))
     model = build_fem_model(layout, mesh)
     sigma = np.ones(model.n_elements)
-    assemble = median_seconds(lambda: model.system.matrix(sigma), repeats)
-    factor = median_seconds(lambda: factorise(model, sigma), repeats)
-    system = factorise(model, sigma)
-    solve = median_seconds(lambda: solve_electrodes(model, sigma, factorised=system), repeats)
-    total = median_seconds(lambda: simulate(model, sigma, protocol), repeats)
+    simulate(model, sigma, protocol)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        model.system.matrix(sigma)
+        t1 = time.perf_counter()
+        system = factorise(model, sigma)
+        t2 = time.perf_counter()
+        solve_electrodes(model, sigma, factorised=system).readings(protocol)
+        t3 = time.perf_counter()
+        simulate(model, sigma, protocol)
+        t4 = time.perf_counter()
+        times.append((t1 - t0, t2 - t1, t3 - t2, t4 - t3))
+    assemble, factor, solve, total = np.median(times, axis=0)
     return mesh.n_nodes, build, assemble, factor, solve, total
 
 
@@ -213,7 +227,7 @@ def main():
     report = f"""# Forward model: speed against mesh size and error
 
 Made by `{COMMAND}` on {machine()}.
-Every time is a median of repeated runs in this one run (30 for small meshes, 5 for the largest).
+Every time is a median of repeated runs in this one run (30 for small meshes, 7 for the largest).
 The model is the finite-element sheet with the complete electrode model (`appliance/core/fem.py`). A
 frame factorises K(sigma) once, solves a unit current into each electrode (15 right-hand sides on 16
 electrodes, the 16th being ground) and takes every reading from the electrodes' transfer impedances.
