@@ -74,7 +74,8 @@ def _layouts(args) -> int:
 
 
 def _layout(args) -> int:
-    from appliance.core.layouts import get_layout, layout_to_toml
+    from appliance.core.layout_files import layout_to_toml
+    from appliance.core.layouts import get_layout
 
     sys.stdout.write(layout_to_toml(get_layout(args.layout)))
     return 0

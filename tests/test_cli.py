@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from appliance.cli import main
-from appliance.core.layouts import get_layout, layout_to_toml
+from appliance.core.layout_files import layout_to_toml
+from appliance.core.layouts import get_layout
 
 
 def run(capsys, *args):

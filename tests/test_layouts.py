@@ -5,9 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from appliance.core.layouts import (
-    DiscSheet, Layout, RectElectrode, RectSheet, SectorElectrode, get_layout, layout_to_toml, load_layout,
-)
+from appliance.core.layout_files import layout_to_toml, load_layout
+from appliance.core.layouts import DiscSheet, Layout, RectElectrode, RectSheet, SectorElectrode, get_layout
 from appliance.errors import LayoutInvalid
 
 

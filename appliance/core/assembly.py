@@ -144,3 +144,17 @@ def offset_variables(element_dofs: np.ndarray, element_matrices: np.ndarray, bas
     expand = np.hstack([np.eye(m), np.eye(m)])
     matrices = np.einsum("ai,tab,bj->tij", expand, element_matrices, expand)
     return np.concatenate([element_dofs, base_dofs], axis=1), matrices
+
+
+def offset_potentials(base: np.ndarray, n_unknowns: int, keep: np.ndarray) -> sp.csr_matrix:
+    """The map from kept unknowns to node potentials when node i's potential is its own
+    unknown plus, where ``base[i] >= 0``, that base unknown (see :func:`offset_variables`).
+
+    Returns shape (len(base), len(keep)); an unknown left out of ``keep`` is grounded (zero).
+    """
+    n_nodes = len(base)
+    offsets = np.flatnonzero(base >= 0)
+    rows = np.concatenate([np.arange(n_nodes), offsets])
+    cols = np.concatenate([np.arange(n_nodes), base[offsets]])
+    full = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_nodes, n_unknowns))
+    return sp.csr_matrix(full[:, keep])

@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from appliance.core.assembly import build_assembler, offset_variables
+from appliance.core.assembly import build_assembler, offset_potentials, offset_variables
 from appliance.core.forward import ForwardModel, with_fill_reducing_order
 from appliance.core.layouts import Layout
 from appliance.core.mesh import Mesh, mesh_layout
@@ -61,8 +61,8 @@ def unit_stiffness(mesh: Mesh) -> np.ndarray:
     return mesh.areas_mm2[:, None, None] * np.einsum("tik,tjk->tij", g, g)
 
 
-def _face_mass(mesh: Mesh, conductance_per_mm2: np.ndarray) -> sp.coo_matrix:
-    """Sum over electrode faces of (1/z) * mass matrix, over nodes."""
+def _face_mass(mesh: Mesh, conductance_per_mm2: np.ndarray, size: int) -> sp.coo_matrix:
+    """Sum over electrode faces of (1/z) * mass matrix, on the first unknowns of a size x size system."""
     on_face = np.flatnonzero(mesh.contact >= 0)
     local = (np.full((3, 3), 1.0) + np.eye(3)) / 12.0
     tri = mesh.triangles[on_face]
@@ -70,7 +70,7 @@ def _face_mass(mesh: Mesh, conductance_per_mm2: np.ndarray) -> sp.coo_matrix:
     rows = np.repeat(tri, 3, axis=1).ravel()
     cols = np.tile(tri, (1, 3)).ravel()
     data = (scale[:, None, None] * local[None]).ravel()
-    return sp.coo_matrix((data, (rows, cols)), shape=(mesh.n_nodes, mesh.n_nodes))
+    return sp.coo_matrix((data, (rows, cols)), shape=(size, size))
 
 
 def build_fem_model(layout: Layout, mesh: Mesh | None = None, *, density: float = 1.0,
@@ -106,22 +106,13 @@ def build_fem_model(layout: Layout, mesh: Mesh | None = None, *, density: float 
     n_unknowns = n_nodes + n_el
     local = unit_stiffness(mesh)
     tri = mesh.triangles
-    face = face_of_node[tri]                          # (n_tri, 3): electrode of each vertex or -1
-    dofs, expanded = offset_variables(tri, local, np.where(face >= 0, n_nodes + face, -1))
-    contact = _face_mass(mesh, 1.0 / (z * _MM2_PER_M2))
-    fixed = sp.coo_matrix((contact.data, (contact.row, contact.col)), shape=(n_unknowns, n_unknowns))
+    base = np.where(face_of_node >= 0, n_nodes + face_of_node, -1)    # the U each node's potential carries
+    dofs, expanded = offset_variables(tri, local, base[tri])
     keep = np.arange(n_unknowns - 1)
-    system = build_assembler(n_unknowns, dofs, expanded, fixed, keep)
-
+    system = build_assembler(n_unknowns, dofs, expanded, _face_mass(mesh, 1.0 / (z * _MM2_PER_M2), n_unknowns), keep)
     electrodes = sp.csc_matrix((np.ones(n_el - 1), (n_nodes + np.arange(n_el - 1), np.arange(n_el - 1))),
                                shape=(n_unknowns - 1, n_el))
-    face_nodes = np.flatnonzero(face_of_node >= 0)
-    on_face = face_of_node[face_nodes] < n_el - 1
-    node_map = sp.csr_matrix(
-        (np.ones(n_nodes + on_face.sum()),
-         (np.concatenate([np.arange(n_nodes), face_nodes[on_face]]),
-          np.concatenate([np.arange(n_nodes), n_nodes + face_of_node[face_nodes[on_face]]]))),
-        shape=(n_nodes, n_unknowns - 1))
+    node_map = offset_potentials(base, n_unknowns, keep)
     sheet = build_assembler(n_nodes, tri, local)
     return with_fill_reducing_order(ForwardModel("fem", system, electrodes, mesh.centroids_mm, mesh.areas_mm2,
                                                  np.zeros(mesh.n_triangles, dtype=bool), node_map, sheet,

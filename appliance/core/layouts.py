@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import math
 import re
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -361,96 +360,10 @@ def get_layout(name: str) -> Layout:
         height, width = (float(match[3]), float(match[4])) if match[3] else BED_MAT_MM
         return grid_layout(rows, cols, height, width, name=name)
     if name.endswith(".toml"):
+        from appliance.core.layout_files import load_layout
+
         return load_layout(Path(name))
     raise LayoutInvalid(
         f"unknown layout {name!r}: use one of {', '.join(BUILTIN_NAMES)}, grid-RxC, grid-RxC@HxW "
         f"(mm) or a .toml layout file"
     )
-
-
-# ---------------------------------------------------------------------------
-# TOML description
-
-def load_layout(path: Path) -> Layout:
-    """Read a layout from a TOML file (the format :func:`layout_to_toml` writes)."""
-    try:
-        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise LayoutInvalid(f"layout file {path} does not exist") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise LayoutInvalid(f"layout file {path} is not valid TOML: {exc}") from None
-    try:
-        return layout_from_mapping(data)
-    except LayoutInvalid as exc:
-        raise LayoutInvalid(f"layout file {path}: {exc}") from None
-
-
-def layout_from_mapping(data: dict) -> Layout:
-    """Build a layout from parsed TOML (a dict); every missing or mistyped key is named."""
-    name = _field(data, "name", str, "the layout")
-    sheet_data = _field(data, "sheet", dict, "the layout")
-    shape = _field(sheet_data, "shape", str, "[sheet]")
-    if shape == "rectangle":
-        sheet = RectSheet(_number(sheet_data, "width_mm", "[sheet]"), _number(sheet_data, "height_mm", "[sheet]"))
-    elif shape == "disc":
-        sheet = DiscSheet(_number(sheet_data, "radius_mm", "[sheet]"))
-    else:
-        raise LayoutInvalid(f"[sheet] shape must be 'rectangle' or 'disc', got {shape!r}")
-    electrodes = []
-    for i, item in enumerate(_field(data, "electrodes", list, "the layout"), start=1):
-        where = f"[[electrodes]] entry {i}"
-        if not isinstance(item, dict):
-            raise LayoutInvalid(f"{where} must be a table")
-        number = _field(item, "number", int, where)
-        kind = _field(item, "shape", str, where)
-        if kind == "rectangle":
-            electrodes.append(RectElectrode(number, *(_number(item, k, where) for k in
-                                                      ("x_mm", "y_mm", "width_mm", "height_mm"))))
-        elif kind == "sector":
-            electrodes.append(SectorElectrode(number, *(_number(item, k, where) for k in
-                                                        ("angle_deg", "width_deg", "depth_mm"))))
-        else:
-            raise LayoutInvalid(f"{where}: shape must be 'rectangle' or 'sector', got {kind!r}")
-    grid = data.get("grid")
-    if grid is not None and not (isinstance(grid, list) and len(grid) == 2 and all(isinstance(g, int) for g in grid)):
-        raise LayoutInvalid(f"grid must be [rows, columns], got {grid!r}")
-    return Layout(name, sheet, tuple(electrodes), tuple(grid) if grid else None)
-
-
-def _field(data: dict, key: str, kind: type, where: str):
-    if key not in data:
-        raise LayoutInvalid(f"{where} is missing {key!r}")
-    value = data[key]
-    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
-        raise LayoutInvalid(f"{where}: {key!r} must be {kind.__name__}, got {value!r}")
-    return value
-
-
-def _number(data: dict, key: str, where: str) -> float:
-    value = data.get(key)
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise LayoutInvalid(f"{where}: {key!r} must be a number, got {value!r}")
-    return float(value)
-
-
-def layout_to_toml(layout: Layout) -> str:
-    """The layout as TOML text that :func:`load_layout` reads back unchanged."""
-    lines = [f'name = "{layout.name}"']
-    if layout.grid_shape:
-        lines.append(f"grid = [{layout.grid_shape[0]}, {layout.grid_shape[1]}]")
-    lines.append("")
-    lines.append("[sheet]")
-    if isinstance(layout.sheet, DiscSheet):
-        lines += ['shape = "disc"', f"radius_mm = {float(layout.sheet.radius_mm)!r}"]
-    else:
-        lines += ['shape = "rectangle"', f"width_mm = {float(layout.sheet.width_mm)!r}",
-                  f"height_mm = {float(layout.sheet.height_mm)!r}"]
-    for e in layout.electrodes:
-        lines += ["", "[[electrodes]]", f"number = {e.number}"]
-        if isinstance(e, SectorElectrode):
-            lines += ['shape = "sector"', f"angle_deg = {float(e.angle_deg)!r}", f"width_deg = {float(e.width_deg)!r}",
-                      f"depth_mm = {float(e.depth_mm)!r}"]
-        else:
-            lines += ['shape = "rectangle"', f"x_mm = {float(e.x_mm)!r}", f"y_mm = {float(e.y_mm)!r}",
-                      f"width_mm = {float(e.width_mm)!r}", f"height_mm = {float(e.height_mm)!r}"]
-    return "\n".join(lines) + "\n"

@@ -29,7 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from appliance.core.assembly import build_assembler, offset_variables
+from appliance.core.assembly import build_assembler, offset_potentials, offset_variables
 from appliance.core.forward import ForwardModel, with_fill_reducing_order
 from appliance.core.layouts import DiscSheet, Layout, RectElectrode
 from appliance.errors import LayoutInvalid
@@ -158,15 +158,10 @@ def build_network_model(grid: NetworkGrid, electrode_conductance: float = ELECTR
         weights += [np.full(len(nodes) - 1, 1.0 / len(nodes)), [1.0]]
     spread = sp.csc_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
                            shape=(n_nodes, grid.n_electrodes))
-    offsets = np.flatnonzero(master >= 0)
-    node_map = sp.csr_matrix((np.ones(n_nodes + offsets.size),
-                              (np.concatenate([np.arange(n_nodes), offsets]),
-                               np.concatenate([np.arange(n_nodes), master[offsets]]))),
-                             shape=(n_nodes, n_nodes))[:, :-1]
+    node_map = offset_potentials(master, n_nodes, keep)
     sheet = build_assembler(n_nodes, np.where(metal[:, None], -1, topo), np.array(local))
-    return with_fill_reducing_order(ForwardModel("network", system, sp.csc_matrix(spread[:-1]), grid.centroids_mm,
-                                                 grid.areas_mm2, metal, sp.csr_matrix(node_map), sheet,
-                                                 contact_nodes))
+    return with_fill_reducing_order(ForwardModel("network", system, sp.csc_matrix(spread[keep]), grid.centroids_mm,
+                                                 grid.areas_mm2, metal, node_map, sheet, contact_nodes))
 
 
 def appendix_b_electrode_volts(grid: NetworkGrid, conductance: np.ndarray, source: int, sink: int,
