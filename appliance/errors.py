@@ -33,3 +33,7 @@ class ModelInputInvalid(ApplianceError, ValueError):
 
 class SolverError(ApplianceError, ArithmeticError):
     """A linear solve did not reach the required accuracy or produced non-finite values."""
+
+
+class ReconstructionError(ApplianceError, ValueError):
+    """A frame cannot be reconstructed: too few usable readings, or readings that do not fit the model."""

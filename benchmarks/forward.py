@@ -7,6 +7,8 @@ Timings are medians of repeated runs on one machine in one run; compare ratios.
 
 from __future__ import annotations
 
+import appliance  # noqa: F401  (first: it pins BLAS to one thread before numpy loads)
+
 import sys
 import time
 from pathlib import Path

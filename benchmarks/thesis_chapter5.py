@@ -10,6 +10,8 @@ square anomalies of the Table 5.4.5 areas sweep contrast 0.001 to 1000.
 
 from __future__ import annotations
 
+import appliance  # noqa: F401  (first: it pins BLAS to one thread before numpy loads)
+
 import sys
 from pathlib import Path
 

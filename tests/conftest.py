@@ -1,5 +1,7 @@
 """Shared fixtures: a clean environment, the built-in layouts and their models."""
 
+import appliance  # noqa: F401  (first: it pins BLAS to one thread before numpy loads)
+
 import os
 
 import numpy as np

@@ -113,10 +113,9 @@ def build_fem_model(layout: Layout, mesh: Mesh | None = None, *, density: float 
     electrodes = sp.csc_matrix((np.ones(n_el - 1), (n_nodes + np.arange(n_el - 1), np.arange(n_el - 1))),
                                shape=(n_unknowns - 1, n_el))
     node_map = offset_potentials(base, n_unknowns, keep)
-    sheet = build_assembler(n_nodes, tri, local)
-    return with_fill_reducing_order(ForwardModel("fem", system, electrodes, mesh.centroids_mm, mesh.areas_mm2,
-                                                 np.zeros(mesh.n_triangles, dtype=bool), node_map, sheet,
-                                                 contact_nodes))
+    return with_fill_reducing_order(ForwardModel(
+        "fem", system, electrodes, mesh.centroids_mm, mesh.areas_mm2, np.zeros(mesh.n_triangles, dtype=bool),
+        node_map, mesh.nodes, tri, local, contact_nodes))
 
 
 def _face_nodes(mesh: Mesh, n_electrodes: int) -> tuple[np.ndarray, tuple]:

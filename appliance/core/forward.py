@@ -23,11 +23,12 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
 
-from appliance.core.assembly import Assembler
+from appliance.core.assembly import Assembler, build_assembler
 from appliance.core.linsolve import FactorisedSystem
 from appliance.core.protocols import Protocol
 from appliance.errors import ModelInputInvalid, ProtocolInvalid
@@ -53,10 +54,12 @@ class ForwardModel:
         electrodes); conductivities given for them are not used.
     node_map : sparse matrix, shape (n_nodes, n_unknowns)
         Node potentials from a solution.
-    sheet : Assembler
-        The conductivity-dependent part alone, over nodes and ungrounded: the
-        currents it carries out of each electrode's contact nodes are checked
-        against the currents driven.
+    nodes_mm : ndarray, shape (n_nodes, 2)
+        Node coordinates.
+    element_nodes : ndarray, shape (n_elements, m)
+        Nodes of each element (3 for triangles, 4 for the network's squares).
+    element_matrices : ndarray, shape (n_elements, m, m)
+        Each element's matrix over its nodes at unit conductivity.
     contact_nodes : tuple of ndarray
         For each electrode, the nodes through which it feeds the sheet.
     ordered : bool
@@ -71,7 +74,9 @@ class ForwardModel:
     areas_mm2: np.ndarray
     fixed_elements: np.ndarray
     node_map: sp.csr_matrix
-    sheet: Assembler
+    nodes_mm: np.ndarray
+    element_nodes: np.ndarray
+    element_matrices: np.ndarray
     contact_nodes: tuple
     ordered: bool = False
 
@@ -82,6 +87,13 @@ class ForwardModel:
     @property
     def n_electrodes(self) -> int:
         return self.electrodes.shape[1]
+
+    @cached_property
+    def sheet(self) -> Assembler:
+        """The conductivity-dependent part alone, over nodes and ungrounded: the currents it
+        carries out of each electrode's contact nodes are checked against those driven."""
+        dofs = np.where(self.fixed_elements[:, None], -1, self.element_nodes)
+        return build_assembler(len(self.nodes_mm), dofs, self.element_matrices)
 
 
 @dataclass(frozen=True)

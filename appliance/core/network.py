@@ -112,6 +112,15 @@ class NetworkGrid:
         return (self.cell_rc[:, ::-1] + 0.5) * self.cell_mm
 
     @property
+    def nodes_mm(self) -> np.ndarray:
+        """Corner coordinates, in node order, shape (n_nodes, 2)."""
+        rc = np.argwhere(self._corner_numbers >= 0)
+        order = self._corner_numbers[rc[:, 0], rc[:, 1]]
+        coords = np.empty((len(rc), 2))
+        coords[order] = rc[:, ::-1] * self.cell_mm
+        return coords
+
+    @property
     def areas_mm2(self) -> np.ndarray:
         return np.full(self.n_cells, self.cell_mm**2)
 
@@ -159,9 +168,9 @@ def build_network_model(grid: NetworkGrid, electrode_conductance: float = ELECTR
     spread = sp.csc_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
                            shape=(n_nodes, grid.n_electrodes))
     node_map = offset_potentials(master, n_nodes, keep)
-    sheet = build_assembler(n_nodes, np.where(metal[:, None], -1, topo), np.array(local))
-    return with_fill_reducing_order(ForwardModel("network", system, sp.csc_matrix(spread[keep]), grid.centroids_mm,
-                                                 grid.areas_mm2, metal, node_map, sheet, contact_nodes))
+    return with_fill_reducing_order(ForwardModel(
+        "network", system, sp.csc_matrix(spread[keep]), grid.centroids_mm, grid.areas_mm2, metal, node_map,
+        grid.nodes_mm, topo, np.array(local), contact_nodes))
 
 
 def appendix_b_electrode_volts(grid: NetworkGrid, conductance: np.ndarray, source: int, sink: int,
