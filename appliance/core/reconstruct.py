@@ -1,0 +1,315 @@
+"""Readings to an image of relative conductivity change, one matrix-vector product a frame.
+
+Every algorithm is precomputed into one matrix R (pixels x readings) from the
+linearised model at the homogeneous reference: J, the change of each reading per
+unit relative change of each pixel (sigma = sigma_ref (1 + x)). A frame is
+
+    x = R (v - v_ref) / s
+
+where s scales the model to the sheet (its conductance, the drive current) by a
+least-squares fit of the measured reference to the model's. A pressed region,
+less conductive, comes out negative.
+
+Algorithms:
+
+* ``backprojection``: the thesis's eq. 3.4.2, normalised changes (v - v_ref) / v_ref
+  back-projected by the sensitivity S of eq. 3.4.1 (from the model, or from an
+  experimental calibration), then scaled once so that a change at one pixel alone
+  reads, on average, at its true size (reference readings below 5 % of the rms
+  reading are taken at that floor, so that none blows up the image);
+* ``gn-tikhonov``, ``gn-noser``, ``gn-laplace``: one-step Gauss-Newton,
+  R = (J^T W J + lambda P)^-1 J^T W, readings weighted by their noise (W), priors
+  from :mod:`appliance.core.regularisation`;
+* ``greit``: a GREIT-style reconstructor trained on single-pixel targets, each to
+  be imaged as a blurred spot: R = D (J^T W J + lambda I)^-1 J^T W.
+
+Lambda comes from a stated rule (by default the expected image error under the
+noise model, :mod:`appliance.core.regularisation`) and is stored with the
+reconstructor, as is the noise figure it gives.
+When a reading or an electrode fails, :func:`without_readings` rebuilds R from J
+in milliseconds, keeping lambda.
+
+>>> from appliance.core.layouts import get_layout
+>>> from appliance.core.protocols import default_protocol
+>>> from appliance.core.fem import build_fem_model
+>>> from appliance.core.pixels import pixel_grid
+>>> layout = get_layout("grid-4x4")
+>>> linear = linear_model(build_fem_model(layout), default_protocol(layout), pixel_grid(layout))
+>>> r = build_reconstructor(linear)
+>>> r.matrix.shape
+(256, 448)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+
+from appliance.core.forward import ForwardModel, solve_electrodes
+from appliance.core.jacobian import jacobian
+from appliance.core.pixels import PixelGrid, element_pixel_map, pixel_areas_mm2
+from appliance.core.protocols import Protocol
+from appliance.core.regularisation import (
+    NoiseModel, choose_lambda, expected_error, minimise_lambda, noise_figure, prior_matrix,
+)
+from appliance.errors import ConfigError, ReconstructionError
+
+ALGORITHMS = ("greit", "gn-laplace", "gn-noser", "gn-tikhonov", "backprojection")
+DEFAULT_ALGORITHM = "greit"
+
+
+@dataclass(frozen=True)
+class LinearModel:
+    """The model linearised at the homogeneous reference, on a pixel grid.
+
+    Attributes
+    ----------
+    protocol : Protocol
+    grid : PixelGrid
+    jacobian : ndarray, shape (n_readings, n_pixels)
+        Volts per amp per unit relative change of each imaged pixel, at unit conductivity.
+    reference : ndarray, shape (n_readings,)
+        The homogeneous readings, volts per amp at unit conductivity.
+    areas_mm2 : ndarray, shape (n_pixels,)
+        Sheet area each imaged pixel stands for.
+    """
+
+    protocol: Protocol
+    grid: PixelGrid
+    jacobian: np.ndarray
+    reference: np.ndarray
+    areas_mm2: np.ndarray
+
+
+def linear_model(model: ForwardModel, protocol: Protocol, grid: PixelGrid) -> LinearModel:
+    """Linearise ``model`` at unit conductivity onto the pixels of ``grid``."""
+    sigma = np.ones(model.n_elements)
+    fields = solve_electrodes(model, sigma)
+    mapping = element_pixel_map(model, grid)
+    j = np.asarray((mapping.T @ jacobian(model, sigma, protocol, fields, relative=True).T).T)
+    return LinearModel(protocol, grid, j, fields.readings(protocol), pixel_areas_mm2(model, mapping))
+
+
+LAMBDA_RULES = ("expected-error", "noise-figure")
+
+
+@dataclass(frozen=True)
+class ReconstructionOptions:
+    """Choices that shape a reconstructor; stored with it (and in the model cache's key).
+
+    Attributes
+    ----------
+    algorithm : str
+    noise : NoiseModel
+        The readings' noise, which weights them and sets the regularisation.
+    lambda_rule : str
+        ``expected-error`` or ``noise-figure`` (see :mod:`appliance.core.regularisation`).
+    noise_figure : float
+        The target of the noise-figure rule.
+    target_fraction : float
+        Diameter of the training spots of the expected-error rule, as a share of the
+        sheet's shorter side (0.2: 20 mm on the 100 mm sensors).
+    target_contrast : float
+        Their relative conductivity change (-0.4: the liquid thinned by 40 %).
+    desired_blur_px : float
+        Width (standard deviation, pixels) of the spot GREIT images a change as.
+    """
+
+    algorithm: str = DEFAULT_ALGORITHM
+    noise: NoiseModel = NoiseModel()
+    lambda_rule: str = "expected-error"
+    noise_figure: float = 0.5
+    target_fraction: float = 0.2
+    target_contrast: float = -0.4
+    desired_blur_px: float = 0.75
+
+    def __post_init__(self):
+        if self.algorithm not in ALGORITHMS:
+            raise ConfigError(f"unknown algorithm {self.algorithm!r}: use one of {', '.join(ALGORITHMS)}")
+        if self.lambda_rule not in LAMBDA_RULES:
+            raise ConfigError(f"unknown lambda rule {self.lambda_rule!r}: use one of {', '.join(LAMBDA_RULES)}")
+        if not self.noise_figure > 0 or not self.target_fraction > 0 or self.target_contrast == 0:
+            raise ConfigError(f"noise figure and target size must be positive, contrast non-zero: {self}")
+
+
+@dataclass(frozen=True)
+class Reconstructor:
+    """A precomputed reconstruction: ``matrix`` (n_pixels, n_readings) and what made it.
+
+    ``usable`` marks the readings it uses (the others have zero columns); ``lam``
+    and ``achieved_noise_figure`` record the regularisation.
+    """
+
+    linear: LinearModel
+    options: ReconstructionOptions
+    matrix: np.ndarray
+    usable: np.ndarray
+    lam: float
+    achieved_noise_figure: float
+    sensitivity: np.ndarray | None = None
+
+    @property
+    def grid(self) -> PixelGrid:
+        return self.linear.grid
+
+    def reconstruct(self, frame: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        """The image (rows, cols) of relative conductivity change between ``reference`` and ``frame``.
+
+        Both are readings in protocol order (volts); NaN marks a missing reading,
+        which :func:`without_readings` must have dropped first.
+        """
+        return self.grid.image(self.pixels(frame, reference))
+
+    def pixels(self, frame: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        """As :meth:`reconstruct`, the imaged pixels only, shape (n_pixels,)."""
+        u = self.usable
+        delta = np.where(u, frame - reference, 0.0)
+        if not np.all(np.isfinite(delta)):
+            raise ReconstructionError("frame or reference has a missing or non-finite reading that the "
+                                      "reconstructor still uses; drop it with without_readings first")
+        return (self.matrix @ delta) / self.scale(reference)
+
+    def scale(self, reference: np.ndarray) -> float:
+        """Measured over modelled reference readings (least squares over the usable readings)."""
+        m = self.linear.reference[self.usable]
+        v = reference[self.usable]
+        s = float(v @ m) / float(m @ m)
+        if not np.isfinite(s) or s <= 0:
+            raise ReconstructionError(
+                f"the reference readings do not match this layout's model (fitted scale {s:.3g}); is the "
+                f"frame from another layout or protocol, or are the measuring leads reversed?")
+        return s
+
+
+def build_reconstructor(linear: LinearModel, options: ReconstructionOptions | None = None,
+                        usable: np.ndarray | None = None, lam: float | None = None,
+                        sensitivity: np.ndarray | None = None) -> Reconstructor:
+    """Precompute the reconstruction matrix.
+
+    Parameters
+    ----------
+    usable : ndarray of bool, shape (n_readings,), optional
+        Readings to use; by default all.
+    lam : float, optional
+        Regularisation; by default chosen by the noise-figure rule.
+    sensitivity : ndarray, shape (n_pixels, n_readings), optional
+        For ``backprojection``: the experimental S of eq. 3.4.1 (V_p - V_H), rows in
+        imaged-pixel order; by default the model's.
+    """
+    options = options or ReconstructionOptions()
+    n = len(linear.reference)
+    usable = np.ones(n, dtype=bool) if usable is None else np.asarray(usable, dtype=bool)
+    if usable.shape != (n,):
+        raise ConfigError(f"usable mask needs {n} entries, got shape {usable.shape}")
+    if usable.sum() < 2:
+        raise ReconstructionError(f"only {int(usable.sum())} of {n} readings are usable: nothing can be "
+                                  f"reconstructed")
+    j = np.where(usable[:, None], linear.jacobian, 0.0)
+    std = options.noise.std(linear.reference)
+    weights = np.where(usable, 1.0 / std**2, 0.0)
+    used_std = np.where(usable, std, 0.0)
+    build = _builder(options, linear, j, weights, usable, sensitivity)
+    figure = lambda r: noise_figure(r, j, used_std, _centre_target(linear.grid), linear.areas_mm2)   # noqa: E731
+    if lam is None and options.algorithm != "backprojection":
+        if options.lambda_rule == "noise-figure":
+            lam, _ = choose_lambda(build, figure, options.noise_figure)
+        else:
+            targets = _training_targets(linear.grid, options)
+            desired = targets
+            if options.algorithm == "greit":
+                desired = _desired_image(linear.grid, linear.areas_mm2, options.desired_blur_px) @ targets
+            lam = minimise_lambda(build, lambda r: expected_error(r, j, used_std, targets, desired,
+                                                                 linear.areas_mm2))
+    lam = 0.0 if lam is None else lam
+    matrix = build(lam)
+    return Reconstructor(linear, options, matrix, usable, lam, figure(matrix), sensitivity)
+
+
+def without_readings(r: Reconstructor, drop: np.ndarray) -> Reconstructor:
+    """``r`` rebuilt without the readings marked in ``drop`` (bool, n_readings), same lambda."""
+    usable = r.usable & ~np.asarray(drop, dtype=bool)
+    return build_reconstructor(r.linear, r.options, usable, r.lam, r.sensitivity)
+
+
+def readings_using(protocol: Protocol, electrodes) -> np.ndarray:
+    """Mask of the readings that drive or measure on any of ``electrodes`` (1-based numbers)."""
+    return np.isin(protocol.readings, np.asarray(list(electrodes))).any(axis=1)
+
+
+def _builder(options, linear, j, weights, usable, sensitivity):
+    """A function of lambda giving the reconstruction matrix."""
+    algorithm = options.algorithm
+    jw = j.T * weights                                             # J^T W, (n_pixels, n_readings)
+    normal = jw @ j
+    if algorithm.startswith("gn-"):
+        prior = prior_matrix(algorithm[3:], normal, linear.grid)
+        return lambda lam: _solve_spd(normal + lam * prior, jw)
+    if algorithm == "greit":
+        prior = prior_matrix("tikhonov", normal, linear.grid)
+        blur = _desired_image(linear.grid, linear.areas_mm2, options.desired_blur_px)
+        return lambda lam: blur @ _solve_spd(normal + lam * prior, jw)
+    return _backprojection(linear, j, usable, sensitivity)
+
+
+def _solve_spd(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    try:
+        return sla.cho_solve(sla.cho_factor(a), b)
+    except np.linalg.LinAlgError:
+        # Laplace's prior is singular on constants; a tiny lambda with few readings can leave
+        # the sum only semi-definite, where a least-squares solve still gives a finite answer.
+        return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
+def _desired_image(grid: PixelGrid, areas: np.ndarray, blur_px: float) -> np.ndarray:
+    """D: column q is the spot a unit change at pixel q should be imaged as, same integral."""
+    c = grid.centres_mm[grid.inside_index] / np.array(grid.pixel_mm)
+    d2 = ((c[:, None, :] - c[None, :, :]) ** 2).sum(axis=2)
+    spots = np.exp(-0.5 * d2 / blur_px**2)
+    return spots * (areas / (areas @ spots))[None, :]
+
+
+def _backprojection(linear: LinearModel, j: np.ndarray, usable: np.ndarray, sensitivity):
+    """The thesis's eq. 3.4.2 as a matrix on v - v_ref, independent of lambda."""
+    ref = linear.reference
+    floor = 0.05 * np.sqrt(np.mean(ref[usable] ** 2))
+    safe = np.where(np.abs(ref) < floor, np.copysign(floor, ref), ref)
+    if sensitivity is None:
+        s = -np.sign(ref)[None, :] * j.T            # eq. 3.4.1 linearised for an insulating object
+    else:
+        s = np.where(usable[None, :], sensitivity, 0.0)
+        s = s * np.sign(ref)[None, :]
+    totals = s.sum(axis=1, keepdims=True)
+    totals[totals == 0] = 1.0
+    b = s / totals / safe[None, :]
+    b = np.where(usable[None, :], b, 0.0)
+    # One scale for the whole image, so that a change at a pixel alone reads, on average
+    # over the sheet, at its true size and sign; per-pixel scaling would divide by the
+    # near-zero responses over the electrodes.
+    response = np.einsum("pr,rp->p", b, j)
+    matrix = b / (linear.areas_mm2 @ response / linear.areas_mm2.sum())
+    return lambda lam: matrix
+
+
+def _training_targets(grid: PixelGrid, options: ReconstructionOptions) -> np.ndarray:
+    """Spots of the expected size and contrast centred on every imaged pixel, one per column."""
+    c = grid.centres_mm[grid.inside_index]
+    radius = 0.5 * options.target_fraction * min(grid.width_mm, grid.height_mm)
+    d = np.linalg.norm(c[:, None, :] - c[None, :, :], axis=2)
+    spots = (d <= max(radius, 0.5 * min(grid.pixel_mm))).astype(float)
+    return spots * options.target_contrast
+
+
+def _centre_target(grid: PixelGrid) -> np.ndarray:
+    """A small change (the four or so pixels nearest the centre) for the noise figure."""
+    c = grid.centres_mm[grid.inside_index]
+    centre = np.array([grid.width_mm, grid.height_mm]) / 2
+    d = np.linalg.norm(c - centre, axis=1)
+    return (d <= np.sort(d)[min(3, len(d) - 1)] + 1e-9).astype(float) * 0.1
+
+
+def with_options(r: Reconstructor, **changes) -> Reconstructor:
+    """``r`` rebuilt with some options changed (lambda chosen anew)."""
+    return build_reconstructor(r.linear, dataclasses.replace(r.options, **changes), r.usable, None, r.sensitivity)
