@@ -129,11 +129,12 @@ def mesh_layout(layout: Layout, density: float = 1.0, spec: MeshSpec | None = No
 
 
 def _narrowest_electrode_mm(layout: Layout) -> float:
+    """The electrode dimension the elements must resolve: the arc of a rim sector (its depth,
+    which may be a thin stand-in for a wall electrode, gets its own ring of elements)."""
     sizes = []
     for e in layout.electrodes:
         if isinstance(e, SectorElectrode):
-            arc = math.radians(e.width_deg) * layout.sheet.radius_mm
-            sizes.append(min(arc, e.depth_mm))
+            sizes.append(math.radians(e.width_deg) * layout.sheet.radius_mm)
         else:
             sizes.append(min(e.width_mm, e.height_mm))
     return min(sizes)

@@ -47,6 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
+import scipy.sparse as sp
 
 from appliance.core.forward import ForwardModel, solve_electrodes
 from appliance.core.jacobian import jacobian
@@ -75,6 +76,8 @@ class LinearModel:
         The homogeneous readings, volts per amp at unit conductivity.
     areas_mm2 : ndarray, shape (n_pixels,)
         Sheet area each imaged pixel stands for.
+    mapping : sparse matrix, shape (n_elements, n_pixels)
+        Share of each forward element's area in each pixel.
     """
 
     protocol: Protocol
@@ -82,6 +85,7 @@ class LinearModel:
     jacobian: np.ndarray
     reference: np.ndarray
     areas_mm2: np.ndarray
+    mapping: sp.csr_matrix
 
 
 def linear_model(model: ForwardModel, protocol: Protocol, grid: PixelGrid) -> LinearModel:
@@ -90,7 +94,7 @@ def linear_model(model: ForwardModel, protocol: Protocol, grid: PixelGrid) -> Li
     fields = solve_electrodes(model, sigma)
     mapping = element_pixel_map(model, grid)
     j = np.asarray((mapping.T @ jacobian(model, sigma, protocol, fields, relative=True).T).T)
-    return LinearModel(protocol, grid, j, fields.readings(protocol), pixel_areas_mm2(model, mapping))
+    return LinearModel(protocol, grid, j, fields.readings(protocol), pixel_areas_mm2(model, mapping), mapping)
 
 
 LAMBDA_RULES = ("expected-error", "noise-figure")

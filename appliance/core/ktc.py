@@ -1,0 +1,140 @@
+"""The Kuopio Tomography Challenge 2023 data: its tank as a layout, its patterns as a protocol.
+
+The tank is a 230 mm disc of saline with 32 electrodes on its wall, 11.3 mm wide,
+electrode 1 at the top and the numbers rising counter-clockwise (seen with y up, as
+the challenge draws it). Their wall contact is modelled as a 2 mm-deep rim sector
+with a near-ideal contact. A data file holds, for each of 76 current patterns
+(``Inj``, one electrode in and one out, about 1.4 to 1.5 mA), the 31 adjacent
+differences U_j - U_j+1 (``Mpat``); ``Uel`` stacks them pattern by pattern. Readings
+a difficulty level removes are NaN and stay NaN here: the reconstruction drops them
+as it would a broken electrode's.
+
+The challenge's images are 256 x 256 pixels over the square around the tank, row 0
+at the top; in our coordinates (y down from the top-left corner of that square)
+that is the row-major pixel grid of the layout.
+
+>>> layout = ktc_layout()
+>>> layout.n_electrodes, layout.sheet.radius_mm
+(32, 115.0)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from appliance.core.layouts import DiscSheet, Layout, SectorElectrode
+from appliance.core.protocols import Protocol
+from appliance.errors import DataFileInvalid
+
+TANK_RADIUS_MM = 115.0
+N_ELECTRODES = 32
+ELECTRODE_WIDTH_DEG = 5.625
+WALL_DEPTH_MM = 2.0
+CONTACT_IMPEDANCE_OHM_M2 = 2e-8
+"""Near ideal: a thousandth of the sheet's resistance over an electrode face at unit conductance."""
+
+IMAGE_SIZE = 256
+LEVELS = range(1, 8)
+
+
+def ktc_layout() -> Layout:
+    """The challenge's tank: 32 wall electrodes, counter-clockwise from the top."""
+    electrodes = tuple(SectorElectrode(k + 1, (-360.0 * k / N_ELECTRODES) % 360.0, ELECTRODE_WIDTH_DEG,
+                                       WALL_DEPTH_MM) for k in range(N_ELECTRODES))
+    return Layout("ktc-32", DiscSheet(TANK_RADIUS_MM), electrodes)
+
+
+@dataclass(frozen=True)
+class KtcData:
+    """One data file: its protocol, and readings divided by each pattern's current (ohms, NaN = missing)."""
+
+    protocol: Protocol
+    transfer_ohm: np.ndarray
+    current_ma: np.ndarray
+
+
+def load_ktc(path: Path) -> KtcData:
+    """Read a challenge data file (``Inj``/``Injref``, ``Uel``/``Uelref``, ``Mpat``).
+
+    Raises
+    ------
+    DataFileInvalid
+        The file is missing, is not a MAT file, or its arrays do not have the
+        challenge's shapes; the message names the file and the array.
+    """
+    import scipy.io
+
+    path = Path(path)
+    try:
+        data = scipy.io.loadmat(path)
+    except FileNotFoundError:
+        raise DataFileInvalid(f"KTC data file {path} does not exist") from None
+    except (ValueError, OSError) as exc:
+        raise DataFileInvalid(f"KTC data file {path} is not a MAT file: {exc}") from None
+    inj = _array(data, path, ("Inj", "Injref"))
+    uel = _array(data, path, ("Uel", "Uelref")).ravel().astype(float)
+    mpat = _array(data, path, ("Mpat",))
+    if inj.shape[0] != N_ELECTRODES or mpat.shape != (N_ELECTRODES, N_ELECTRODES - 1):
+        raise DataFileInvalid(f"KTC data file {path}: Inj must be 32 x patterns and Mpat 32 x 31, got "
+                              f"{inj.shape} and {mpat.shape}")
+    if uel.size != inj.shape[1] * mpat.shape[1]:
+        raise DataFileInvalid(f"KTC data file {path}: Uel has {uel.size} readings, the patterns give "
+                              f"{inj.shape[1] * mpat.shape[1]}")
+    rows, currents = [], []
+    for j in range(inj.shape[1]):
+        column = np.nan_to_num(inj[:, j])
+        pos, neg = int(np.argmax(column)) + 1, int(np.argmin(column)) + 1
+        if column[pos - 1] <= 0 or column[neg - 1] >= 0 or np.count_nonzero(column) != 2:
+            raise DataFileInvalid(f"KTC data file {path}: current pattern {j + 1} is not one electrode in, "
+                                  f"one out")
+        currents.append(column[pos - 1])
+        for m in range(mpat.shape[1]):
+            plus, minus = int(np.argmax(mpat[:, m])) + 1, int(np.argmin(mpat[:, m])) + 1
+            rows.append((pos, neg, plus, minus))
+    current = np.repeat(np.array(currents), mpat.shape[1])
+    protocol = Protocol(np.array(rows), N_ELECTRODES, name=f"ktc-{path.stem}")
+    return KtcData(protocol, uel / current, np.array(currents))
+
+
+def _array(data: dict, path: Path, names: tuple[str, ...]) -> np.ndarray:
+    for name in names:
+        if name in data:
+            return np.asarray(data[name])
+    raise DataFileInvalid(f"KTC data file {path} has none of {', '.join(names)}")
+
+
+def removed_electrodes(level: int) -> list[int]:
+    """The electrodes whose data difficulty level ``level`` removes: 1 to 2 (level - 1)."""
+    return list(range(1, 2 * (level - 1) + 1))
+
+
+def segment(image: np.ndarray, threshold: float, relative_floor: float) -> np.ndarray:
+    """Labels 0 (water), 1 (resistive), 2 (conductive) of a relative-change image.
+
+    A pixel is resistive where its change is below ``-t`` and conductive where it is
+    above ``t``, with ``t`` the larger of ``threshold`` and ``relative_floor`` times the
+    image's largest magnitude, so that faint ringing around a strong object stays
+    water. NaN (off the tank) is water.
+    """
+    image = np.nan_to_num(np.asarray(image, dtype=float))
+    t = max(threshold, relative_floor * float(np.abs(image).max()))
+    labels = np.zeros(image.shape, dtype=np.uint8)
+    labels[image < -t] = 1
+    labels[image > t] = 2
+    return labels
+
+
+def to_challenge_grid(image: np.ndarray) -> np.ndarray:
+    """Resample an image over the tank's square (row 0 at the top) to 256 x 256 by bilinear
+    interpolation between pixel centres; NaN pixels count as no change."""
+    from scipy.ndimage import map_coordinates
+
+    image = np.nan_to_num(np.asarray(image, dtype=float))
+    rows, cols = image.shape
+    y = (np.arange(IMAGE_SIZE) + 0.5) * rows / IMAGE_SIZE - 0.5
+    x = (np.arange(IMAGE_SIZE) + 0.5) * cols / IMAGE_SIZE - 0.5
+    yy, xx = np.meshgrid(y, x, indexing="ij")
+    return map_coordinates(image, [yy, xx], order=1, mode="nearest")
