@@ -58,6 +58,27 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--current-ma", type=float, default=1.0, help="drive current, mA")
     p.add_argument("--out", type=Path, help="write the frame here instead of stdout")
     p.set_defaults(run=_simulate)
+
+    p = sub.add_parser("reconstruct", help="reconstruct an image off-line from a reference and a frame")
+    p.add_argument("--layout", required=True, help="layout name or .toml file")
+    p.add_argument("--reference", required=True, type=Path, help="reference frame (CSV, or a KTC2023 .mat file)")
+    p.add_argument("--frame", required=True, type=Path, help="frame to image (same format and protocol)")
+    p.add_argument("--out", required=True, type=Path, help="image as CSV (pixel grid, row-major) or .png")
+    p.add_argument("--algorithm", default=None,
+                   help="greit, gn-laplace, gn-noser, gn-tikhonov or backprojection (default: greit; "
+                        "gn-laplace for ktc-32)")
+    p.add_argument("--iterate", default=None, choices=["auto", "always", "never"],
+                   help="iterative Gauss-Newton for large changes (default auto: when the one-step image "
+                        "needs it; always for ktc-32)")
+    p.add_argument("--noise", default=None, metavar="RELATIVE,ABSOLUTE",
+                   help="reading noise: a share of each reading and of the rms reading (default 1e-3,1e-4)")
+    p.add_argument("--pixels", default=None, metavar="ROWSxCOLS", help="pixel grid (default 16 on the short side)")
+    p.add_argument("--density", type=float, default=1.0, help="forward mesh density")
+    p.add_argument("--calibration", type=Path, help="experimental sensitivity for backprojection (eq. 3.4.1)")
+    p.add_argument("--normalise", action="store_true", help="write the thesis's 0-100 display scale (eq. 3.4.3)")
+    p.add_argument("--segment", type=Path, help="also write the KTC2023 256 x 256 label image (CSV) here")
+    p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
+    p.set_defaults(run=_reconstruct)
     return parser
 
 
@@ -121,6 +142,94 @@ def _simulate(args) -> int:
           f"{len(protocol.drives)} drives in {(done - built) * 1e3:.0f} ms; inclusions cover "
           f"{covered_area_mm2(model, sigma):.0f} mm^2", file=sys.stderr)
     return 0
+
+
+def _reconstruct(args) -> int:
+    from appliance.core.frames import Frame, check_same_protocol, load_calibration, load_frame
+    from appliance.core import ktc
+    from appliance.core.layouts import get_layout
+    from appliance.core.model_cache import ModelSetup, cached_model, default_cache_dir
+    from appliance.core.reconstruct import ReconstructionOptions, build_reconstructor
+    from appliance.core.regularisation import NoiseModel
+    from appliance.errors import ConfigError
+
+    layout = get_layout(args.layout)
+    frames = []
+    for path in (args.reference, args.frame):
+        if path.suffix.lower() == ".mat":
+            if layout.name != "ktc-32":
+                raise ConfigError(f"{path}: MAT files hold KTC2023 tank data; use --layout ktc-32")
+            data = ktc.load_ktc(path)
+            frames.append(Frame(data.protocol, data.transfer_ohm))
+        else:
+            frames.append(load_frame(path, layout.n_electrodes))
+    reference, frame = frames
+    check_same_protocol(frame, reference, f"reference {args.reference}")
+    is_ktc = layout.name == "ktc-32"
+    setup = ktc.ktc_setup(reference.protocol) if is_ktc else ModelSetup(layout, reference.protocol)
+    iterate = args.iterate or (ktc.ITERATE if is_ktc else "auto")
+    options = setup.options
+    if args.algorithm:
+        options = ReconstructionOptions(args.algorithm, noise=options.noise, target_contrast=options.target_contrast)
+    if args.noise:
+        options = ReconstructionOptions(options.algorithm, noise=NoiseModel(*_floats(args.noise, 2, "--noise")),
+                                        target_contrast=options.target_contrast)
+    pixels = tuple(int(v) for v in _floats(args.pixels.replace("x", ","), 2, "--pixels")) if args.pixels \
+        else setup.pixels
+    setup = ModelSetup(layout, reference.protocol, options, args.density, pixels, setup.contact_impedance_ohm_m2)
+    start = time.perf_counter()
+    model, loaded = cached_model(setup, args.cache_dir or default_cache_dir(),
+                                 lambda step, share: print(f"building the model: {step} ({share:.0%})",
+                                                           file=sys.stderr))
+    built = time.perf_counter()
+    if args.calibration:
+        r = model.reconstructor
+        sensitivity = load_calibration(args.calibration, reference.protocol, r.grid, reference.volts)
+        model.reconstructor = build_reconstructor(r.linear, r.options, r.usable, sensitivity=sensitivity)
+    image, info = model.reconstruct(frame.volts, reference.volts, iterate=iterate)
+    done = time.perf_counter()
+    _write_image(args.out, image, args.normalise)
+    if args.segment:
+        labels = ktc.segment(image)
+        args.segment.write_text("\n".join(",".join(str(v) for v in row) for row in labels) + "\n")
+    print(f"{layout.name}: {options.algorithm}, {image.shape[0]} x {image.shape[1]} pixels, model "
+          f"{'loaded' if loaded else 'built'} in {(built - start) * 1e3:.0f} ms; {info['usable_readings']} of "
+          f"{len(reference.protocol)} readings used, {info['iterations']} iterations, reconstructed in "
+          f"{(done - built) * 1e3:.0f} ms", file=sys.stderr)
+    return 0
+
+
+def _write_image(path: Path, image, normalise: bool) -> None:
+    """The image as CSV (``nan`` off the sheet) or PNG; ``normalise`` maps it to 0-100 (eq. 3.4.3).
+
+    A PNG shows log(sigma / sigma_ref), which is the relative change for small changes and
+    keeps an insulator (at most -1) as visible beside a conductor (unbounded) as it deserves.
+    """
+    import numpy as np
+
+    if normalise:
+        low, high = np.nanmin(image), np.nanmax(image)
+        image = 100.0 * (image - low) / (high - low) if high > low else np.zeros_like(image)
+    if path.suffix.lower() == ".png":
+        from appliance.core.render import write_png
+
+        shown = image if normalise else np.log(np.clip(1.0 + image, 1e-6, None))
+        write_png(path, shown, palette="sequential" if normalise else "diverging", scale=16)
+    else:
+        path.write_text("\n".join(",".join("nan" if np.isnan(v) else f"{v:.6g}" for v in row) for row in image)
+                        + "\n")
+
+
+def _floats(text: str, count: int, option: str) -> list[float]:
+    from appliance.errors import ConfigError
+
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise ConfigError(f"{option} takes {count} numbers separated by commas, got {text!r}") from None
+    if len(values) != count:
+        raise ConfigError(f"{option} takes {count} numbers separated by commas, got {text!r}")
+    return values
 
 
 def _parse_inclusion(text: str):

@@ -333,14 +333,14 @@ BED_MAT_MM = (900.0, 1900.0)
 
 _GRID_NAME = re.compile(r"^grid-(\d+)x(\d+)(?:@(\d+(?:\.\d+)?)x(\d+(?:\.\d+)?))?$")
 
-BUILTIN_NAMES = ("circular-16", "square-16", "grid-4x4", "grid-8x16")
+BUILTIN_NAMES = ("circular-16", "square-16", "grid-4x4", "grid-8x16", "ktc-32")
 
 
 def get_layout(name: str) -> Layout:
     """The layout called ``name``, or the one described by the TOML file ``name``.
 
-    Built-ins: ``circular-16``, ``square-16``, ``grid-4x4`` (the thesis's sensor C)
-    and ``grid-RxC`` for bed-size mats, R rows over the 900 mm side and C columns
+    Built-ins: ``circular-16``, ``square-16``, ``grid-4x4`` (the thesis's sensor C),
+    ``ktc-32`` (the KTC2023 tank) and ``grid-RxC`` for bed-size mats, R rows over the 900 mm side and C columns
     over the 1900 mm side, or ``grid-RxC@HxW`` for a sheet H x W mm.
 
     Raises
@@ -354,6 +354,10 @@ def get_layout(name: str) -> Layout:
         return square_perimeter_layout()
     if name == "grid-4x4":
         return grid_layout(4, 4, THESIS_SHEET_MM, THESIS_SHEET_MM, name="grid-4x4")
+    if name == "ktc-32":
+        from appliance.core.ktc import ktc_layout
+
+        return ktc_layout()
     match = _GRID_NAME.match(name)
     if match:
         rows, cols = int(match[1]), int(match[2])

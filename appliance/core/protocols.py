@@ -47,7 +47,7 @@ class Protocol:
                                   f"{readings.shape}")
         readings = readings.astype(np.int64)
         object.__setattr__(self, "readings", readings)
-        _validate_rows(readings, self.n_electrodes, lambda i: f"protocol {self.name!r} reading {i + 1}")
+        validate_readings(readings, self.n_electrodes, lambda i: f"protocol {self.name!r} reading {i + 1}")
 
     def __len__(self) -> int:
         return len(self.readings)
@@ -81,7 +81,8 @@ class Protocol:
         return np.array(pairs, dtype=np.int64).reshape(-1, 2)
 
 
-def _validate_rows(readings: np.ndarray, n_electrodes: int, where) -> None:
+def validate_readings(readings: np.ndarray, n_electrodes: int, where) -> None:
+    """Refuse an unknown electrode or a pair using one electrode twice; ``where(i)`` names row i."""
     for i, row in enumerate(readings):
         bad = [int(v) for v in row if not 1 <= v <= n_electrodes]
         if bad:
@@ -262,5 +263,5 @@ def load_protocol(path: Path, n_electrodes: int) -> Protocol:
     if not readings:
         raise DataFileInvalid(f"protocol file {path}: no readings")
     lines = [i for i, row in enumerate(rows[1:], start=2) if row and any(c.strip() for c in row)]
-    _validate_rows(np.array(readings), n_electrodes, lambda i: f"protocol file {path}, line {lines[i]}")
+    validate_readings(np.array(readings), n_electrodes, lambda i: f"protocol file {path}, line {lines[i]}")
     return Protocol(np.array(readings), n_electrodes, path.stem)

@@ -250,15 +250,16 @@ def _builder(options, linear, j, weights, usable, sensitivity):
     normal = jw @ j
     if algorithm.startswith("gn-"):
         prior = prior_matrix(algorithm[3:], normal, linear.grid)
-        return lambda lam: _solve_spd(normal + lam * prior, jw)
+        return lambda lam: solve_spd(normal + lam * prior, jw)
     if algorithm == "greit":
         prior = prior_matrix("tikhonov", normal, linear.grid)
         blur = _desired_image(linear.grid, linear.areas_mm2, options.desired_blur_px)
-        return lambda lam: blur @ _solve_spd(normal + lam * prior, jw)
+        return lambda lam: blur @ solve_spd(normal + lam * prior, jw)
     return _backprojection(linear, j, usable, sensitivity)
 
 
-def _solve_spd(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def solve_spd(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve a x = b for a symmetric positive (semi-)definite ``a``."""
     try:
         return sla.cho_solve(sla.cho_factor(a), b)
     except np.linalg.LinAlgError:
