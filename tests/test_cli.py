@@ -83,3 +83,95 @@ def test_layouts_and_layout_commands(capsys):
     assert code == 0 and "grid-4x4" in out and "grid-RxC" in out
     code, out, _ = run(capsys, "layout", "--layout", "square-16")
     assert code == 0 and out.startswith('name = "square-16"') and out.count("[[electrodes]]") == 16
+
+
+@pytest.fixture
+def frames(tmp_path, capsys):
+    """A reference and a frame with a pressed square, simulated on a finer mesh than the model's."""
+    for name, extra in (("ref.csv", []), ("frame.csv", ["--inclusion", "rect:35,60,20,20,0.6"])):
+        assert main(["simulate", "--layout", "grid-4x4", "--density", "2", "--current-ma", "2.5",
+                     "--out", str(tmp_path / name), *extra]) == 0
+    capsys.readouterr()
+    return tmp_path
+
+
+def reconstruct(capsys, frames, *extra):
+    code = main(["reconstruct", "--layout", "grid-4x4", "--reference", str(frames / "ref.csv"),
+                 "--frame", str(frames / "frame.csv"), "--cache-dir", str(frames / "cache"), *extra])
+    out, err = capsys.readouterr()
+    return code, err
+
+
+def test_reconstruct_writes_a_csv_image_with_the_load_where_it_was(capsys, frames):
+    code, err = reconstruct(capsys, frames, "--out", str(frames / "img.csv"))
+    assert code == 0 and "16 x 16 pixels" in err and "448 of 448 readings used" in err
+    image = np.loadtxt(frames / "img.csv", delimiter=",")
+    assert image.shape == (16, 16)
+    r, c = np.unravel_index(np.argmin(image), image.shape)
+    assert abs((c + 0.5) * 6.25 - 35) <= 6.25 and abs((r + 0.5) * 6.25 - 60) <= 6.25 and image.min() < -0.2
+    code, err = reconstruct(capsys, frames, "--out", str(frames / "again.csv"))
+    assert "model loaded" in err
+
+
+def test_reconstruct_png_normalised_and_segmented(capsys, frames):
+    code, _ = reconstruct(capsys, frames, "--out", str(frames / "img.png"), "--algorithm", "gn-laplace",
+                          "--segment", str(frames / "seg.csv"))
+    assert code == 0 and (frames / "img.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    labels = np.loadtxt(frames / "seg.csv", delimiter=",")
+    assert labels.shape == (256, 256) and set(np.unique(labels)) <= {0, 1, 2}
+    code, _ = reconstruct(capsys, frames, "--out", str(frames / "n.csv"), "--normalise")
+    image = np.loadtxt(frames / "n.csv", delimiter=",")
+    assert image.min() == 0 and image.max() == 100
+
+
+def test_reconstruct_backprojection_with_an_experimental_calibration(capsys, frames):
+    """The thesis's calibration, simulated: the rod at every pixel in turn, a frame each."""
+    from appliance.core.fem import build_fem_model
+    from appliance.core.forward import simulate
+    from appliance.core.layouts import get_layout
+    from appliance.core.phantoms import Inclusion, conductivity
+    from appliance.core.protocols import default_protocol
+
+    layout = get_layout("grid-4x4")
+    protocol = default_protocol(layout)
+    model = build_fem_model(layout, density=2)
+    lines = ["pixel_row,pixel_col,drive_pos,drive_neg,meas_pos,meas_neg,volts"]
+    for r in range(16):
+        for c in range(16):
+            rod = Inclusion("rect", (c + 0.5) * 6.25, (r + 0.5) * 6.25, 6.25, 6.25, 1e-3)
+            v = simulate(model, conductivity(model, [rod]), protocol, current_a=2.5e-3)
+            lines += [f"{r},{c},{a},{b},{m},{n},{x:.9e}" for (a, b, m, n), x in zip(protocol.readings.tolist(), v)]
+    (frames / "cal.csv").write_text("\n".join(lines) + "\n")
+    code, err = reconstruct(capsys, frames, "--out", str(frames / "bp.csv"), "--algorithm", "backprojection",
+                            "--calibration", str(frames / "cal.csv"))
+    assert code == 0, err
+    image = np.loadtxt(frames / "bp.csv", delimiter=",")
+    assert np.isfinite(image).all() and image.min() < 0
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    (lambda text: text.rsplit("\n", 2)[0] + "\n", "447 readings, reference"),
+    (lambda text: text.replace("1,2,3,4,", "1,2,3,4,x", 1), "line 2: reading"),
+    (lambda text: text.replace("\n1,2,3,4,", "\n1,2,3,40,", 1), "line 2: electrode 40 does not exist"),
+])
+def test_reconstruct_refuses_bad_frames_naming_file_and_line(capsys, frames, change, message):
+    text = (frames / "frame.csv").read_text()
+    (frames / "frame.csv").write_text(change(text))
+    code, err = reconstruct(capsys, frames, "--out", str(frames / "img.csv"))
+    assert code == 2 and message in err and err.count("\n") == 1
+
+
+def test_reconstruct_refuses_missing_files_and_mat_files_for_other_layouts(capsys, frames):
+    code = main(["reconstruct", "--layout", "grid-4x4", "--reference", str(frames / "none.csv"), "--frame",
+                 str(frames / "frame.csv"), "--out", str(frames / "x.csv")])
+    assert code == 2 and "none.csv: cannot be read" in capsys.readouterr().err
+    code = main(["reconstruct", "--layout", "grid-4x4", "--reference", str(frames / "r.mat"), "--frame",
+                 str(frames / "f.mat"), "--out", str(frames / "x.csv")])
+    assert code == 2 and "use --layout ktc-32" in capsys.readouterr().err
+
+
+def test_reconstruct_refuses_an_all_missing_frame(capsys, frames):
+    lines = (frames / "frame.csv").read_text().splitlines()
+    (frames / "frame.csv").write_text("\n".join([lines[0]] + [l.rsplit(",", 1)[0] + ",nan" for l in lines[1:]]))
+    code, err = reconstruct(capsys, frames, "--out", str(frames / "img.csv"))
+    assert code == 2 and "nothing can be reconstructed" in err

@@ -107,8 +107,8 @@ def check_same_protocol(frame: Frame, other: Frame, other_name: str, expected: P
         differ = np.flatnonzero((a != b).any(axis=1))
         if differ.size:
             i = int(differ[0])
-            raise ProtocolInvalid(f"{frame.protocol.name}: reading {i + 1} is {tuple(a[i])}, {label} has "
-                                  f"{tuple(b[i])}; is the frame from another layout or protocol?")
+            raise ProtocolInvalid(f"{frame.protocol.name}: reading {i + 1} is {tuple(a[i].tolist())}, {label} "
+                                  f"has {tuple(b[i].tolist())}; is the frame from another layout or protocol?")
 
 
 def load_calibration(path: Path, protocol: Protocol, grid, reference: np.ndarray) -> np.ndarray:

@@ -96,8 +96,7 @@ def iterative_reconstruct(model: ForwardModel, r: Reconstructor, frame: np.ndarr
     eta = start
     sigma, fields, residual, objective = evaluate(eta)
     history = [objective]
-    iterations = 0
-    for iterations in range(1, max_iterations + 1):
+    for _ in range(max_iterations):
         j = (linear.mapping.T @ jacobian(model, sigma, linear.protocol, fields, relative=True).T).T * u[:, None]
         jw = j.T * weights
         gradient = jw @ residual - penalty @ eta
@@ -115,4 +114,4 @@ def iterative_reconstruct(model: ForwardModel, r: Reconstructor, frame: np.ndarr
         history.append(objective)
         if np.max(np.abs(length * step)) < STEP_TOLERANCE:
             break
-    return IterativeResult(np.expm1(eta), iterations, tuple(history))
+    return IterativeResult(np.expm1(eta), len(history) - 1, tuple(history))

@@ -4,7 +4,9 @@ The tank is a 230 mm disc of saline with 32 electrodes on its wall, 11.3 mm wide
 electrode 1 at the top and the numbers rising counter-clockwise (seen with y up, as
 the challenge draws it). Their wall contact is modelled as a 2 mm-deep rim sector
 with a near-ideal contact. A data file holds, for each of 76 current patterns
-(``Inj``, one electrode in and one out, about 1.4 to 1.5 mA), the 31 adjacent
+(``Inj``, one electrode in and one out, about 1.4 to 1.5 mA; the skip-one patterns
+7-9, 15-17, 23-25 and 31-1 come twice, once among the pairs with electrodes 1, 9,
+17 and 25), the 31 adjacent
 differences U_j - U_j+1 (``Mpat``); ``Uel`` stacks them pattern by pattern. Readings
 a difficulty level removes are NaN and stay NaN here: the reconstruction drops them
 as it would a broken electrode's.
@@ -71,11 +73,11 @@ def load_ktc(path: Path) -> KtcData:
     import scipy.io
 
     path = Path(path)
+    if not path.is_file():
+        raise DataFileInvalid(f"KTC data file {path} does not exist")
     try:
         data = scipy.io.loadmat(path)
-    except FileNotFoundError:
-        raise DataFileInvalid(f"KTC data file {path} does not exist") from None
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, scipy.io.matlab.MatReadError) as exc:
         raise DataFileInvalid(f"KTC data file {path} is not a MAT file: {exc}") from None
     inj = _array(data, path, ("Inj", "Injref"))
     uel = _array(data, path, ("Uel", "Uelref")).ravel().astype(float)

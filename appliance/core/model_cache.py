@@ -114,11 +114,13 @@ class ReconstructionModel:
             iterate = "never"
         missing = ~(np.isfinite(frame) & np.isfinite(reference))
         r = self.for_readings(missing)
+        correlation = r.check_reference(reference)
         pixels = r.pixels(frame, reference)
         misfit = None
         if iterate == "auto" and np.max(np.abs(pixels)) > LINEAR_LIMIT:
             misfit = one_step_misfit(self.forward, r, frame, reference, pixels)
-        info = {"usable_readings": int(r.usable.sum()), "one_step_misfit": misfit, "iterations": 0}
+        info = {"usable_readings": int(r.usable.sum()), "reference_correlation": correlation,
+                "one_step_misfit": misfit, "iterations": 0}
         if iterate == "always" or (misfit is not None and misfit > MISFIT_LIMIT):
             result = iterative_reconstruct(self.forward, r, frame, reference)
             pixels = result.pixels

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.linalg as sla
@@ -168,24 +169,54 @@ class Reconstructor:
         return self.grid.image(self.pixels(frame, reference))
 
     def pixels(self, frame: np.ndarray, reference: np.ndarray) -> np.ndarray:
-        """As :meth:`reconstruct`, the imaged pixels only, shape (n_pixels,)."""
-        u = self.usable
-        delta = np.where(u, frame - reference, 0.0)
-        if not np.all(np.isfinite(delta)):
+        """As :meth:`reconstruct`, the imaged pixels only, shape (n_pixels,).
+
+        Computed in float64 whatever the inputs' precision.
+        """
+        delta = np.subtract(frame, reference, dtype=np.float64)
+        if not self._all_usable:
+            delta = np.where(self.usable, delta, 0.0)
+        if not np.isfinite(delta).all():
             raise ReconstructionError("frame or reference has a missing or non-finite reading that the "
                                       "reconstructor still uses; drop it with without_readings first")
         return (self.matrix @ delta) / self.scale(reference)
 
+    @cached_property
+    def _all_usable(self) -> bool:
+        return bool(self.usable.all())
+
+    @cached_property
+    def _model_reference(self) -> tuple[np.ndarray, float]:
+        m = self.linear.reference if self._all_usable else self.linear.reference[self.usable]
+        return m, float(m @ m)
+
     def scale(self, reference: np.ndarray) -> float:
         """Measured over modelled reference readings (least squares over the usable readings)."""
-        m = self.linear.reference[self.usable]
-        v = reference[self.usable]
-        s = float(v @ m) / float(m @ m)
+        m, mm = self._model_reference
+        v = np.asarray(reference, dtype=np.float64)
+        v = v if self._all_usable else v[self.usable]
+        s = float(v @ m) / mm
         if not np.isfinite(s) or s <= 0:
             raise ReconstructionError(
                 f"the reference readings do not match this layout's model (fitted scale {s:.3g}); is the "
                 f"frame from another layout or protocol, or are the measuring leads reversed?")
         return s
+
+    def check_reference(self, reference: np.ndarray, minimum: float = 0.9) -> float:
+        """The correlation of the measured reference with the model's; refused below ``minimum``.
+
+        Real references correlate above 0.99 with their layout's model (0.995 for the
+        KTC2023 tank); a frame from another layout or a mis-wired mat does not.
+        """
+        m, _ = self._model_reference
+        v = np.asarray(reference, dtype=np.float64)
+        v = v if self._all_usable else v[self.usable]
+        correlation = float(np.corrcoef(v, m)[0, 1])
+        if not correlation >= minimum:
+            raise ReconstructionError(
+                f"the reference readings correlate {correlation:.2f} with this layout's model (at least "
+                f"{minimum} expected): is the frame from another layout or protocol, or is the mat mis-wired?")
+        return correlation
 
 
 def build_reconstructor(linear: LinearModel, options: ReconstructionOptions | None = None,

@@ -1,0 +1,69 @@
+"""Iterative Gauss-Newton: it restores the amplitude of large changes, and knows when it is needed."""
+
+import numpy as np
+import pytest
+
+from appliance.core.fem import build_fem_model
+from appliance.core.forward import simulate
+from appliance.core.iterative import MISFIT_LIMIT, iterative_reconstruct, one_step_misfit
+from appliance.core.layouts import get_layout
+from appliance.core.model_cache import ModelSetup, build_model
+from appliance.core.phantoms import Inclusion, conductivity
+from appliance.core.protocols import default_protocol
+from appliance.core.reconstruct import ReconstructionOptions
+from appliance.core.regularisation import NoiseModel
+from appliance.errors import ReconstructionError
+
+LAYOUT = get_layout("grid-4x4")
+PROTOCOL = default_protocol(LAYOUT)
+
+
+@pytest.fixture(scope="module")
+def setting():
+    truth = build_fem_model(LAYOUT, density=3)
+    reference = simulate(truth, np.ones(truth.n_elements), PROTOCOL)
+    model = build_model(ModelSetup(LAYOUT, PROTOCOL, ReconstructionOptions(noise=NoiseModel(0.0, 1e-3))))
+    return truth, reference, model
+
+
+def frame(setting, contrast):
+    truth, _, _ = setting
+    return simulate(truth, conductivity(truth, [Inclusion("rect", 40, 55, 20, 20, contrast)]), PROTOCOL)
+
+
+@pytest.mark.parametrize("contrast", [0.3, 0.1])
+def test_iteration_restores_the_amplitude_of_a_large_change(setting, contrast):
+    truth, reference, model = setting
+    r = model.reconstructor
+    v = frame(setting, contrast)
+    areas = r.linear.areas_mm2
+    true_integral = (contrast - 1) * 400.0
+    one_step = r.pixels(v, reference)
+    result = iterative_reconstruct(model.forward, r, v, reference)
+    assert 2 <= result.iterations <= 12
+    assert all(b < a for a, b in zip(result.misfit_history, result.misfit_history[1:]))
+    assert abs(areas @ result.pixels / true_integral - 1) < 0.5 * abs(areas @ one_step / true_integral - 1)
+    assert result.pixels.min() > -1.0 > one_step.min() or contrast > 0.2, "no negative conductivity"
+    assert result.pixels.min() > -1.0
+
+
+def test_one_step_misfit_decides(setting):
+    truth, reference, model = setting
+    small = one_step_misfit(model.forward, model.reconstructor, frame(setting, 0.95), reference)
+    large = one_step_misfit(model.forward, model.reconstructor, frame(setting, 0.2), reference)
+    assert small < MISFIT_LIMIT < large
+    _, info_small = model.reconstruct(frame(setting, 0.95), reference)
+    _, info_large = model.reconstruct(frame(setting, 0.2), reference)
+    assert info_small["iterations"] == 0 and info_large["iterations"] > 0
+
+
+def test_iterate_option_is_checked(setting):
+    _, reference, model = setting
+    with pytest.raises(ReconstructionError, match="iterate must be auto, always or never"):
+        model.reconstruct(reference, reference, iterate="sometimes")
+
+
+def test_a_foreign_forward_model_is_refused(setting):
+    _, reference, model = setting
+    with pytest.raises(ReconstructionError, match="not the one the reconstructor was built from"):
+        iterative_reconstruct(build_fem_model(LAYOUT, density=2), model.reconstructor, reference, reference)
