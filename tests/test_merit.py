@@ -61,3 +61,23 @@ def test_distributed_layout_is_most_sensitive_at_the_centre_peripheral_at_the_ed
     assert c[4, 4] > 2 * c[4, 0] and c[4, 4] > 5 * c[0, 0], "C: the centre beats the edge and the corner"
     assert b[2, 0] > 3 * b[4, 4] and b[4, 4] < 0.1 * b.max(), "B: the edge beats the centre"
     assert c.max() > b.max()
+
+
+def test_image_figures_of_a_perfect_and_a_shifted_image():
+    """A 3 x 3-pixel target imaged exactly, then one pixel off, on a 10 x 10 grid of 1 mm pixels."""
+    from appliance.core.merit import image_figures
+
+    r, c = np.divmod(np.arange(100), 10)
+    centres = np.column_stack([c + 0.5, r + 0.5])
+    areas = np.ones(100)
+    target = ((np.abs(c - 6) <= 1) & (np.abs(r - 4) <= 1)) * -0.4
+    f = image_figures(target, centres, areas, (6.5, 4.5), 9.0, -0.4, (5.0, 5.0))
+    assert f.amplitude_response == pytest.approx(1.0) and f.centroid_error_mm == pytest.approx(0.0)
+    assert f.position_error_mm == pytest.approx(0.0) and f.ringing == 0.0
+    assert f.resolution == pytest.approx(0.3) and f.shape_deformation == 0.0   # a square fits its disc here
+    elongated = ((np.abs(c - 5) <= 3) & (r == 4)) * -0.4
+    assert image_figures(elongated, centres, areas, (5.5, 4.5), 7.0, -0.4, (5.0, 5.0)).shape_deformation > 0.5
+    shifted = np.roll(target.reshape(10, 10), 1, axis=1).ravel() + 0.1 * (c < 2)   # ringing: opposite sign
+    g = image_figures(shifted, centres, areas, (6.5, 4.5), 9.0, -0.4, (5.0, 5.0))
+    assert g.centroid_error_mm == pytest.approx(1.0) and g.position_error_mm < 0
+    assert g.ringing == pytest.approx(2.0 / 3.6)

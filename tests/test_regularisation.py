@@ -48,7 +48,7 @@ def test_lambda_rules_find_known_optima():
     build = lambda lam: np.linalg.solve(j.T @ j + lam * np.eye(10), j.T)          # noqa: E731
     targets = np.eye(10) * 0.5
     cost = lambda r: expected_error(r, j, std, targets, targets, np.ones(10))      # noqa: E731
-    best = minimise_lambda(build, cost)
+    best = minimise_lambda(lambda lam: cost(build(lam)))
     grid = np.logspace(-6, 3, 400)
     brute = grid[np.argmin([cost(build(g)) for g in grid])]
     assert best == pytest.approx(brute, rel=0.05)
@@ -63,6 +63,29 @@ def test_expected_error_rule_regularises_more_for_more_noise():
     j = rng.normal(size=(40, 10))
     build = lambda lam: np.linalg.solve(j.T @ j + lam * np.eye(10), j.T)          # noqa: E731
     targets = np.eye(10) * 0.5
-    lams = [minimise_lambda(build, lambda r, s=s: expected_error(r, j, np.full(40, s), targets, targets,
-                                                                  np.ones(10))) for s in (0.01, 0.1, 1.0)]
+    lams = [minimise_lambda(lambda lam, s=s: expected_error(build(lam), j, np.full(40, s), targets, targets,
+                                                             np.ones(10))) for s in (0.01, 0.1, 1.0)]
     assert lams[0] < lams[1] < lams[2]
+
+
+@pytest.mark.parametrize("kind", ["tikhonov", "noser", "laplace"])
+def test_spectral_expected_error_equals_the_direct_one(kind):
+    from appliance.core.regularisation import ExpectedErrorSpectrum
+
+    rng = np.random.default_rng(5)
+    grid = pixel_grid(get_layout("grid-4x4"), 4, 4)
+    j = rng.normal(size=(30, 16))
+    std = rng.uniform(0.05, 0.2, 30)
+    jw = j.T / std**2
+    normal = jw @ j
+    prior = prior_matrix(kind, normal, grid)
+    targets = np.eye(16)[:, :6] * -0.4
+    blur = np.full((16, 16), 0.02) + np.eye(16) * 0.7
+    areas = rng.uniform(0.5, 1.5, 16)
+    for left in (None, blur):
+        desired = targets if left is None else left @ targets
+        spectrum = ExpectedErrorSpectrum(normal, prior, jw, std, targets, desired, areas, left)
+        for lam in (1e-8, 1e-3, 10.0):
+            r = np.linalg.solve(normal + lam * prior, jw)
+            r = r if left is None else left @ r
+            assert spectrum(lam) == pytest.approx(expected_error(r, j, std, targets, desired, areas), rel=1e-8)

@@ -1,4 +1,5 @@
-"""Figures of merit of the thesis's chapter 5: fractional change, visibility, sensitivity.
+"""Figures of merit: the thesis's chapter 5 (fractional change, visibility, sensitivity) and GREIT's
+for images (amplitude response, position error, resolution, shape deformation, ringing).
 
 Readings enter as magnitudes, as the thesis's RMS-to-DC converter measured them
 (Appendix B takes ``abs`` of every simulated reading of phantom C).
@@ -12,6 +13,8 @@ Readings enter as magnitudes, as the thesis's RMS-to-DC converter measured them
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -83,3 +86,65 @@ def sensitivity_profile(sensitivity: np.ndarray) -> np.ndarray:
         From :func:`calibration_sensitivity`.
     """
     return np.asarray(sensitivity).sum(axis=1)
+
+
+@dataclass(frozen=True)
+class ImageFigures:
+    """GREIT's figures of merit (Adler et al. 2009) of one image of one target, plus our centroid error.
+
+    Attributes
+    ----------
+    amplitude_response : float
+        The image's integral over the target's (area x change): 1 is a true-sized image.
+    position_error_mm : float
+        Target's distance from the sheet's centre minus the image's: positive toward the centre.
+    resolution : float
+        sqrt(area of the quarter-amplitude set / sheet area).
+    shape_deformation : float
+        Share of the quarter-amplitude set outside the disc of its own area at its centroid.
+    ringing : float
+        Opposite-sign amplitude outside the set over the amplitude inside it.
+    centroid_error_mm : float
+        Distance from the target's centre to the amplitude-weighted centroid of the set.
+    """
+
+    amplitude_response: float
+    position_error_mm: float
+    resolution: float
+    shape_deformation: float
+    ringing: float
+    centroid_error_mm: float
+
+
+def image_figures(pixels: np.ndarray, centres_mm: np.ndarray, areas_mm2: np.ndarray, target_mm,
+                  target_area_mm2: float, target_change: float, sheet_centre_mm) -> ImageFigures:
+    """The figures of merit of an image of a single target of relative change ``target_change``.
+
+    Parameters
+    ----------
+    pixels, areas_mm2 : ndarray, shape (n,)
+        Image values (NaN counts as 0) and the area each pixel stands for.
+    centres_mm : ndarray, shape (n, 2)
+    target_mm, sheet_centre_mm : (x, y)
+    """
+    x = np.nan_to_num(np.asarray(pixels, dtype=float)) * np.sign(target_change)   # the target's sign positive
+    peak = x.max()
+    if not peak > 0:
+        nan = float("nan")
+        return ImageFigures(0.0, nan, nan, nan, nan, nan)
+    q = x >= 0.25 * peak
+    area_q = areas_mm2[q].sum()
+    weight = x[q] * areas_mm2[q]
+    centroid = weight @ centres_mm[q] / weight.sum()
+    target, centre = np.asarray(target_mm, float), np.asarray(sheet_centre_mm, float)
+    radius = np.sqrt(area_q / np.pi)
+    outside_disc = np.linalg.norm(centres_mm[q] - centroid, axis=1) > radius
+    opposite = (~q) & (x < 0)
+    return ImageFigures(
+        amplitude_response=float(x @ areas_mm2 / (target_area_mm2 * abs(target_change))),
+        position_error_mm=float(np.linalg.norm(target - centre) - np.linalg.norm(centroid - centre)),
+        resolution=float(np.sqrt(area_q / areas_mm2.sum())),
+        shape_deformation=float(areas_mm2[q][outside_disc].sum() / area_q),
+        ringing=float(-(x[opposite] * areas_mm2[opposite]).sum() / weight.sum()),
+        centroid_error_mm=float(np.linalg.norm(centroid - target)),
+    )

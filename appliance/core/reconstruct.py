@@ -55,7 +55,7 @@ from appliance.core.jacobian import jacobian
 from appliance.core.pixels import PixelGrid, element_pixel_map, pixel_areas_mm2
 from appliance.core.protocols import Protocol
 from appliance.core.regularisation import (
-    NoiseModel, choose_lambda, expected_error, minimise_lambda, noise_figure, prior_matrix,
+    ExpectedErrorSpectrum, NoiseModel, choose_lambda, minimise_lambda, noise_figure, prior_matrix,
 )
 from appliance.errors import ConfigError, ReconstructionError
 
@@ -246,18 +246,17 @@ def build_reconstructor(linear: LinearModel, options: ReconstructionOptions | No
     std = options.noise.std(linear.reference)
     weights = np.where(usable, 1.0 / std**2, 0.0)
     used_std = np.where(usable, std, 0.0)
-    build = _builder(options, linear, j, weights, usable, sensitivity)
+    build, parts = _builder(options, linear, j, weights, usable, sensitivity)
     figure = lambda r: noise_figure(r, j, used_std, _centre_target(linear.grid), linear.areas_mm2)   # noqa: E731
     if lam is None and options.algorithm != "backprojection":
         if options.lambda_rule == "noise-figure":
             lam, _ = choose_lambda(build, figure, options.noise_figure)
         else:
+            normal, prior, jw, left = parts
             targets = _training_targets(linear.grid, options)
-            desired = targets
-            if options.algorithm == "greit":
-                desired = _desired_image(linear.grid, linear.areas_mm2, options.desired_blur_px) @ targets
-            lam = minimise_lambda(build, lambda r: expected_error(r, j, used_std, targets, desired,
-                                                                 linear.areas_mm2))
+            desired = targets if left is None else left @ targets
+            lam = minimise_lambda(ExpectedErrorSpectrum(normal, prior, jw, used_std, targets, desired,
+                                                        linear.areas_mm2, left))
     lam = 0.0 if lam is None else lam
     matrix = build(lam)
     return Reconstructor(linear, options, matrix, usable, lam, figure(matrix), sensitivity)
@@ -275,18 +274,19 @@ def readings_using(protocol: Protocol, electrodes) -> np.ndarray:
 
 
 def _builder(options, linear, j, weights, usable, sensitivity):
-    """A function of lambda giving the reconstruction matrix."""
+    """A function of lambda giving the reconstruction matrix, and the parts it is made of
+    (J^T W J, the prior, J^T W and GREIT's blur, or None for backprojection)."""
     algorithm = options.algorithm
     jw = j.T * weights                                             # J^T W, (n_pixels, n_readings)
     normal = jw @ j
     if algorithm.startswith("gn-"):
         prior = prior_matrix(algorithm[3:], normal, linear.grid)
-        return lambda lam: solve_spd(normal + lam * prior, jw)
+        return (lambda lam: solve_spd(normal + lam * prior, jw)), (normal, prior, jw, None)
     if algorithm == "greit":
         prior = prior_matrix("tikhonov", normal, linear.grid)
         blur = _desired_image(linear.grid, linear.areas_mm2, options.desired_blur_px)
-        return lambda lam: blur @ solve_spd(normal + lam * prior, jw)
-    return _backprojection(linear, j, usable, sensitivity)
+        return (lambda lam: blur @ solve_spd(normal + lam * prior, jw)), (normal, prior, jw, blur)
+    return _backprojection(linear, j, usable, sensitivity), None
 
 
 def solve_spd(a: np.ndarray, b: np.ndarray) -> np.ndarray:
