@@ -128,6 +128,17 @@ class ReconstructionModel:
         return r.grid.image(pixels), info
 
 
+    def regions(self, frame: np.ndarray, reference: np.ndarray, image: np.ndarray | None = None,
+                sign: float = -1.0) -> list:
+        """The pressed (``sign`` -1) or firmer (+1) regions of ``frame``, each fitted to the
+        readings for its position, size, depth and uncertainty (:mod:`appliance.core.localise`)."""
+        from appliance.core.localise import localise
+
+        missing = ~(np.isfinite(frame) & np.isfinite(reference))
+        r = self.for_readings(missing)
+        return localise(self.forward, r, frame, reference, image, sign)
+
+
 def build_model(setup: ModelSetup, progress=None) -> ReconstructionModel:
     """Mesh, forward model, Jacobian on the pixels, reconstruction matrix; ``progress(step, share)``
     is told each step as it starts."""
