@@ -2,7 +2,10 @@
 
 import appliance  # noqa: F401  (first: it pins BLAS to one thread before numpy loads)
 
+import functools
 import os
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,6 +13,9 @@ import pytest
 from appliance.core.fem import build_fem_model
 from appliance.core.layouts import get_layout
 from appliance.core.network import build_network_model, network_for_layout
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from report import median_seconds  # noqa: E402,F401  (one timing helper for benchmarks and tests)
 
 PERIPHERAL_AND_GRID = ("circular-16", "square-16", "grid-4x4")
 
@@ -36,3 +42,21 @@ def models():
 @pytest.fixture
 def rng():
     return np.random.default_rng(20001)
+
+
+@functools.lru_cache(maxsize=4)
+def grid_truth_and_model(noise: float, truth_density: float = 3.0):
+    """grid-4x4 simulated on a finer mesh (the truth and its homogeneous readings), and the
+    appliance's reconstruction model of it with ``noise`` (share of the rms reading) declared."""
+    from appliance.core.forward import simulate
+    from appliance.core.model_cache import ModelSetup, build_model
+    from appliance.core.protocols import default_protocol
+    from appliance.core.reconstruct import ReconstructionOptions
+    from appliance.core.regularisation import NoiseModel
+
+    layout = get_layout("grid-4x4")
+    protocol = default_protocol(layout)
+    truth = build_fem_model(layout, density=truth_density)
+    reference = simulate(truth, np.ones(truth.n_elements), protocol)
+    model = build_model(ModelSetup(layout, protocol, ReconstructionOptions(noise=NoiseModel(0.0, noise))))
+    return truth, reference, model

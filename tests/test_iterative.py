@@ -1,18 +1,16 @@
 """Iterative Gauss-Newton: it restores the amplitude of large changes, and knows when it is needed."""
 
-import numpy as np
 import pytest
 
 from appliance.core.fem import build_fem_model
 from appliance.core.forward import simulate
 from appliance.core.iterative import MISFIT_LIMIT, iterative_reconstruct, one_step_misfit
 from appliance.core.layouts import get_layout
-from appliance.core.model_cache import ModelSetup, build_model
 from appliance.core.phantoms import Inclusion, conductivity
 from appliance.core.protocols import default_protocol
-from appliance.core.reconstruct import ReconstructionOptions
-from appliance.core.regularisation import NoiseModel
 from appliance.errors import ReconstructionError
+
+from conftest import grid_truth_and_model
 
 LAYOUT = get_layout("grid-4x4")
 PROTOCOL = default_protocol(LAYOUT)
@@ -20,10 +18,7 @@ PROTOCOL = default_protocol(LAYOUT)
 
 @pytest.fixture(scope="module")
 def setting():
-    truth = build_fem_model(LAYOUT, density=3)
-    reference = simulate(truth, np.ones(truth.n_elements), PROTOCOL)
-    model = build_model(ModelSetup(LAYOUT, PROTOCOL, ReconstructionOptions(noise=NoiseModel(0.0, 1e-3))))
-    return truth, reference, model
+    return grid_truth_and_model(1e-3)
 
 
 def frame(setting, contrast):

@@ -18,6 +18,8 @@ from appliance.core.reconstruct import (
 from appliance.core.regularisation import NoiseModel
 from appliance.errors import ConfigError, ReconstructionError
 
+from conftest import median_seconds
+
 LAYOUT = get_layout("grid-4x4")
 PROTOCOL = default_protocol(LAYOUT)
 NOISE_01 = NoiseModel(relative=0.0, absolute=1e-3)
@@ -57,19 +59,9 @@ def test_frame_costs_about_one_matrix_vector_product(product, truth):
     r = product.reconstructor
     v, ref = load_frame(truth, [(40, 60)]), truth[1]
 
-    def median(function, repeats=2000):
-        for _ in range(50):
-            function()
-        times = []
-        for _ in range(repeats):
-            start = time.perf_counter()
-            function()
-            times.append(time.perf_counter() - start)
-        return float(np.median(times))
-
-    bare = median(lambda: r.matrix @ v)
-    ours = median(lambda: r.pixels(v, ref))
-    whole = median(lambda: product.reconstruct(v, ref, iterate="never"))
+    bare = median_seconds(lambda: r.matrix @ v, 2000)
+    ours = median_seconds(lambda: r.pixels(v, ref), 2000)
+    whole = median_seconds(lambda: product.reconstruct(v, ref, iterate="never"), 2000)
     print(f"bare product {bare * 1e6:.1f} us, reconstruction {ours * 1e6:.1f} us, whole path {whole * 1e6:.1f} us")
     assert ours <= 2 * bare
     assert whole < 1e-3

@@ -12,7 +12,6 @@ back as NaN: the reconstruction drops it as it would a broken electrode's.
 
 from __future__ import annotations
 
-import csv
 import io
 import math
 from dataclasses import dataclass
@@ -20,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from appliance.core.csv_files import read_rows
 from appliance.core.protocols import CSV_HEADER, Protocol, validate_readings
 from appliance.errors import DataFileInvalid, ModelInputInvalid, ProtocolInvalid
 
@@ -60,19 +60,8 @@ def load_frame(path: Path, n_electrodes: int) -> Frame:
         A row names an electrode the layout does not have.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise DataFileInvalid(f"frame file {path}: cannot be read ({exc.strerror or exc})") from None
-    except UnicodeDecodeError:
-        raise DataFileInvalid(f"frame file {path}: not a text file") from None
-    rows = list(csv.reader(io.StringIO(text)))
-    if not rows or tuple(cell.strip() for cell in rows[0]) != FRAME_HEADER:
-        raise DataFileInvalid(f"frame file {path}, line 1: header must be {','.join(FRAME_HEADER)}")
     electrodes, volts, lines = [], [], []
-    for line, row in enumerate(rows[1:], start=2):
-        if not row or all(not cell.strip() for cell in row):
-            continue
+    for line, row in read_rows(path, FRAME_HEADER, "frame file"):
         if len(row) != 5:
             raise DataFileInvalid(f"frame file {path}, line {line}: expected 5 values, got {len(row)}")
         try:
@@ -130,17 +119,8 @@ def load_calibration(path: Path, protocol: Protocol, grid, reference: np.ndarray
         or an imaged pixel left uncalibrated.
     """
     path = Path(path)
-    try:
-        rows = list(csv.reader(io.StringIO(path.read_text(encoding="utf-8"))))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataFileInvalid(f"calibration file {path}: cannot be read ({exc})") from None
-    header = ("pixel_row", "pixel_col") + FRAME_HEADER
-    if not rows or tuple(cell.strip() for cell in rows[0]) != header:
-        raise DataFileInvalid(f"calibration file {path}, line 1: header must be {','.join(header)}")
     readings: dict[int, list] = {}
-    for line, row in enumerate(rows[1:], start=2):
-        if not row or all(not cell.strip() for cell in row):
-            continue
+    for line, row in read_rows(path, ("pixel_row", "pixel_col") + FRAME_HEADER, "calibration file"):
         try:
             r, c, a, b, m, n = (int(cell) for cell in row[:6])
             volts = float(row[6])

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from appliance.core.csv_files import read_rows
 from appliance.core.layouts import Layout
 from appliance.errors import DataFileInvalid, ProtocolInvalid
 
@@ -242,17 +243,8 @@ def load_protocol(path: Path, n_electrodes: int) -> Protocol:
         the message gives the file and the line.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise DataFileInvalid(f"protocol file {path}: cannot be read ({exc.strerror})") from None
-    rows = list(csv.reader(io.StringIO(text)))
-    if not rows or tuple(h.strip() for h in rows[0]) != CSV_HEADER:
-        raise DataFileInvalid(f"protocol file {path}, line 1: header must be {','.join(CSV_HEADER)}")
-    readings = []
-    for line, row in enumerate(rows[1:], start=2):
-        if not row or all(not cell.strip() for cell in row):
-            continue
+    readings, lines = [], []
+    for line, row in read_rows(path, CSV_HEADER, "protocol file"):
         if len(row) != 4:
             raise DataFileInvalid(f"protocol file {path}, line {line}: expected 4 values, got {len(row)}")
         try:
@@ -260,8 +252,8 @@ def load_protocol(path: Path, n_electrodes: int) -> Protocol:
         except ValueError:
             raise DataFileInvalid(f"protocol file {path}, line {line}: electrode numbers must be integers, "
                                   f"got {','.join(row)}") from None
+        lines.append(line)
     if not readings:
         raise DataFileInvalid(f"protocol file {path}: no readings")
-    lines = [i for i, row in enumerate(rows[1:], start=2) if row and any(c.strip() for c in row)]
     validate_readings(np.array(readings), n_electrodes, lambda i: f"protocol file {path}, line {lines[i]}")
     return Protocol(np.array(readings), n_electrodes, path.stem)
