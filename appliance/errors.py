@@ -37,3 +37,43 @@ class SolverError(ApplianceError, ArithmeticError):
 
 class ReconstructionError(ApplianceError, ValueError):
     """A frame cannot be reconstructed: too few usable readings, or readings that do not fit the model."""
+
+
+class BusError(ApplianceError):
+    """A bus (GPIO, SPI, I2C) could not be opened or a transfer on it failed; the message names it."""
+
+
+class BackendUnavailable(BusError, ImportError):
+    """The Python binding a Linux bus needs (gpiod, spidev, smbus2) is not installed."""
+
+
+class DeviceMissing(BusError, FileNotFoundError):
+    """A device file (/dev/spidevB.C, /dev/i2c-N, a GPIO chip) or a named GPIO line does not exist."""
+
+
+class BusInUse(BusError, RuntimeError):
+    """A chip select, I2C address or GPIO line is already held by another part of the appliance."""
+
+
+class TransferFailed(BusError, OSError):
+    """One transfer failed (I2C no-acknowledge, SPI I/O error); transient, so callers may retry it.
+
+    ``errno`` is the operating system's error number (121 for an I2C device that
+    does not acknowledge its address).
+    """
+
+
+class ChipError(ApplianceError):
+    """A chip on the front end misbehaves: wrong read-back, no answer, a stuck or saturated value."""
+
+
+class ChipNotResponding(ChipError, OSError):
+    """A chip failed every retry of a transfer, or never reached the state it was commanded to."""
+
+
+class ChipReadbackMismatch(ChipError, ValueError):
+    """A register read back a value other than the one written; the message gives both."""
+
+
+class ScanError(ApplianceError, RuntimeError):
+    """A whole frame could not be acquired (the excitation failed, or no reading was usable)."""
