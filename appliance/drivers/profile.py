@@ -1,0 +1,256 @@
+"""Board profiles: which chips the front end has, where they sit, and how long they take.
+
+A profile is the ``[board]`` section of the appliance's TOML configuration. It
+names a built-in profile (``reference``, ``reference-32``, ``ad5933``; files in
+``drivers/profiles/``) and may override any of its keys, so a board that moved a
+chip select or settles more slowly needs two lines, not a copy. Pins are named as
+on the header ("GPIO17"), never as a GPIO chip and offset.
+
+>>> profile = board_profile({"profile": "reference", "gpio": {"buzzer": "GPIO21"}})
+>>> profile.gpio["buzzer"], profile.spi["dds"].chip_select, profile.timing.drive_settle_s
+('GPIO21', 0, 0.0005)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from types import MappingProxyType
+from typing import Any, Mapping
+
+from appliance.errors import ConfigError
+
+BUILTIN_PROFILES = ("reference", "reference-32", "ad5933")
+CHAINS = ("rms", "ad5933")
+MULTIPLEXERS = {"adg725": ("drive_mux", "measure_mux"),
+                "adg731": ("drive_pos_mux", "drive_neg_mux", "meas_pos_mux", "meas_neg_mux")}
+ROLES_BY_CHAIN = {
+    "rms": {"spi": ("dds",), "i2c": ("adc", "digipot", "thermometer"),
+            "gpio": ("gain_a0", "gain_a1", "gain_wr", "adc_ready", "phase_sign", "source_enable")},
+    "ad5933": {"spi": (), "i2c": ("impedance", "thermometer"),
+               "gpio": ("gain_a0", "gain_a1", "gain_wr", "source_enable")},
+}
+FIELDS_BY_CHAIN = {
+    "rms": {"excitation": ("current_a", "full_scale_current_a"),
+            "measurement": ("rms_limit_v", "adc_data_rate_sps"),
+            "contact": ("test_current_a",),
+            "timing": ("rms_rise_tau_s", "rms_fall_tau_s", "settle_accuracy")},
+    "ad5933": {"excitation": ("output_range_vpp", "transconductance_a_per_v"),
+               "measurement": ("vin_gain", "settling_cycles", "dft_counts_per_volt")},
+}
+
+
+@dataclass(frozen=True)
+class Excitation:
+    frequency_hz: float
+    compliance_v: float
+    current_a: float | None = None
+    full_scale_current_a: float | None = None
+    output_range_vpp: float | None = None
+    transconductance_a_per_v: float | None = None
+
+
+@dataclass(frozen=True)
+class Measurement:
+    inamp_gain: float
+    range_headroom: float
+    sign_floor_v: float
+    rms_limit_v: float | None = None
+    adc_data_rate_sps: int | None = None
+    vin_gain: float | None = None
+    settling_cycles: int | None = None
+    dft_counts_per_volt: float | None = None
+
+
+@dataclass(frozen=True)
+class Accuracy:
+    """The stated error of one reading against the sensor: ``relative * |v| + absolute_v``."""
+
+    relative: float
+    absolute_v: float
+
+
+@dataclass(frozen=True)
+class Contact:
+    limit_ohm: float
+    test_current_a: float | None = None
+
+
+@dataclass(frozen=True)
+class Timing:
+    drive_settle_s: float
+    measure_settle_s: float
+    i2c_clock_hz: float
+    call_overhead_s: float
+    rms_rise_tau_s: float | None = None
+    rms_fall_tau_s: float | None = None
+    settle_accuracy: float | None = None
+
+
+@dataclass(frozen=True)
+class SPIAddress:
+    bus: int
+    chip_select: int
+    max_speed_hz: int
+
+
+@dataclass(frozen=True)
+class BoardProfile:
+    """A whole board: chips, bus addresses, pins, analogue constants and timing."""
+
+    name: str
+    chain: str
+    multiplexer: str
+    channels: int
+    excitation: Excitation
+    measurement: Measurement
+    accuracy: Accuracy
+    contact: Contact
+    timing: Timing
+    spi: Mapping[str, SPIAddress]
+    i2c_bus: int
+    i2c: Mapping[str, int]
+    gpio: Mapping[str, str] = field(default_factory=dict)
+
+
+def builtin_profile_text(name: str) -> str:
+    """The TOML text of a built-in profile."""
+    if name not in BUILTIN_PROFILES:
+        raise ConfigError(f"[board] profile {name!r} is not built in; the built-in profiles are "
+                          f"{', '.join(BUILTIN_PROFILES)}")
+    return resources.files("appliance.drivers").joinpath(f"profiles/{name}.toml").read_text(encoding="utf-8")
+
+
+def board_profile(board: Mapping[str, Any] | None = None) -> BoardProfile:
+    """The profile a ``[board]`` table describes: its built-in ``profile`` with the table's overrides.
+
+    Keys that are not the appliance's (``backend``, ``gpio_chip``) are ignored here;
+    any other unknown key is an error naming it, so a typo cannot silently keep a default.
+    """
+    board = dict(board or {})
+    name = board.pop("profile", "reference")
+    for key in ("backend", "gpio_chip"):
+        board.pop(key, None)
+    data = _merge(tomllib.loads(builtin_profile_text(name)), board)
+    return _profile_from_mapping(data)
+
+
+def _merge(base: dict, overrides: Mapping) -> dict:
+    merged = dict(base)
+    for key, value in overrides.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), dict):
+            merged[key] = _merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def _profile_from_mapping(data: dict) -> BoardProfile:
+    data = dict(data)
+    name = _take(data, "name", str, "[board]")
+    where = f"[board] (profile {name})"
+    chain = _take(data, "chain", str, where)
+    if chain not in CHAINS:
+        raise ConfigError(f"{where} chain must be one of {CHAINS}, got {chain!r}")
+    multiplexer = _take(data, "multiplexer", str, where)
+    if multiplexer not in MULTIPLEXERS:
+        raise ConfigError(f"{where} multiplexer must be one of {tuple(MULTIPLEXERS)}, got {multiplexer!r}")
+    channels = _take(data, "channels", int, where)
+    if channels != (16 if multiplexer == "adg725" else 32):
+        raise ConfigError(f"{where} channels = {channels} does not match the {multiplexer}")
+    sections = {key: _section(cls, _take(data, key, dict, where), f"[board.{key}]")
+                for key, cls in (("excitation", Excitation), ("measurement", Measurement),
+                                 ("accuracy", Accuracy), ("contact", Contact), ("timing", Timing))}
+    spi = {role: _section(SPIAddress, value, f"[board.spi] {role}")
+           for role, value in _take(data, "spi", dict, where).items()}
+    i2c = dict(_take(data, "i2c", dict, where))
+    i2c_bus = _take(i2c, "bus", int, "[board.i2c]")
+    gpio = _take(data, "gpio", dict, where) if "gpio" in data else {}
+    if data:
+        raise ConfigError(f"{where}: unknown key {sorted(data)[0]!r}")
+    roles = ROLES_BY_CHAIN[chain]
+    _require(spi, roles["spi"] + MULTIPLEXERS[multiplexer], "[board.spi]")
+    _require(i2c, roles["i2c"], "[board.i2c]")
+    _require(gpio, roles["gpio"], "[board.gpio]")
+    for role, address in i2c.items():
+        if not (isinstance(address, int) and 0x03 <= address <= 0x77):
+            raise ConfigError(f"[board.i2c] {role} = {address!r} is not a 7-bit I2C address (0x03..0x77)")
+    for role, line in gpio.items():
+        if not isinstance(line, str) or not line:
+            raise ConfigError(f"[board.gpio] {role} must be a line name such as \"GPIO17\", got {line!r}")
+    _check_distinct(spi, "[board.spi]", lambda a: f"spi{a.bus}.{a.chip_select}")
+    _check_distinct(gpio, "[board.gpio]", lambda line: line)
+    _check_distinct(i2c, "[board.i2c]", lambda address: f"0x{address:02X}")
+    for key, names in FIELDS_BY_CHAIN[chain].items():
+        missing = [n for n in names if getattr(sections[key], n) is None]
+        if missing:
+            raise ConfigError(f"[board.{key}] needs {missing[0]!r} for a {chain} front end")
+    return BoardProfile(name=name, chain=chain, multiplexer=multiplexer, channels=channels,
+                        excitation=sections["excitation"], measurement=sections["measurement"],
+                        accuracy=sections["accuracy"], contact=sections["contact"], timing=sections["timing"],
+                        spi=MappingProxyType(spi), i2c_bus=i2c_bus, i2c=MappingProxyType(i2c),
+                        gpio=MappingProxyType(gpio))
+
+
+def _check_distinct(mapping: Mapping, where: str, key) -> None:
+    seen: dict = {}
+    for role, value in mapping.items():
+        k = key(value)
+        if k in seen:
+            raise ConfigError(f"{where} {role} and {seen[k]} both use {k}")
+        seen[k] = role
+
+
+def _require(mapping: Mapping, roles, where: str) -> None:
+    missing = [role for role in roles if role not in mapping]
+    if missing:
+        raise ConfigError(f"{where} needs {missing[0]!r} for this board")
+
+
+def _take(data: dict, key: str, kind, where: str):
+    if key not in data:
+        raise ConfigError(f"{where} is missing {key!r}")
+    value = data.pop(key)
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        raise ConfigError(f"{where} {key} must be {kind.__name__}, got {value!r}")
+    return value
+
+
+def _section(cls, values: Mapping, where: str):
+    values = dict(values)
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in values:
+            if f.default is dataclasses.MISSING:
+                raise ConfigError(f"{where} is missing {f.name!r}")
+            continue
+        kind = int if f.type in ("int", "int | None") else str if f.type == "str" else float
+        value = _take(values, f.name, kind, where)
+        if kind is float and not value > 0:
+            raise ConfigError(f"{where} {f.name} must be positive, got {value!r}")
+        if kind is int and value < 0:
+            raise ConfigError(f"{where} {f.name} must not be negative, got {value!r}")
+        kwargs[f.name] = value
+    if values:
+        raise ConfigError(f"{where}: unknown key {sorted(values)[0]!r}")
+    return cls(**kwargs)
+
+
+def board_table_from_file(path) -> dict:
+    """The ``[board]`` table of the appliance's TOML configuration file (empty if it has none)."""
+    from pathlib import Path
+
+    try:
+        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"configuration file {path} does not exist") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"configuration file {path} is not valid TOML: {exc}") from None
+    board = data.get("board", {})
+    if not isinstance(board, dict):
+        raise ConfigError(f"configuration file {path}: [board] must be a table")
+    return board
