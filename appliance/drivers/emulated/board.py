@@ -1,0 +1,160 @@
+"""The emulated board: a profile's chips as register-level emulators, wired to one analogue chain.
+
+It is a complete :class:`~appliance.drivers.bus.Board`: the same front end and
+scan engine that run on a Raspberry Pi run here, and every transfer is logged
+(``board.log``) and charged to the simulated clock at the profile's bus timing,
+so the time a scan takes is the profile's timing model.
+
+Faults for tests and demonstrations: ``board.faults.fail_next(target, count,
+errno)`` for transfer errors, ``board.faults.missing`` for device files absent
+at open, ``board.chain.open_electrodes`` for electrodes that lost contact,
+``board.chain.pickup_v`` for a channel that saturates, and
+``board.adc.stuck_code`` for a stuck converter.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from appliance.drivers.bus import Board, LineRequest
+from appliance.drivers.emulated.ad5933 import EmulatedAD5933
+from appliance.drivers.emulated.ad8251 import EmulatedAD8251
+from appliance.drivers.emulated.ad9833 import EmulatedAD9833
+from appliance.drivers.emulated.adg7xx import EmulatedADG725, EmulatedADG731
+from appliance.drivers.emulated.ads1115 import EmulatedADS1115
+from appliance.drivers.emulated.analogue import AnalogueChain, ChainErrors, ChainState, SensorModel
+from appliance.drivers.emulated.buses import (BusTiming, EmulatedGPIOLines, EmulatedI2CBus, EmulatedSPIDevice,
+                                              FaultPlan, GPIOBank, Transaction)
+from appliance.drivers.emulated.clock import SimulatedClock
+from appliance.drivers.emulated.mcp4017 import EmulatedMCP4017
+from appliance.drivers.emulated.mcp9808 import EmulatedMCP9808
+from appliance.drivers.profile import BoardProfile
+from appliance.errors import DeviceMissing
+
+HEADER_LINES = tuple(f"GPIO{n}" for n in range(28))
+POWERED_BEFORE_OPEN_S = 1.0     # the board is powered a while before software opens it (thermometer converted)
+
+
+class EmulatedBoard(Board):
+    """``profile``'s front end over emulated chips measuring ``sensor``; ``seed`` fixes errors and noise."""
+
+    def __init__(self, profile: BoardProfile, sensor: SensorModel, *, seed: int = 0,
+                 temperature_c: float = 24.0):
+        super().__init__()
+        self.profile, self.sensor = profile, sensor
+        self.clock = SimulatedClock()
+        self.log: list[Transaction] = []
+        self.faults = FaultPlan()
+        self.timing = BusTiming(profile.timing.i2c_clock_hz, profile.timing.call_overhead_s)
+        self.bank = GPIOBank(self.clock, HEADER_LINES, self.log)
+        self.i2c_bus = EmulatedI2CBus(profile.i2c_bus, self.clock, self.timing, self.log, self.faults)
+        self.spi_chips: dict[tuple[int, int], object] = {}
+        self.temperature_c = temperature_c
+        rng = np.random.default_rng(seed)
+        self.chain = self._build_chain(rng, seed)
+        self._build_chips(seed)
+        self._listen()
+        self.clock.sleep(POWERED_BEFORE_OPEN_S)
+
+    # -- wiring --------------------------------------------------------------------------
+    def _build_chain(self, rng, seed: int) -> AnalogueChain:
+        p = self.profile
+        t = p.timing
+        return AnalogueChain(self.clock, self.sensor, state=self._chain_state, inamp_gain=p.measurement.inamp_gain,
+                             compliance_v=p.excitation.compliance_v, drive_settle_s=t.drive_settle_s,
+                             settle_accuracy=t.settle_accuracy or 1e-4,
+                             rms_rise_tau_s=t.rms_rise_tau_s or 0.35e-3, rms_fall_tau_s=t.rms_fall_tau_s or 0.7e-3,
+                             sign_floor_v=p.measurement.sign_floor_v, errors=ChainErrors.drawn(rng), seed=seed)
+
+    def _build_chips(self, seed: int) -> None:
+        p = self.profile
+        gpio = p.gpio
+        self.pga = EmulatedAD8251(self.bank, a0=gpio["gain_a0"], a1=gpio["gain_a1"], wr=gpio["gain_wr"])
+        self.thermometer = EmulatedMCP9808(self.clock, lambda now: self.temperature_c,
+                                           address=p.i2c["thermometer"])
+        self.i2c_bus.attach(self.thermometer)
+        if p.multiplexer == "adg725":
+            self.muxes = {role: EmulatedADG725() for role in ("drive_mux", "measure_mux")}
+        else:
+            self.muxes = {role: EmulatedADG731() for role in ("drive_pos_mux", "drive_neg_mux", "meas_pos_mux",
+                                                              "meas_neg_mux")}
+        for role, mux in self.muxes.items():
+            self.spi_chips[(p.spi[role].bus, p.spi[role].chip_select)] = mux
+        if p.chain == "rms":
+            self.dds = EmulatedAD9833()
+            self.spi_chips[(p.spi["dds"].bus, p.spi["dds"].chip_select)] = self.dds
+            self.digipot = EmulatedMCP4017()
+            self.adc = EmulatedADS1115(self.clock, self.chain.pin_volts, address=p.i2c["adc"], seed=seed + 1)
+            for chip in (self.digipot, self.adc):
+                self.i2c_bus.attach(chip)
+            self.bank.connect(gpio["adc_ready"], self.adc)
+            self.bank.connect(gpio["phase_sign"], self.chain.phase_source())
+        else:
+            vin_gain = p.measurement.vin_gain
+            self.impedance = EmulatedAD5933(self.clock, lambda now: self.chain.vin_phasor(now, vin_gain),
+                                            seed=seed + 1)
+            self.i2c_bus.attach(self.impedance)
+
+    def _listen(self) -> None:
+        chips = [self.pga, *self.muxes.values()]
+        chips += [self.dds, self.digipot] if self.profile.chain == "rms" else [self.impedance]
+        for chip in chips:
+            chip.listeners.append(self.chain.state_changed)
+        self.bank.watch(self.profile.gpio["source_enable"], lambda old, new: self.chain.state_changed())
+
+    def _pair(self, pos_role: str, neg_role: str | None = None) -> tuple[int, int] | None:
+        """The electrodes (0-based) a multiplexer pair connects, None while either is off."""
+        if neg_role is None:
+            mux = self.muxes[pos_role]
+            pair = (mux.selected("A"), mux.selected("B"))
+        else:
+            pair = (self.muxes[pos_role].selected(), self.muxes[neg_role].selected())
+        return None if None in pair else pair
+
+    def _chain_state(self) -> ChainState:
+        p = self.profile
+        enabled = self.bank.driven.get(p.gpio["source_enable"], 0) == 1
+        if p.multiplexer == "adg725":
+            drive, measure = self._pair("drive_mux"), self._pair("measure_mux")
+        else:
+            drive, measure = self._pair("drive_pos_mux", "drive_neg_mux"), self._pair("meas_pos_mux", "meas_neg_mux")
+        return ChainState(drive=drive, measure=measure, current_a=self._current_a() if enabled else 0.0,
+                          gain=float(self.pga.gain))
+
+    def _current_a(self) -> float:
+        x = self.profile.excitation
+        if self.profile.chain == "rms":
+            if self.dds.output_hz <= 0 or self.dds.waveform != "sine":
+                return 0.0
+            return x.full_scale_current_a * self.digipot.wiper / 127
+        if self.impedance.output_frequency_hz is None:
+            return 0.0
+        return self.impedance.output_vpp / (2 * np.sqrt(2)) * x.transconductance_a_per_v
+
+    # -- Board ---------------------------------------------------------------------------
+    def _open_spi(self, bus, chip_select, mode, max_speed_hz):
+        name = f"/dev/spidev{bus}.{chip_select}"
+        chip = self.spi_chips.get((bus, chip_select))
+        if chip is None or name in self.faults.missing:
+            raise DeviceMissing(f"SPI {name}: no such device (is SPI enabled with dtparam=spi=on, and does the "
+                                "board have this chip select?)")
+        return EmulatedSPIDevice(name, mode, max_speed_hz, chip, self.clock, self.timing, self.log, self.faults)
+
+    def _open_i2c(self, bus):
+        name = f"/dev/i2c-{bus}"
+        if bus != self.profile.i2c_bus or name in self.faults.missing:
+            raise DeviceMissing(f"I2C {name}: no such device (is I2C enabled with dtparam=i2c_arm=on?)")
+        return self.i2c_bus
+
+    def _request_lines(self, request: LineRequest, consumer: str):
+        return EmulatedGPIOLines(self.bank, request, consumer, self.timing)
+
+    def reset(self) -> None:
+        """Every chip to its power-on state, faults cleared, log emptied (the mat is kept)."""
+        for chip in [*self.spi_chips.values(), *self.i2c_bus.chips.values(), self.pga]:
+            chip.reset()
+        self.faults.clear()
+        self.log.clear()
+        self.chain.open_electrodes.clear()
+        self.chain.pickup_v.clear()
+        self.chain.state_changed()
