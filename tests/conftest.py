@@ -60,3 +60,39 @@ def grid_truth_and_model(noise: float, truth_density: float = 3.0):
     reference = simulate(truth, np.ones(truth.n_elements), protocol)
     model = build_model(ModelSetup(layout, protocol, ReconstructionOptions(noise=NoiseModel(0.0, noise))))
     return truth, reference, model
+
+
+@functools.lru_cache(maxsize=8)
+def sensor_of(layout_name: str, inclusions: tuple = ()):
+    """The emulated mat of a layout (a forward solve), built once per layout and inclusions."""
+    from appliance.drivers.emulated.sensor import ForwardSensor
+
+    return ForwardSensor.of_layout(get_layout(layout_name), inclusions=list(inclusions))
+
+
+def sensor_readings(sensor, protocol, current_a: float) -> np.ndarray:
+    """What an ideal front end reads: V(meas+) - V(meas-) at ``current_a`` from the sensor's transfer matrix."""
+    z = sensor.transfer
+    a, b, c, d = (protocol.readings - 1).T
+    return current_a * (z[c, a] - z[c, b] - z[d, a] + z[d, b])
+
+
+@pytest.fixture
+def emulated():
+    """Factory: (board, front end) for a profile and layout on the emulated board; closed afterwards."""
+    from appliance.drivers.emulated.board import EmulatedBoard
+    from appliance.drivers.frontend import open_front_end
+    from appliance.drivers.profile import board_profile
+
+    opened = []
+
+    def make(profile="reference", layout="grid-4x4", inclusions=(), seed=0, overrides=None):
+        table = {"profile": profile, **(overrides or {})}
+        board = EmulatedBoard(board_profile(table), sensor_of(layout, tuple(inclusions)), seed=seed)
+        front_end = open_front_end(board, board.profile)
+        opened.append(board)
+        return board, front_end
+
+    yield make
+    for board in opened:
+        board.close()

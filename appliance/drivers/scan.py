@@ -1,0 +1,331 @@
+"""The scan engine: a protocol run on a front end, giving a frame of readings with quality flags.
+
+Per reading it routes the multiplexers, picks the range (the most sensitive that
+does not saturate: from the previous frame's plan, or by a probe at the least
+sensitive range on the first frame), waits the settling the front end asks for,
+converts, and checks what it got. Readings are taken drive pair by drive pair
+(a drive switch is the slowest change) and, within a drive pair, in rising order
+of the level the plan predicts, so the RMS converter only ever settles upwards,
+which it does twice as fast.
+
+Faults: a transfer error is retried (``retries`` attempts in all) and then flags
+that reading BUS_ERROR while the scan goes on; electrodes that fail the contact
+check are not used (OPEN_ELECTRODE); a reading over range at the least sensitive
+range is SATURATED; a converter repeating one code across different readings is
+STUCK; reciprocal readings that disagree beyond the stated accuracy are flagged
+RECIPROCITY. Flagged-unusable readings are NaN in :attr:`AcquiredFrame.volts`, and
+every fault is also a :class:`TechnicalCondition` naming the part.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from appliance.core.protocols import Protocol
+from appliance.drivers.bus import with_retries
+from appliance.drivers.contact import ContactReport, check_contacts
+from appliance.drivers.frontend import FrontEnd, Measured
+from appliance.errors import ApplianceError, ScanError, TransferFailed
+
+log = logging.getLogger(__name__)
+
+LOW_SIGNAL = 0.02          # below this fraction at the most sensitive range the reading is mostly noise
+STUCK_RUN = 4              # this many different readings giving one identical code means a stuck converter
+
+
+class Flag(enum.IntFlag):
+    """Quality of one reading; the first five make it unusable."""
+
+    SATURATED = 1
+    OPEN_ELECTRODE = 2
+    BUS_ERROR = 4
+    STUCK = 8
+    RECIPROCITY = 16
+    LOW_SIGNAL = 32
+    SIGN_UNCERTAIN = 64
+
+
+UNUSABLE = Flag.SATURATED | Flag.OPEN_ELECTRODE | Flag.BUS_ERROR | Flag.STUCK | Flag.RECIPROCITY
+
+
+def flag_names(flags: int) -> str:
+    """``"SATURATED|LOW_SIGNAL"`` for a flag word, ``""`` for a clean reading."""
+    return "|".join(f.name for f in Flag if flags & f)
+
+
+@dataclass(frozen=True)
+class TechnicalCondition:
+    """A fault of the equipment (not of the patient), naming the part: shown to the clinical engineer."""
+
+    part: str
+    message: str
+
+    def __str__(self) -> str:
+        return f"{self.part}: {self.message}"
+
+
+@dataclass(frozen=True)
+class AcquiredFrame:
+    """One set of readings in protocol order.
+
+    ``volts`` are V(meas+) - V(meas-) (volts rms at ``drive_current_a``), NaN where
+    a flag makes the reading unusable; ``measured_volts`` keep what was measured
+    anyway. ``time_s`` is when each reading was taken, from the frame's start.
+    """
+
+    protocol: Protocol
+    volts: np.ndarray
+    measured_volts: np.ndarray
+    flags: np.ndarray
+    range_index: np.ndarray
+    fraction: np.ndarray
+    time_s: np.ndarray
+    duration_s: float
+    drive_current_a: float
+    contact: ContactReport | None
+    conditions: tuple[TechnicalCondition, ...] = ()
+    sets: int = 1
+
+    @property
+    def usable(self) -> np.ndarray:
+        return (self.flags & int(UNUSABLE)) == 0
+
+
+@dataclass
+class _Tally:
+    """What one scan gathers, in protocol order."""
+
+    n: int
+    volts: np.ndarray = field(init=False)
+    flags: np.ndarray = field(init=False)
+    ranges: np.ndarray = field(init=False)
+    fraction: np.ndarray = field(init=False)
+    times: np.ndarray = field(init=False)
+    codes: np.ndarray = field(init=False)
+
+    def __post_init__(self):
+        self.volts = np.full(self.n, np.nan)
+        self.flags = np.zeros(self.n, dtype=np.int64)
+        self.ranges = np.full(self.n, -1, dtype=np.int64)
+        self.fraction = np.full(self.n, np.nan)
+        self.times = np.full(self.n, np.nan)
+        self.codes = np.empty(self.n, dtype=object)
+
+
+class ScanEngine:
+    """Runs ``protocol`` on ``front_end``; keeps the range plan from one frame to the next."""
+
+    def __init__(self, front_end: FrontEnd, protocol: Protocol, *, order: str = "optimised", retries: int = 3,
+                 conversions: int = 1, contact_check: bool = True,
+                 progress: Callable[[int, int], None] | None = None):
+        if order not in ("optimised", "protocol"):
+            raise ValueError(f"order must be 'optimised' or 'protocol', got {order!r}")
+        if conversions < 1 or retries < 1:
+            raise ValueError("conversions and retries must be at least 1")
+        front_end.mux.check_electrodes(protocol.n_electrodes)
+        self.front_end, self.protocol, self.order = front_end, protocol, order
+        self.retries, self.conversions, self.contact_check = retries, conversions, contact_check
+        self.progress = progress
+        self.plan_range: np.ndarray | None = None       # per reading, from the last frame
+        self.plan_fraction: np.ndarray | None = None
+
+    # -- ordering ------------------------------------------------------------------------
+    def reading_order(self) -> np.ndarray:
+        """Indices of the protocol's readings in the order they will be taken."""
+        n = len(self.protocol)
+        if self.order == "protocol":
+            return np.arange(n)
+        level = np.zeros(n) if self.plan_fraction is None else self._planned_output()
+        drive_rank = self.protocol.drive_index
+        return np.lexsort((np.arange(n), level, drive_rank))
+
+    def _planned_output(self) -> np.ndarray:
+        """The RMS output level each reading is expected at (fraction x range full scale)."""
+        fe = self.front_end
+        scale = np.array([fe.output_scale(r) for r in range(len(fe.ranges))])
+        return np.nan_to_num(self.plan_fraction) * scale[np.clip(self.plan_range, 0, None)]
+
+    # -- one frame -------------------------------------------------------------------------
+    def scan(self) -> AcquiredFrame:
+        """Acquire one set: contact check, then every reading; the excitation is off afterwards."""
+        fe, clock = self.front_end, self.front_end.clock
+        start = clock.monotonic()
+        conditions: list[TechnicalCondition] = []
+        tally = _Tally(len(self.protocol))
+        try:
+            contact = self._contact(conditions)
+            self._start_excitation(conditions)
+            blocked = contact.open_electrodes if contact else frozenset()
+            order = self.reading_order()
+            for done, i in enumerate(order, start=1):
+                row = self.protocol.readings[i]
+                if blocked & set(row.tolist()):
+                    tally.flags[i] |= Flag.OPEN_ELECTRODE
+                else:
+                    self._reading(i, row, tally, conditions, start)
+                if self.progress is not None:
+                    self.progress(done, len(order))
+            self._find_stuck(order, tally, conditions)
+        finally:
+            self._safe_state(conditions)
+        self._check_drives(tally, conditions)
+        self._check_reciprocity(tally, conditions)
+        self._report_saturation(tally, conditions)
+        self._update_plan(tally)
+        volts = np.where((tally.flags & int(UNUSABLE)) == 0, tally.volts, np.nan)
+        if not np.isfinite(volts).any():
+            conditions.append(TechnicalCondition("front end", "no usable reading in this frame"))
+        return AcquiredFrame(self.protocol, volts, tally.volts, tally.flags, tally.ranges, tally.fraction,
+                             tally.times, clock.monotonic() - start, fe.drive_current_a(), contact,
+                             tuple(conditions))
+
+    def _contact(self, conditions) -> ContactReport | None:
+        if not self.contact_check:
+            return None
+        try:
+            report = check_contacts(self.front_end, self.protocol.n_electrodes, retries=self.retries)
+        except TransferFailed as exc:
+            conditions.append(TechnicalCondition("contact check", f"could not complete: {exc}"))
+            return None
+        for e in sorted(report.open_electrodes):
+            conditions.append(TechnicalCondition(f"electrode {e}", "open or lost contact: its readings are "
+                                                 "left out"))
+        return report
+
+    def _start_excitation(self, conditions) -> None:
+        try:
+            with_retries(self.front_end.start_excitation, attempts=self.retries, what="excitation start")
+        except (TransferFailed, ApplianceError) as exc:
+            raise ScanError(f"the excitation could not be started: {exc}") from exc
+
+    def _safe_state(self, conditions) -> None:
+        try:
+            with_retries(self.front_end.stop_excitation, attempts=self.retries, what="excitation stop")
+        except TransferFailed as exc:
+            conditions.append(TechnicalCondition("current source", f"could not be switched off: {exc}"))
+
+    def _reading(self, i: int, row, tally: _Tally, conditions, start: float) -> None:
+        drive, measure = (int(row[0]), int(row[1])), (int(row[2]), int(row[3]))
+        try:
+            measured = with_retries(lambda: self._measure(i, drive, measure), attempts=self.retries,
+                                    what=f"reading {i + 1} ({drive[0]},{drive[1]};{measure[0]},{measure[1]})",
+                                    on_retry=lambda *_: self.front_end.forget_routing())
+        except TransferFailed as exc:
+            tally.flags[i] |= Flag.BUS_ERROR
+            conditions.append(TechnicalCondition("bus", str(exc)))
+            self.front_end.forget_routing()
+            return
+        sample, r = measured.sample, measured.range_index
+        tally.volts[i], tally.ranges[i], tally.fraction[i] = sample.volts, r, sample.fraction
+        tally.times[i], tally.codes[i] = self.front_end.clock.monotonic() - start, sample.raw
+        if measured.saturated:
+            tally.flags[i] |= Flag.SATURATED
+        if r == len(self.front_end.ranges) - 1 and sample.fraction < LOW_SIGNAL:
+            tally.flags[i] |= Flag.LOW_SIGNAL
+        if not sample.sign_known:
+            tally.flags[i] |= Flag.SIGN_UNCERTAIN
+
+    def _measure(self, i: int, drive, measure) -> Measured:
+        planned = self.plan_range is not None and self.plan_range[i] >= 0
+        return self.front_end.measure(drive, measure, range_index=int(self.plan_range[i]) if planned else None,
+                                      expected_fraction=float(self.plan_fraction[i]) if planned else None,
+                                      conversions=self.conversions)
+
+    # -- checks over the frame -------------------------------------------------------------
+    def _find_stuck(self, order, tally: _Tally, conditions) -> None:
+        run: list[int] = []
+        stuck_code = None
+        for i in order:
+            code = tally.codes[i]
+            if code is None or tally.flags[i] & Flag.LOW_SIGNAL:
+                continue          # a repeated near-zero code is no signal, which _check_drives reports
+            if run and code == tally.codes[run[-1]]:
+                run.append(i)
+            else:
+                run = [i]
+            if len(run) >= STUCK_RUN:
+                tally.flags[run] |= Flag.STUCK
+                stuck_code = code
+        if stuck_code is not None:
+            conditions.append(TechnicalCondition(self.front_end.converter_name(),
+                                                 f"returned code {stuck_code} for {STUCK_RUN} or more different "
+                                                 "readings in a row: stuck"))
+
+    def _check_drives(self, tally: _Tally, conditions) -> None:
+        """A drive pair whose every reading is noise carries no current: an open drive electrode."""
+        measured = tally.ranges >= 0
+        quiet = (tally.flags & int(Flag.LOW_SIGNAL)) != 0
+        for d, (a, b) in enumerate(self.protocol.drives.tolist()):
+            mine = (self.protocol.drive_index == d) & measured & ((tally.flags & int(Flag.SATURATED)) == 0)
+            if mine.any() and quiet[mine].all():
+                tally.flags[self.protocol.drive_index == d] |= Flag.OPEN_ELECTRODE
+                conditions.append(TechnicalCondition(f"drive pair {a}-{b}", "no signal on any reading: the "
+                                                     "current does not flow (open drive electrode or source)"))
+
+    def _check_reciprocity(self, tally: _Tally, conditions) -> None:
+        accuracy = self.front_end.profile.accuracy
+        pairs = self.protocol.reciprocal_pairs()
+        bad = 0
+        for i, j in pairs:
+            vi, vj = tally.volts[i], tally.volts[j]
+            if not (np.isfinite(vi) and np.isfinite(vj)) or (tally.flags[[i, j]] & int(UNUSABLE)).any():
+                continue
+            allowed = 3 * (accuracy.relative * max(abs(vi), abs(vj)) + accuracy.absolute_v)
+            if abs(vi - vj) > allowed:
+                tally.flags[[i, j]] |= Flag.RECIPROCITY
+                bad += 1
+        if bad:
+            conditions.append(TechnicalCondition("measurement", f"{bad} of {len(pairs)} reciprocal pairs disagree "
+                                                 "beyond the stated accuracy"))
+
+    def _report_saturation(self, tally: _Tally, conditions) -> None:
+        saturated = (tally.flags & int(Flag.SATURATED)) != 0
+        if not saturated.any():
+            return
+        electrodes = self.protocol.readings[saturated][:, 2:].ravel()
+        counts = np.bincount(electrodes, minlength=self.protocol.n_electrodes + 1)
+        worst = [int(e) for e in np.flatnonzero(counts == counts.max())]
+        conditions.append(TechnicalCondition(
+            "measuring channel", f"{int(saturated.sum())} readings over range even at the lowest gain; measuring "
+            f"electrode(s) most involved: {', '.join(map(str, worst))}"))
+
+    def _update_plan(self, tally: _Tally) -> None:
+        fresh = tally.ranges >= 0
+        if self.plan_range is None:
+            self.plan_range = np.full(len(self.protocol), -1, dtype=np.int64)
+            self.plan_fraction = np.full(len(self.protocol), np.nan)
+        self.plan_range[fresh] = tally.ranges[fresh]
+        self.plan_fraction[fresh] = tally.fraction[fresh]
+
+
+def average_frames(frames: list[AcquiredFrame]) -> AcquiredFrame:
+    """The thesis's "average of N sets": per reading, the mean over the sets where it was usable.
+
+    A reading usable in no set keeps every flag it got and stays NaN; one usable
+    in some sets keeps only the warning flags. Conditions of all sets are kept.
+    """
+    if not frames:
+        raise ValueError("no frames to average")
+    volts, count = _mean_finite([f.volts for f in frames])
+    measured, _ = _mean_finite([f.measured_volts for f in frames])
+    flags = np.bitwise_or.reduce(np.array([f.flags for f in frames]), axis=0)
+    flags = np.where(count > 0, flags & ~int(UNUSABLE), flags)
+    last = frames[-1]
+    conditions = tuple(dict.fromkeys(c for f in frames for c in f.conditions))
+    return AcquiredFrame(last.protocol, volts, measured, flags, last.range_index, last.fraction, last.time_s,
+                         sum(f.duration_s for f in frames), last.drive_current_a, last.contact, conditions,
+                         sets=len(frames))
+
+
+def _mean_finite(rows) -> tuple[np.ndarray, np.ndarray]:
+    """Column means over the finite entries (NaN where none) and how many there were."""
+    stack = np.array(rows, dtype=float)
+    finite = np.isfinite(stack)
+    count = finite.sum(axis=0)
+    total = np.where(finite, stack, 0.0).sum(axis=0)
+    return np.where(count > 0, total / np.maximum(count, 1), np.nan), count
