@@ -79,6 +79,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--segment", type=Path, help="also write the KTC2023 256 x 256 label image (CSV) here")
     p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
     p.set_defaults(run=_reconstruct)
+
+    from appliance.cli_frontend import add_parsers
+
+    add_parsers(sub)
     return parser
 
 

@@ -1,0 +1,135 @@
+"""The operator functions that use the front end (thesis 3.3): ``acquire`` and ``selftest``.
+
+``--emulated`` runs them on the emulated board measuring the layout's mat (with
+``--inclusion`` objects on it); without it they open the real board named by
+``--config`` (its ``[board]`` table) or the reference profile.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def add_parsers(sub) -> None:
+    p = sub.add_parser("acquire", help="acquire frames of readings from the front end")
+    _board_options(p)
+    p.add_argument("--protocol", type=Path, help="protocol CSV file (default: the layout's default protocol)")
+    p.add_argument("--average", type=int, default=1, metavar="N", help="average N complete sets (thesis: 30)")
+    p.add_argument("--series", type=int, default=1, metavar="N", help="acquire N sets (1 to 60)")
+    p.add_argument("--interval", type=float, default=1.0, metavar="S", help="seconds between sets of a series")
+    p.add_argument("--order", default="optimised", choices=["optimised", "protocol"],
+                   help="reading order: grouped by drive, rising level (default), or as the protocol lists them")
+    p.add_argument("--out", type=Path, required=True,
+                   help="frame file (CSV); a series writes NAME-001.csv, ...; each gets a .quality.csv beside it")
+    p.set_defaults(run=_acquire)
+
+    p = sub.add_parser("selftest", help="check every chip, the signal path and each electrode's contact")
+    _board_options(p)
+    p.set_defaults(run=_selftest)
+
+
+def _board_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--layout", default="grid-4x4", help="layout name or .toml file (default grid-4x4)")
+    p.add_argument("--emulated", action="store_true", help="use the emulated front end instead of the real board")
+    p.add_argument("--config", type=Path, help="appliance TOML configuration; its [board] table describes the board")
+    p.add_argument("--profile", help="board profile: reference, reference-32 or ad5933 (overrides --config)")
+    p.add_argument("--inclusion", action="append", default=[], metavar="SHAPE:X,Y,W,H,CONTRAST",
+                   help="emulated mat only: an object on it, as for simulate; repeatable")
+    p.add_argument("--seed", type=int, default=0, help="emulated board only: its component errors and noise")
+
+
+def _open(args):
+    """The layout, the board and its front end the options ask for."""
+    from appliance.cli import _parse_inclusion
+    from appliance.core.layouts import get_layout
+    from appliance.drivers import open_board
+    from appliance.drivers.frontend import open_front_end
+    from appliance.drivers.profile import board_table_from_file
+    from appliance.errors import ConfigError
+
+    layout = get_layout(args.layout)
+    table = board_table_from_file(args.config) if args.config else {}
+    if args.profile:
+        table["profile"] = args.profile
+    if args.emulated:
+        table["backend"] = "emulated"
+    elif args.inclusion:
+        raise ConfigError("--inclusion places objects on the emulated mat; add --emulated")
+    inclusions = [_parse_inclusion(text) for text in args.inclusion]
+
+    def sensor():
+        from appliance.drivers.emulated.sensor import ForwardSensor
+
+        return ForwardSensor.of_layout(layout, inclusions=inclusions)
+
+    board, profile = open_board(table, sensor=sensor)
+    if args.emulated:
+        board.seed = args.seed
+    try:
+        front_end = open_front_end(board, profile)
+    except BaseException:
+        board.close()
+        raise
+    kind = "emulated" if args.emulated or type(board).__name__ == "EmulatedBoard" else "hardware"
+    return layout, board, profile, front_end, kind
+
+
+def _acquire(args) -> int:
+    from appliance.core.protocols import default_protocol, load_protocol
+    from appliance.drivers.recording import series_paths, write_frame
+    from appliance.drivers.scan import ScanEngine, average_frames
+    from appliance.errors import ConfigError
+
+    if not 1 <= args.series <= 60 or not 1 <= args.average <= 1000:
+        raise ConfigError("--series takes 1 to 60 sets and --average 1 to 1000")
+    if args.series > 1 and not 0 <= args.interval <= 3600:
+        raise ConfigError("--interval takes 0 to 3600 seconds")
+    layout, board, profile, front_end, kind = _open(args)
+    protocol = load_protocol(args.protocol, layout.n_electrodes) if args.protocol else default_protocol(layout)
+    paths = series_paths(args.out, args.series)
+    engine = ScanEngine(front_end, protocol, order=args.order, progress=_progress)
+    troubled = False
+    with board:
+        try:
+            next_start = board.clock.monotonic()
+            for k, path in enumerate(paths, start=1):
+                board.clock.sleep(max(0.0, next_start - board.clock.monotonic()))
+                next_start = board.clock.monotonic() + args.interval
+                frame = average_frames([engine.scan() for _ in range(args.average)])
+                write_frame(path, frame)
+                troubled |= bool(frame.conditions)
+                _report(k, len(paths), path, frame, kind, profile.name)
+        finally:
+            front_end.close()
+    return 1 if troubled else 0
+
+
+def _progress(done: int, total: int) -> None:
+    if sys.stderr.isatty() and (done == total or done % max(1, total // 20) == 0):
+        print(f"\r  {done}/{total} readings", end="\n" if done == total else "", file=sys.stderr, flush=True)
+
+
+def _report(k: int, n: int, path: Path, frame, kind: str, profile: str) -> None:
+    usable = int(frame.usable.sum())
+    clock = "emulated board time" if kind == "emulated" else "measured"
+    print(f"set {k}/{n}: {path}: {usable} of {len(frame.protocol)} readings usable, {frame.sets} set(s) averaged, "
+          f"{frame.duration_s:.2f} s ({clock}, {profile} profile), {frame.drive_current_a * 1e3:.2f} mA",
+          file=sys.stderr)
+    for condition in frame.conditions:
+        print(f"  technical condition: {condition}", file=sys.stderr)
+
+
+def _selftest(args) -> int:
+    from appliance.drivers.selftest import run_self_test
+
+    layout, board, profile, front_end, kind = _open(args)
+    with board:
+        try:
+            report = run_self_test(front_end, layout.n_electrodes)
+        finally:
+            front_end.close()
+    print(f"self-test of the {profile.name} front end ({kind}), {layout.name} layout")
+    print(report.text())
+    return 0 if report.passed else 1
