@@ -178,6 +178,7 @@ class AD5933:
                 raise RuntimeError(f"{self.name}: no new point is being measured; increment() or repeat")
             self._command(FN_REPEAT)
         self._fresh_point = False
+        self._clock.sleep(self.measurement_time_s())     # the chip cannot be done sooner: poll once, not often
         self._wait_for(STATUS_VALID_DATA, TIMEOUT_FACTOR * self.measurement_time_s() + TIMEOUT_SLACK_S,
                        "valid data")
         raw = self._read(REG_REAL, 4)

@@ -56,6 +56,7 @@ class Measured:
 
 
 PLAUSIBLE_TEMPERATURE_C = (5.0, 45.0)
+RANGING_ACCURACY = 0.05    # a probe that only picks the range settles to this
 OVER_RANGE = 0.97          # a sample above this fraction of full scale may be clipped
 MAX_RANGE_STEPS = 4
 
@@ -159,11 +160,12 @@ class FrontEnd(ABC):
 
     @abstractmethod
     def settle_s(self, drive_changed: bool, measure_changed: bool, previous: tuple[int, float] | None,
-                 target: tuple[int, float] | None) -> float:
+                 target: tuple[int, float] | None, *, ranging: bool = False) -> float:
         """How long to wait before sampling after these changes.
 
         ``previous`` and ``target`` are (range index, fraction of full scale) of the
-        last sample and of the one expected next, None where unknown.
+        last sample and of the one expected next, None where unknown. A ``ranging``
+        sample only picks the range, so a few per cent of accuracy will do.
         """
 
     def output_scale(self, range_index: int) -> float:
@@ -227,20 +229,21 @@ class FrontEnd(ABC):
         drive_changed, measure_changed = self.mux.select(drive, measure)
         r = 0 if range_index is None else range_index
         expected = expected_fraction if range_index is not None else None
-        for _ in range(MAX_RANGE_STEPS):
+        for step in range(MAX_RANGE_STEPS):
             self.set_range(r)
             target = (r, expected) if expected is not None else None
-            self.clock.sleep(self.settle_s(drive_changed, measure_changed, self.level, target))
+            probing = step == 0 and target is None      # only picks the range; never the final sample
+            self.clock.sleep(self.settle_s(drive_changed, measure_changed, self.level, target, ranging=probing))
             drive_changed = measure_changed = False
             sample = self._averaged(conversions)
             self.level = (r, sample.fraction)
             if sample.fraction > OVER_RANGE:
-                if r == 0:
+                if r == 0 and not probing:
                     return Measured(sample, r, True)
                 r, expected = max(0, min(r - 1, self.best_range(2 * sample.volts))), None
                 continue
             best = self.best_range(sample.volts)
-            if best == r:
+            if best == r and not probing:
                 break
             expected = sample.fraction * self.ranges[r].full_scale_input_v / self.ranges[best].full_scale_input_v
             r = best

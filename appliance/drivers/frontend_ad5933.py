@@ -123,7 +123,7 @@ class AD5933FrontEnd(FrontEnd):
             self.impedance.set_pga(self._pga_of[index])
         self.range_index = index
 
-    def settle_s(self, drive_changed, measure_changed, previous, target) -> float:
+    def settle_s(self, drive_changed, measure_changed, previous, target, *, ranging=False) -> float:
         t = self.profile.timing
         return t.drive_settle_s if drive_changed else t.measure_settle_s if measure_changed else 0.0
 

@@ -18,7 +18,7 @@ from appliance.drivers.ad8251 import AD8251
 from appliance.drivers.ad9833 import AD9833
 from appliance.drivers.ads1115 import ADS1115
 from appliance.drivers.bus import FALLING, Board, LineRequest
-from appliance.drivers.frontend import ChipCheck, FrontEnd, Range, Sample
+from appliance.drivers.frontend import RANGING_ACCURACY, ChipCheck, FrontEnd, Range, Sample
 from appliance.drivers.mcp4017 import MCP4017
 from appliance.drivers.mcp9808 import MCP9808
 from appliance.drivers.profile import BoardProfile
@@ -100,7 +100,7 @@ class RMSFrontEnd(FrontEnd):
             self.pga.set_gain(gain)
         self.range_index = index
 
-    def settle_s(self, drive_changed, measure_changed, previous, target) -> float:
+    def settle_s(self, drive_changed, measure_changed, previous, target, *, ranging=False) -> float:
         """The switch's own settling, then the RMS converter's lag over the predicted output step.
 
         A switch takes the converter's input through zero (the drive transient, or the
@@ -110,7 +110,8 @@ class RMSFrontEnd(FrontEnd):
         t = self.profile.timing
         wait = t.drive_settle_s if drive_changed else t.measure_settle_s if measure_changed else 0.0
         if previous is None or target is None or (measure_changed and self.mux.passed_unknown_pair):
-            return wait + t.rms_fall_tau_s * math.log(1 / t.settle_accuracy)
+            accuracy = RANGING_ACCURACY if ranging else t.settle_accuracy
+            return wait + t.rms_fall_tau_s * math.log(1 / accuracy)
         before = previous[1] * self.output_scale(previous[0])
         after = target[1] * self.output_scale(target[0])
         starts = [before]
