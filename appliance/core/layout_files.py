@@ -8,21 +8,16 @@
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 
 from appliance.core.layouts import DiscSheet, Layout, RectElectrode, RectSheet, SectorElectrode
+from appliance.core.toml_files import read_toml
 from appliance.errors import LayoutInvalid
 
 
 def load_layout(path: Path) -> Layout:
     """Read a layout from a TOML file (the format :func:`layout_to_toml` writes)."""
-    try:
-        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise LayoutInvalid(f"layout file {path} does not exist") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise LayoutInvalid(f"layout file {path} is not valid TOML: {exc}") from None
+    data = read_toml(path, "layout file", LayoutInvalid)
     try:
         return layout_from_mapping(data)
     except LayoutInvalid as exc:

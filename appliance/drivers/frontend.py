@@ -22,12 +22,32 @@ from appliance.errors import ApplianceError, ChipError, ConfigError
 
 @dataclass(frozen=True)
 class Range:
-    """One gain setting of the chain and the input it can take (volts rms, input-referred)."""
+    """One gain setting of the chain and the input it can take (volts rms, input-referred).
+
+    ``gain`` is the AD8251's; ``second_stage`` the converter's own setting (the
+    ADS1115's full scale in volts, or the AD5933's PGA gain).
+    """
 
     index: int
     gain: float
+    second_stage: float
     full_scale_input_v: float
     label: str
+
+
+def range_ladder(candidates, label) -> tuple[Range, ...]:
+    """Distinct full scales from (full_scale_input_v, gain, second_stage) candidates, least sensitive first.
+
+    Where two settings reach the same full scale the larger analogue gain wins: it
+    lifts the signal above the converter's noise (the thesis's rule).
+    """
+    best: dict[float, tuple[float, float, float]] = {}
+    for full_scale, gain, second in candidates:
+        key = round(full_scale, 12)
+        if key not in best or gain > best[key][1]:
+            best[key] = (full_scale, gain, second)
+    ordered = sorted(best.values(), reverse=True)
+    return tuple(Range(i, gain, second, fs, label(gain, second)) for i, (fs, gain, second) in enumerate(ordered))
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ import math
 from appliance.drivers.ad5933 import AD5933
 from appliance.drivers.ad8251 import AD8251
 from appliance.drivers.bus import Board, LineRequest
-from appliance.drivers.frontend import ChipCheck, FrontEnd, Range, Sample
+from appliance.drivers.frontend import ChipCheck, FrontEnd, Range, Sample, range_ladder
 from appliance.drivers.mcp9808 import MCP9808
 from appliance.drivers.profile import BoardProfile
 
@@ -27,18 +27,12 @@ CONTACT_RANGE_VPP = 0.2
 
 
 def ad5933_ranges(profile: BoardProfile) -> tuple[Range, ...]:
-    """Distinct input full scales (volts rms), least sensitive first, each with the largest analogue gain."""
+    """AD8251 gain x AD5933 receive PGA; full scale is the DFT magnitude that still means an unclipped ADC."""
     m = profile.measurement
     counts_per_input_v = m.dft_counts_per_volt * m.vin_gain * m.inamp_gain * math.sqrt(2)
-    best: dict[float, tuple[float, int]] = {}
-    for gain in AD8251.GAINS:
-        for pga in AD5933.PGA_GAINS:
-            key = round(AD5933.CODE_LIMIT / (counts_per_input_v * gain * pga), 12)
-            if key not in best or gain > best[key][0]:
-                best[key] = (gain, pga)
-    ordered = sorted(best.items(), reverse=True)
-    return tuple(Range(i, gain, fs, f"x{m.inamp_gain * gain:g}, PGA x{pga}")
-                 for i, (fs, (gain, pga)) in enumerate(ordered))
+    return range_ladder(((AD5933.CODE_LIMIT / (counts_per_input_v * gain * pga), gain, pga)
+                         for gain in AD8251.GAINS for pga in AD5933.PGA_GAINS),
+                        lambda gain, pga: f"x{m.inamp_gain * gain:g}, PGA x{pga:g}")
 
 
 class AD5933FrontEnd(FrontEnd):
@@ -51,19 +45,13 @@ class AD5933FrontEnd(FrontEnd):
                                             inputs={}), consumer="AD8251 gain")
         self.pga = AD8251(gain_lines, a0=gpio["gain_a0"], a1=gpio["gain_a1"], wr=gpio["gain_wr"])
         self.ranges = ad5933_ranges(profile)
-        self._pga_of = {r.index: self._receive_pga(r) for r in self.ranges}
         self.output_range_vpp = profile.excitation.output_range_vpp
         self.system_phase: float | None = None
         self.pga.set_gain(self.ranges[0].gain)
 
-    def _receive_pga(self, r: Range) -> int:
-        m = self.profile.measurement
-        counts = m.dft_counts_per_volt * m.vin_gain * m.inamp_gain * math.sqrt(2) * r.gain
-        return min(AD5933.PGA_GAINS, key=lambda p: abs(AD5933.CODE_LIMIT / (counts * p) - r.full_scale_input_v))
-
     def _counts_per_volt(self, r: Range) -> float:
         m = self.profile.measurement
-        return m.dft_counts_per_volt * m.vin_gain * m.inamp_gain * math.sqrt(2) * r.gain * self._pga_of[r.index]
+        return m.dft_counts_per_volt * m.vin_gain * m.inamp_gain * math.sqrt(2) * r.gain * int(r.second_stage)
 
     # -- excitation ----------------------------------------------------------------------
     def start_excitation(self, current_a: float | None = None) -> None:
@@ -75,7 +63,7 @@ class AD5933FrontEnd(FrontEnd):
             vpp = max(fitting)
         self.impedance.configure(self.profile.excitation.frequency_hz,
                                  settling_cycles=self.profile.measurement.settling_cycles,
-                                 output_range_vpp=vpp, pga_gain=self._pga_of[self.range_index])
+                                 output_range_vpp=vpp, pga_gain=int(self.ranges[self.range_index].second_stage))
         self.output_range_vpp = vpp
         self.enable_source(True)
         self.impedance.start()
@@ -119,8 +107,8 @@ class AD5933FrontEnd(FrontEnd):
         r = self.ranges[index]
         if r.gain != self.pga.gain:
             self.pga.set_gain(r.gain)
-        if self._pga_of[index] != self._pga_of[self.range_index]:
-            self.impedance.set_pga(self._pga_of[index])
+        if int(self.ranges[index].second_stage) != int(self.ranges[self.range_index].second_stage):
+            self.impedance.set_pga(int(self.ranges[index].second_stage))
         self.range_index = index
 
     def settle_s(self, drive_changed, measure_changed, previous, target, *, ranging=False) -> float:

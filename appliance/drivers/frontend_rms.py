@@ -18,7 +18,7 @@ from appliance.drivers.ad8251 import AD8251
 from appliance.drivers.ad9833 import AD9833
 from appliance.drivers.ads1115 import ADS1115
 from appliance.drivers.bus import FALLING, Board, LineRequest
-from appliance.drivers.frontend import RANGING_ACCURACY, ChipCheck, FrontEnd, Range, Sample
+from appliance.drivers.frontend import RANGING_ACCURACY, ChipCheck, FrontEnd, Range, Sample, range_ladder
 from appliance.drivers.mcp4017 import MCP4017
 from appliance.drivers.mcp9808 import MCP9808
 from appliance.drivers.profile import BoardProfile
@@ -28,18 +28,11 @@ SMALL_STEP_FLOOR = 0.05     # settle to accuracy relative to at least this fract
 
 
 def rms_ranges(profile: BoardProfile) -> tuple[Range, ...]:
-    """Distinct input full scales, least sensitive first, each with the largest analogue gain."""
+    """AD8251 gain x ADS1115 full scale; the RMS converter's range caps the output."""
     m = profile.measurement
-    best: dict[float, tuple[float, float]] = {}
-    for gain in AD8251.GAINS:
-        for adc_fs in ADC_FULL_SCALES_V:
-            full_scale_in = min(m.rms_limit_v, adc_fs) / (m.inamp_gain * gain)
-            key = round(full_scale_in, 12)
-            if key not in best or gain > best[key][0]:
-                best[key] = (gain, adc_fs)
-    ordered = sorted(best.items(), reverse=True)
-    return tuple(Range(i, gain, fs, f"x{m.inamp_gain * gain:g}, ADC +/-{adc_fs:g} V")
-                 for i, (fs, (gain, adc_fs)) in enumerate(ordered))
+    return range_ladder(((min(m.rms_limit_v, adc_fs) / (m.inamp_gain * gain), gain, adc_fs)
+                         for gain in AD8251.GAINS for adc_fs in ADC_FULL_SCALES_V),
+                        lambda gain, adc_fs: f"x{m.inamp_gain * gain:g}, ADC +/-{adc_fs:g} V")
 
 
 class RMSFrontEnd(FrontEnd):
@@ -60,13 +53,8 @@ class RMSFrontEnd(FrontEnd):
         self.adc = ADS1115(i2c, self.clock, address=profile.i2c["adc"], ready=self.inputs,
                            ready_line=gpio["adc_ready"])
         self.ranges = rms_ranges(profile)
-        self._adc_fs = {r.index: self._adc_full_scale(r) for r in self.ranges}
         self._current_a = 0.0
         self.pga.set_gain(self.ranges[0].gain)
-
-    def _adc_full_scale(self, r: Range) -> float:
-        out = r.full_scale_input_v * self.profile.measurement.inamp_gain * r.gain
-        return min(fs for fs in ADC_FULL_SCALES_V if fs >= out - 1e-12)
 
     # -- excitation ----------------------------------------------------------------------
     def start_excitation(self, current_a: float | None = None) -> None:
@@ -136,8 +124,7 @@ class RMSFrontEnd(FrontEnd):
 
     def sample(self) -> Sample:
         r = self.ranges[self.range_index]
-        adc_fs = self._adc_fs[r.index]
-        out_v, code = self.adc.read_volts("AIN0", adc_fs, self.profile.measurement.adc_data_rate_sps)
+        out_v, code = self.adc.read_volts("AIN0", r.second_stage, self.profile.measurement.adc_data_rate_sps)
         in_phase = self.inputs.get_values([self.profile.gpio["phase_sign"]])[self.profile.gpio["phase_sign"]]
         magnitude = out_v / (self.profile.measurement.inamp_gain * r.gain)
         volts = magnitude if in_phase else -magnitude

@@ -20,6 +20,7 @@ from importlib import resources
 from types import MappingProxyType
 from typing import Any, Mapping
 
+from appliance.core.toml_files import read_toml
 from appliance.errors import ConfigError
 
 BUILTIN_PROFILES = ("reference", "reference-32", "ad5933")
@@ -242,15 +243,7 @@ def _section(cls, values: Mapping, where: str):
 
 def board_table_from_file(path) -> dict:
     """The ``[board]`` table of the appliance's TOML configuration file (empty if it has none)."""
-    from pathlib import Path
-
-    try:
-        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"configuration file {path} does not exist") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"configuration file {path} is not valid TOML: {exc}") from None
-    board = data.get("board", {})
+    board = read_toml(path, "configuration file", ConfigError).get("board", {})
     if not isinstance(board, dict):
         raise ConfigError(f"configuration file {path}: [board] must be a table")
     return board

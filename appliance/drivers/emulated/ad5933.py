@@ -48,7 +48,7 @@ import math
 import random
 from collections.abc import Callable
 
-from appliance.drivers.emulated.buses import EmulatorViolation, I2CChipEmulator
+from appliance.drivers.emulated.buses import EmulatorViolation, I2CChipEmulator, notify
 from appliance.drivers.emulated.clock import SimulatedClock
 
 COUNTS_PER_VOLT = 9790.0
@@ -158,8 +158,7 @@ class EmulatedAD5933(I2CChipEmulator):
         before = (self.output_frequency_hz, self.output_vpp)
         action()
         if (self.output_frequency_hz, self.output_vpp) != before:
-            for listener in list(self.listeners):
-                listener()
+            notify(self.listeners)
 
     def _write(self, data: bytes) -> None:
         if len(data) < 2:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from appliance.drivers.emulated.buses import EmulatorViolation, GPIOBank
+from appliance.drivers.emulated.buses import EmulatorViolation, GPIOBank, notify
 
 GAINS = (1, 2, 4, 8)
 
@@ -76,5 +76,4 @@ class EmulatedAD8251:
         changed = gain != self._gain
         self._gain = gain
         if changed:
-            for listener in list(self.listeners):
-                listener()
+            notify(self.listeners)

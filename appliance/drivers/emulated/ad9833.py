@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from appliance.drivers.emulated.buses import EmulatorViolation, SPIChipEmulator
+from appliance.drivers.emulated.buses import EmulatorViolation, SPIChipEmulator, notify
 
 B28, HLB, FSELECT = 1 << 13, 1 << 12, 1 << 11
 RESET, SLEEP1, SLEEP12, OPBITEN, DIV2, MODE = 1 << 8, 1 << 7, 1 << 6, 1 << 5, 1 << 3, 1 << 1
@@ -145,5 +145,4 @@ class EmulatedAD9833(SPIChipEmulator):
 
     def _notify_if_changed(self, before: tuple[float, str]) -> None:
         if self._output() != before:
-            for listener in list(self.listeners):
-                listener()
+            notify(self.listeners)

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from appliance.drivers.emulated.buses import EmulatorViolation, SPIChipEmulator
+from appliance.drivers.emulated.buses import EmulatorViolation, SPIChipEmulator, notify
 
 EN_OFF = 0x80
 
@@ -64,8 +64,7 @@ class _SerialMux(SPIChipEmulator):
 
     def _notify_if_changed(self, before: dict[str, int | None]) -> None:
         if self._state != before:
-            for listener in list(self.listeners):
-                listener()
+            notify(self.listeners)
 
 
 class EmulatedADG725(_SerialMux):

@@ -81,6 +81,12 @@ class FaultPlan:
         self.missing.clear()
 
 
+def notify(listeners) -> None:
+    """Tell each listener (the analogue chain) that an emulated chip's analogue state changed."""
+    for listener in list(listeners):
+        listener()
+
+
 class SPIChipEmulator:
     """Base of an SPI chip emulator: its accepted modes, clock limit and frame handling."""
 

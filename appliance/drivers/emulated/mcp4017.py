@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from appliance.drivers.emulated.buses import I2CChipEmulator
+from appliance.drivers.emulated.buses import I2CChipEmulator, notify
 
 POWER_ON_WIPER = 0x3F
 
@@ -44,5 +44,4 @@ class EmulatedMCP4017(I2CChipEmulator):
         changed = wiper != self.wiper
         self.wiper = wiper
         if changed:
-            for listener in list(self.listeners):
-                listener()
+            notify(self.listeners)
