@@ -64,9 +64,7 @@ def _open(args):
 
         return ForwardSensor.of_layout(layout, inclusions=inclusions)
 
-    board, profile = open_board(table, sensor=sensor)
-    if args.emulated:
-        board.seed = args.seed
+    board, profile = open_board(table, sensor=sensor, seed=args.seed)
     try:
         front_end = open_front_end(board, profile)
     except BaseException:

@@ -160,3 +160,12 @@ def test_the_ad5933_board_survives_a_nack_too(emulated):
     engine = ScanEngine(front_end, PROTOCOL)
     frame = scan_with_fault_at(engine, 200, lambda: board.faults.fail_next("i2c1@0x0D", 2))
     assert frame.usable.all()
+
+
+def test_a_thermometer_that_does_not_answer_is_reported_and_the_frame_is_still_taken(emulated):
+    board, front_end = emulated()
+    board.faults.fail_next("i2c1@0x18", 3)
+    frame = ScanEngine(front_end, PROTOCOL).scan()
+    assert frame.temperature_c is None and frame.usable.all()
+    assert any(c.part == "thermometer" and "0x18" in c.message for c in frame.conditions)
+    assert ScanEngine(front_end, PROTOCOL).scan().temperature_c == 24.0

@@ -65,6 +65,7 @@ def test_acquire_writes_a_frame_the_sensor_agrees_with(tmp_path, capsys):
     assert np.all(np.abs(frame.volts - expected) <= 0.005 * np.abs(expected) + 2e-6)
     quality = (tmp_path / "frame.quality.csv").read_text().splitlines()
     assert quality[0].startswith("# sets=1 drive_current_a=2.015748e-03")
+    assert quality[0].endswith("temperature_c=24.00")
     assert quality[1].startswith("drive_pos,drive_neg,meas_pos,meas_neg,measured_volts,flags,range")
     assert len(quality) == 2 + 448
     assert "448 of 448 readings usable" in err and "emulated board time" in err

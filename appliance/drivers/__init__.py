@@ -26,7 +26,8 @@ class EmulationFallbackWarning(UserWarning):
     """``backend = "auto"`` found no front end hardware and is running on the emulated board."""
 
 
-def open_board(board: Mapping | None, *, sensor: Callable[[], object] | None = None) -> tuple[Board, BoardProfile]:
+def open_board(board: Mapping | None, *, sensor: Callable[[], object] | None = None,
+               seed: int = 0) -> tuple[Board, BoardProfile]:
     """The board a ``[board]`` table asks for, with its profile.
 
     ``backend`` is ``"linux"`` (the real front end; missing hardware is an error
@@ -34,6 +35,7 @@ def open_board(board: Mapping | None, *, sensor: Callable[[], object] | None = N
     ``sensor()``, a :class:`~appliance.drivers.emulated.analogue.SensorModel`), or
     ``"auto"``: the real one if it opens, else the emulated one with an
     :class:`EmulationFallbackWarning`, so an unattended fallback is never silent.
+    ``seed`` fixes the emulated board's component errors and noise.
     """
     table = dict(board or {})
     backend = table.get("backend", "linux")
@@ -53,7 +55,7 @@ def open_board(board: Mapping | None, *, sensor: Callable[[], object] | None = N
         raise ConfigError("the emulated board needs a sensor model (a layout to emulate)")
     from appliance.drivers.emulated.board import EmulatedBoard
 
-    return EmulatedBoard(profile, sensor()), profile
+    return EmulatedBoard(profile, sensor(), seed=seed), profile
 
 
 def _linux_board(profile: BoardProfile, gpio_chip: str | None) -> Board:

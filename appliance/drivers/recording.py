@@ -29,7 +29,9 @@ def quality_path(frame_path: Path) -> Path:
 
 def quality_to_csv(frame: AcquiredFrame) -> str:
     out = io.StringIO()
-    out.write(f"# sets={frame.sets} drive_current_a={frame.drive_current_a:.6e} duration_s={frame.duration_s:.4f}\n")
+    temperature = "unknown" if frame.temperature_c is None else f"{frame.temperature_c:.2f}"
+    out.write(f"# sets={frame.sets} drive_current_a={frame.drive_current_a:.6e} duration_s={frame.duration_s:.4f} "
+              f"temperature_c={temperature}\n")
     for condition in frame.conditions:
         out.write(f"# condition: {condition}\n")
     out.write(",".join(QUALITY_HEADER) + "\n")

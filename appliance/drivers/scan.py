@@ -90,6 +90,7 @@ class AcquiredFrame:
     contact: ContactReport | None
     conditions: tuple[TechnicalCondition, ...] = ()
     sets: int = 1
+    temperature_c: float | None = None
 
     @property
     def usable(self) -> np.ndarray:
@@ -158,6 +159,7 @@ class ScanEngine:
         conditions: list[TechnicalCondition] = []
         tally = _Tally(len(self.protocol))
         try:
+            temperature = self._temperature(conditions)
             contact = self._contact(conditions)
             self._start_excitation(conditions)
             blocked = contact.open_electrodes if contact else frozenset()
@@ -182,7 +184,16 @@ class ScanEngine:
             conditions.append(TechnicalCondition("front end", "no usable reading in this frame"))
         return AcquiredFrame(self.protocol, volts, tally.volts, tally.flags, tally.ranges, tally.fraction,
                              tally.times, clock.monotonic() - start, fe.drive_current_a(), contact,
-                             tuple(conditions))
+                             tuple(conditions), temperature_c=temperature)
+
+    def _temperature(self, conditions) -> float | None:
+        """The mat's temperature (its conductivity follows it, about 2 % per degree for saline)."""
+        try:
+            return with_retries(self.front_end.thermometer.temperature_c, attempts=self.retries,
+                                what="MCP9808 thermometer")
+        except TransferFailed as exc:
+            conditions.append(TechnicalCondition("thermometer", str(exc)))
+            return None
 
     def _contact(self, conditions) -> ContactReport | None:
         if not self.contact_check:
@@ -319,7 +330,7 @@ def average_frames(frames: list[AcquiredFrame]) -> AcquiredFrame:
     conditions = tuple(dict.fromkeys(c for f in frames for c in f.conditions))
     return AcquiredFrame(last.protocol, volts, measured, flags, last.range_index, last.fraction, last.time_s,
                          sum(f.duration_s for f in frames), last.drive_current_a, last.contact, conditions,
-                         sets=len(frames))
+                         sets=len(frames), temperature_c=last.temperature_c)
 
 
 def _mean_finite(rows) -> tuple[np.ndarray, np.ndarray]:
