@@ -35,6 +35,16 @@ def rms_ranges(profile: BoardProfile) -> tuple[Range, ...]:
                         lambda gain, adc_fs: f"x{m.inamp_gain * gain:g}, ADC +/-{adc_fs:g} V")
 
 
+def digipot_setting(profile: BoardProfile, current_a: float) -> tuple[int, float]:
+    """The MCP4017 wiper nearest ``current_a`` and the current it actually gives (at least one step)."""
+    full = profile.excitation.full_scale_current_a
+    if not 0 < current_a <= full:
+        raise ValueError(f"drive current {current_a * 1e3:g} mA is outside 0..{full * 1e3:g} mA")
+    top = MCP4017.POSITIONS - 1
+    wiper = max(1, min(top, round(current_a / full * top)))
+    return wiper, full * wiper / top
+
+
 class RMSFrontEnd(FrontEnd):
     def __init__(self, board: Board, profile: BoardProfile):
         super().__init__(board, profile)
@@ -63,13 +73,8 @@ class RMSFrontEnd(FrontEnd):
         self.enable_source(True)
 
     def _set_current(self, current_a: float) -> None:
-        full = self.profile.excitation.full_scale_current_a
-        if not 0 < current_a <= full:
-            raise ValueError(f"drive current {current_a * 1e3:g} mA is outside 0..{full * 1e3:g} mA")
-        top = self.digipot.POSITIONS - 1
-        wiper = max(1, min(top, round(current_a / full * top)))
+        wiper, self._current_a = digipot_setting(self.profile, current_a)
         self.digipot.set_wiper(wiper)
-        self._current_a = full * wiper / top
 
     def contact_current(self) -> None:
         self._set_current(self.profile.contact.test_current_a)

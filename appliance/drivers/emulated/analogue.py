@@ -38,6 +38,15 @@ RMS_SATURATION_V = 3.3      # AD8436 output ceiling
 OPEN_PICKUP_V = 0.5         # a floating measuring input drifts until the in-amp saturates
 
 
+def compliant_current(current_a, drive_ohm, compliance_v):
+    """The current a source set to ``current_a`` delivers into ``drive_ohm``: less once it needs more
+    than ``compliance_v``."""
+    drive_v = current_a * np.abs(drive_ohm)
+    if np.ndim(drive_v) == 0:
+        return current_a * compliance_v / drive_v if drive_v > compliance_v else current_a
+    return np.where(drive_v > compliance_v, current_a * compliance_v / np.maximum(drive_v, 1e-300), current_a)
+
+
 class SensorModel(Protocol):
     """The mat as the chain sees it: transfer impedances between electrodes at a time."""
 
@@ -65,6 +74,17 @@ class ChainErrors:
     gain_error: dict[float, float] = field(default_factory=dict)   # per AD8251 gain, relative
     input_noise_v: float = 0.4e-6                # input-referred, after the RMS converter's averaging
     output_ripple: float = 1e-4                  # RMS converter ripple, relative to its output
+
+    def output_noise_v(self, gain, level_v):
+        """Noise (rms) on the RMS converter's output at total ``gain`` and output ``level_v``."""
+        return np.hypot(self.input_noise_v * gain, self.output_ripple * level_v)
+
+    def gain_factor(self, pga_gain):
+        """The actual over the nominal gain: the common scale error times the AD8251 step's own."""
+        if np.ndim(pga_gain) == 0:
+            return self.scale * (1 + self.gain_error.get(float(pga_gain), 0.0))
+        errors = [self.gain_error.get(float(g), 0.0) for g in np.ravel(pga_gain)]
+        return self.scale * (1 + np.reshape(errors, np.shape(pga_gain)))
 
     @classmethod
     def drawn(cls, rng: np.random.Generator, gains=(1, 2, 4, 8)) -> "ChainErrors":
@@ -116,10 +136,7 @@ class AnalogueChain:
             rail = {a: self.compliance_v, b: -self.compliance_v}
             return sum(rail[e] * ((c == e) - (d == e)) for e in broken) + self._pickup(s.measure, skip=broken)
         z = self.sensor.transfer_ohm(now)
-        current = s.current_a
-        drive_v = current * abs(z[a, a] - z[a, b] - z[b, a] + z[b, b])
-        if drive_v > self.compliance_v:
-            current *= self.compliance_v / drive_v
+        current = compliant_current(s.current_a, z[a, a] - z[a, b] - z[b, a] + z[b, b], self.compliance_v)
         return self._pickup(s.measure) + current * (z[c, a] - z[c, b] - z[d, a] + z[d, b])
 
     def _pickup(self, measure, skip=()) -> float:
@@ -135,8 +152,8 @@ class AnalogueChain:
 
     def amplified_v(self, t: float) -> float:
         """Signed in-amp + PGA output at ``t`` (volts rms), with the drive transient and the clip."""
-        gain = self.inamp_gain * self.state.gain * (1 + self.errors.gain_error.get(self.state.gain, 0.0))
-        out = self.errors.scale * gain * self.input_v * self._settling(t)
+        gain = self.inamp_gain * self.state.gain * float(self.errors.gain_factor(self.state.gain))
+        out = gain * self.input_v * self._settling(t)
         return max(-INAMP_CLIP_V, min(INAMP_CLIP_V, out))
 
     def _advance(self, t: float) -> None:
@@ -161,8 +178,8 @@ class AnalogueChain:
     def rms_output_v(self, t: float) -> float:
         """The AD8436 output at ``t`` (no later than the next state change), with its noise."""
         self._advance(t)
-        gain = self.inamp_gain * self.state.gain
-        noise = math.hypot(self.errors.input_noise_v * gain, self.errors.output_ripple * self.rms_v)
+        noise = math.hypot(self.errors.input_noise_v * self.inamp_gain * self.state.gain,
+                           self.errors.output_ripple * self.rms_v)
         return max(0.0, self.rms_v + noise * self.rng.standard_normal())
 
     def pin_volts(self, pin: str, t: float) -> float:
