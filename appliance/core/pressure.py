@@ -1,0 +1,169 @@
+"""Pressure calibration: a reconstructed conductivity change to pressure in kPa (and mmHg) per pixel.
+
+Pressing the mat thins the liquid under the load, so the reconstructed relative
+change is negative there; the deeper the press, the more negative. The map from
+change to pressure is monotone but not linear (the membrane stiffens as the
+liquid runs out) and the mat's sensitivity varies across it (higher near
+electrodes), so a calibration holds
+
+- a monotone curve: pressure against the size of the change, fitted by isotonic
+  regression to calibration loads (known weights on known areas, as the thesis's
+  Table 6.3.1), through zero;
+- optionally a flat field: the response of each pixel to one standard load
+  placed there (the thesis's experimental sensitivity procedure), which divides
+  the change before the curve is applied;
+- the temperature at which it was made: saline's conductivity rises about 2 %
+  per degree, so readings are brought to that temperature before reconstruction.
+
+It is tied to the layout and the reconstruction (algorithm and pixel grid) it was
+fitted with, and refuses to be applied to any other.
+
+>>> import numpy as np
+>>> curve = fit_pressure_curve(np.array([0.0, 0.1, 0.2, 0.3]), np.array([0.0, 4.0, 9.0, 14.0]))
+>>> np.round(curve.pressure_kpa(np.array([[0.0, -0.15], [-0.3, 0.05]])), 2).tolist()
+[[0.0, 6.5], [14.0, 0.0]]
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import isotonic_regression
+
+from appliance.core.layout_files import layout_to_toml
+from appliance.core.layouts import Layout
+from appliance.errors import ConfigError, DataFileInvalid
+
+FORMAT = "appliance-pressure-calibration/1"
+KPA_PER_MMHG = 0.133322
+SALINE_COEFFICIENT_PER_C = 0.02
+CURVE_KNOTS = 24
+
+
+@dataclass(frozen=True)
+class PressureCurve:
+    """Monotone knots: pressure (kPa) against the size of the change, -image (dimensionless)."""
+
+    change: np.ndarray
+    pressure: np.ndarray
+
+    def pressure_kpa(self, image: np.ndarray, flat_field: np.ndarray | None = None) -> np.ndarray:
+        """Pressure of each pixel; a rise in conductivity or nothing reads 0; NaN stays NaN."""
+        size = -np.asarray(image, dtype=float)
+        if flat_field is not None:
+            size = size / flat_field
+        slope = (self.pressure[-1] - self.pressure[-2]) / max(self.change[-1] - self.change[-2], 1e-12)
+        inside = np.interp(size, self.change, self.pressure, left=0.0)
+        beyond = self.pressure[-1] + slope * (size - self.change[-1])
+        out = np.where(size > self.change[-1], beyond, inside)
+        return np.where(np.isnan(size), np.nan, np.clip(out, 0.0, None))
+
+
+def fit_pressure_curve(change: np.ndarray, pressure_kpa: np.ndarray, weights: np.ndarray | None = None,
+                       knots: int = CURVE_KNOTS) -> PressureCurve:
+    """The monotone curve through (0, 0) best fitting pressure against the size of the change.
+
+    ``change`` is the size of the change (-image, positive when pressed) at pixels
+    whose true pressure is ``pressure_kpa``; pixels with both near zero anchor the
+    curve at the origin. Isotonic regression, then thinned to ``knots`` points at
+    quantiles of the change.
+    """
+    change, pressure_kpa = np.ravel(change).astype(float), np.ravel(pressure_kpa).astype(float)
+    keep = np.isfinite(change) & np.isfinite(pressure_kpa)
+    if keep.sum() < 3:
+        raise ConfigError("a pressure curve needs at least three calibration pixels")
+    order = np.argsort(change[keep])
+    x = np.r_[0.0, change[keep][order]]
+    w = np.r_[10.0 * keep.sum(), (np.ones(keep.sum()) if weights is None else np.ravel(weights)[keep][order])]
+    y = isotonic_regression(np.r_[0.0, pressure_kpa[keep][order]], weights=w, increasing=True).x
+    grid = np.unique(np.quantile(x[x > 0], np.linspace(0, 1, knots))) if (x > 0).any() else np.array([1.0])
+    values = np.interp(grid, x, y)
+    return PressureCurve(np.r_[0.0, grid], np.maximum.accumulate(np.r_[0.0, values]))
+
+
+def layout_fingerprint(layout: Layout) -> str:
+    """SHA-256 of the layout's TOML: two mats match only if every electrode matches."""
+    return hashlib.sha256(layout_to_toml(layout).encode()).hexdigest()
+
+
+def temperature_corrected(volts: np.ndarray, temperature_c: float | None, reference_temperature_c: float,
+                          coefficient_per_c: float = SALINE_COEFFICIENT_PER_C) -> np.ndarray:
+    """Readings brought to the reference temperature: a warmer liquid conducts better, reads lower."""
+    if temperature_c is None:
+        return np.asarray(volts, dtype=float)
+    return np.asarray(volts, dtype=float) * (1 + coefficient_per_c * (temperature_c - reference_temperature_c))
+
+
+@dataclass(frozen=True)
+class PressureCalibration:
+    """A fitted calibration and what it is valid for."""
+
+    layout_name: str
+    layout_sha256: str
+    algorithm: str
+    pixels: tuple[int, int]
+    curve: PressureCurve
+    reference_temperature_c: float
+    temperature_coefficient_per_c: float = SALINE_COEFFICIENT_PER_C
+    flat_field: np.ndarray | None = None
+    notes: dict = field(default_factory=dict)
+
+    def check_fits(self, layout: Layout, algorithm: str, pixels: tuple[int, int]) -> None:
+        """Refuse to be applied to another mat or another reconstruction."""
+        if layout_fingerprint(layout) != self.layout_sha256:
+            raise ConfigError(f"the pressure calibration was made for layout {self.layout_name!r}, not for "
+                              f"{layout.name!r} (or that layout has changed since)")
+        if algorithm != self.algorithm or tuple(pixels) != tuple(self.pixels):
+            raise ConfigError(f"the pressure calibration was fitted to {self.algorithm} images of "
+                              f"{self.pixels[0]} x {self.pixels[1]} pixels, not {algorithm} images of "
+                              f"{pixels[0]} x {pixels[1]}")
+
+    def pressure_kpa(self, image: np.ndarray) -> np.ndarray:
+        if image.shape != tuple(self.pixels):
+            raise ConfigError(f"image of shape {image.shape} given to a calibration for {self.pixels}")
+        return self.curve.pressure_kpa(image, self.flat_field)
+
+
+def save_pressure_calibration(path: Path, calibration: PressureCalibration) -> None:
+    """Write a calibration as JSON (exact floats, human-readable)."""
+    c = calibration
+    data = {"format": FORMAT, "layout": c.layout_name, "layout_sha256": c.layout_sha256,
+            "algorithm": c.algorithm, "pixels": list(c.pixels),
+            "curve": {"change": c.curve.change.tolist(), "pressure_kpa": c.curve.pressure.tolist()},
+            "reference_temperature_c": c.reference_temperature_c,
+            "temperature_coefficient_per_c": c.temperature_coefficient_per_c,
+            "flat_field": None if c.flat_field is None else c.flat_field.tolist(), "notes": c.notes}
+    Path(path).write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+
+
+def load_pressure_calibration(path: Path) -> PressureCalibration:
+    """Read a calibration file; anything missing or malformed is named."""
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DataFileInvalid(f"pressure calibration {path} does not exist") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataFileInvalid(f"pressure calibration {path} is not valid JSON: {exc}") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise DataFileInvalid(f"{path} is not a pressure calibration ({FORMAT})")
+    try:
+        change = np.array(data["curve"]["change"], dtype=float)
+        pressure = np.array(data["curve"]["pressure_kpa"], dtype=float)
+        flat = data.get("flat_field")
+        calibration = PressureCalibration(
+            str(data["layout"]), str(data["layout_sha256"]), str(data["algorithm"]),
+            tuple(int(v) for v in data["pixels"]), PressureCurve(change, pressure),
+            float(data["reference_temperature_c"]), float(data["temperature_coefficient_per_c"]),
+            None if flat is None else np.array(flat, dtype=float), dict(data.get("notes", {})))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DataFileInvalid(f"pressure calibration {path}: missing or malformed field ({exc})") from None
+    if len(change) < 2 or len(change) != len(pressure) or np.any(np.diff(change) <= 0) \
+            or np.any(np.diff(pressure) < 0) or change[0] != 0 or pressure[0] != 0:
+        raise DataFileInvalid(f"pressure calibration {path}: the curve must start at (0, 0) and rise")
+    if calibration.flat_field is not None and calibration.flat_field.shape != calibration.pixels:
+        raise DataFileInvalid(f"pressure calibration {path}: flat field shape does not match the pixels")
+    return calibration

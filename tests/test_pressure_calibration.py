@@ -1,0 +1,91 @@
+"""Pressure calibration: the monotone curve, temperature correction, files and their fit to a layout."""
+
+import json
+
+import numpy as np
+import pytest
+
+from appliance.core.layouts import get_layout
+from appliance.core.pressure import (PressureCalibration, fit_pressure_curve, layout_fingerprint,
+                                     load_pressure_calibration, save_pressure_calibration, temperature_corrected)
+from appliance.errors import ConfigError, DataFileInvalid
+
+
+def test_the_curve_is_monotone_through_zero_and_recovers_a_smooth_law(rng):
+    change = rng.uniform(0, 0.4, 400)
+    truth = 40 * change + 60 * change**2                       # a stiffening mat
+    noisy = truth + rng.normal(0, 0.5, change.size)
+    curve = fit_pressure_curve(change, noisy)
+    assert curve.change[0] == 0 and curve.pressure[0] == 0
+    assert np.all(np.diff(curve.change) > 0) and np.all(np.diff(curve.pressure) >= 0)
+    probe = np.linspace(0.02, 0.38, 30)
+    error = curve.pressure_kpa(-probe) - (40 * probe + 60 * probe**2)
+    assert np.max(np.abs(error)) < 0.8, np.max(np.abs(error))
+
+
+def test_rises_in_conductivity_and_nan_read_as_nothing_and_nan():
+    curve = fit_pressure_curve(np.array([0, 0.1, 0.2]), np.array([0, 5.0, 10.0]))
+    out = curve.pressure_kpa(np.array([0.3, 0.0, np.nan, -0.3]))
+    assert out[0] == 0 and out[1] == 0 and np.isnan(out[2])
+    assert out[3] == pytest.approx(15.0)                       # beyond the last knot: the last slope
+
+
+def test_a_flat_field_divides_the_change_first():
+    curve = fit_pressure_curve(np.array([0, 0.1, 0.2]), np.array([0, 5.0, 10.0]))
+    image = np.full((2, 2), -0.1)
+    flat = np.array([[1.0, 2.0], [0.5, 1.0]])
+    assert np.allclose(curve.pressure_kpa(image, flat), [[5.0, 2.5], [10.0, 5.0]])
+
+
+def test_temperature_correction_undoes_the_liquids_drift():
+    volts = np.array([1.0, -2.0])
+    warm = volts / (1 + 0.02 * 3)            # three degrees warmer conducts 6 % better, reads lower
+    assert temperature_corrected(warm, 27.0, 24.0) == pytest.approx(volts, rel=2e-3)
+    assert temperature_corrected(volts, None, 24.0).tolist() == volts.tolist()
+
+
+def calibration(layout="grid-4x4"):
+    curve = fit_pressure_curve(np.array([0, 0.1, 0.2]), np.array([0, 5.0, 10.0]))
+    lay = get_layout(layout)
+    return PressureCalibration(lay.name, layout_fingerprint(lay), "greit", (16, 16), curve, 24.0,
+                               flat_field=np.ones((16, 16)), notes={"loads": 12})
+
+
+def test_files_round_trip_exactly(tmp_path):
+    path = tmp_path / "cal.json"
+    original = calibration()
+    save_pressure_calibration(path, original)
+    back = load_pressure_calibration(path)
+    assert back.curve.change.tolist() == original.curve.change.tolist()
+    assert back.curve.pressure.tolist() == original.curve.pressure.tolist()
+    assert back.pixels == (16, 16) and back.notes == {"loads": 12}
+    back.check_fits(get_layout("grid-4x4"), "greit", (16, 16))
+
+
+def test_a_calibration_never_fits_another_layout_or_reconstruction():
+    cal = calibration()
+    with pytest.raises(ConfigError, match="made for layout 'grid-4x4', not for 'square-16'"):
+        cal.check_fits(get_layout("square-16"), "greit", (16, 16))
+    with pytest.raises(ConfigError, match="gn-laplace"):
+        cal.check_fits(get_layout("grid-4x4"), "gn-laplace", (16, 16))
+    with pytest.raises(ConfigError, match="shape"):
+        cal.pressure_kpa(np.zeros((8, 8)))
+
+
+@pytest.mark.parametrize(("mutate", "message"), [
+    (lambda d: d.pop("curve"), "missing or malformed"),
+    (lambda d: d.update(format="other"), "is not a pressure calibration"),
+    (lambda d: d["curve"].update(pressure_kpa=[0, 5, 4]), "must start at"),
+    (lambda d: d.update(flat_field=[[1.0]]), "flat field shape"),
+])
+def test_bad_calibration_files_are_refused_by_name(tmp_path, mutate, message):
+    path = tmp_path / "cal.json"
+    save_pressure_calibration(path, calibration())
+    data = json.loads(path.read_text())
+    mutate(data)
+    path.write_text(json.dumps(data))
+    with pytest.raises(DataFileInvalid, match=message):
+        load_pressure_calibration(path)
+    path.write_text("{not json")
+    with pytest.raises(DataFileInvalid, match="not valid JSON"):
+        load_pressure_calibration(path)
