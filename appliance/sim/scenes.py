@@ -1,0 +1,276 @@
+"""Scenes: what lies on the mat over time, so a simulator can replay a night on the bed.
+
+A scene answers ``pressure_at(t_s)`` and, between two times, whether the field
+changed and the box (mm) that holds the change, so a simulator re-solves the
+mat's mechanics only there. A :class:`BodyScene` is a timeline of events on the
+parametric body (:mod:`appliance.sim.body`): lie down, shift a few cm, turn to
+another posture, leave the bed and return, keep still. Each change blends the
+fields linearly over its transition time, so the total force stays m g during
+a turn and falls to zero as the patient leaves. Scenarios are TOML files::
+
+    [scene]
+    width_mm = 900
+    duration_s = 7200
+    weight_kg = 75
+
+    [[event]]
+    at_s = 0
+    kind = "lie-down"
+    posture = "supine"
+
+Unknown keys and kinds, negative or overlapping times and positions off the mat
+are refused with the event's number and field. A change box is conservative: it
+holds every cell that moved by more than ``CHANGE_TOLERANCE_KPA`` at any time
+between the two instants, even when the field came back.
+
+>>> scene = load_scene("supine-still")
+>>> scene.changes(600.0, 1200.0), scene.pressure_at(600.0).pressure_kpa.shape
+(False, (190, 90))
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, replace
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from appliance.core.toml_files import read_toml
+from appliance.errors import ConfigError, ModelInputInvalid
+from appliance.sim.body import BED_GRID, POSTURES, SURFACES, MatGrid, Placement, Subject, body_field
+from appliance.sim.field import PressureField
+
+CHANGE_TOLERANCE_KPA = 0.01
+"""Cells whose pressure moves less than this (0.075 mmHg) do not count as changed."""
+
+DEFAULT_TRANSITION_S = {"lie-down": 10.0, "shift": 2.0, "turn": 20.0, "leave": 5.0, "return": 10.0}
+_PLACE = {"posture", "x_mm", "y_mm", "rotation_deg", "transition_s"}
+EVENT_FIELDS = {"lie-down": _PLACE, "return": _PLACE, "turn": {"posture", "transition_s"},
+                "shift": {"dx_mm", "dy_mm", "rotation_deg", "transition_s"}, "leave": {"transition_s"},
+                "still": {"duration_s"}}
+SCENE_FIELDS = {"description", "width_mm", "height_mm", "pitch_mm", "weight_kg", "height_cm", "surface",
+                "duration_s"}
+
+
+class Scene:
+    """A timeline of pressure fields on ``grid`` lasting ``duration_s``."""
+
+    grid: MatGrid
+    duration_s: float
+
+    def pressure_at(self, t_s: float) -> PressureField:
+        raise NotImplementedError
+
+    def change_box_mm(self, t0_s: float, t1_s: float) -> tuple[float, float, float, float] | None:
+        """(x0, y0, x1, y1) in mm of every cell that changed between the two times, or None."""
+        raise NotImplementedError
+
+    def changes(self, t0_s: float, t1_s: float) -> bool:
+        """Whether anything changed between ``t0_s`` and ``t1_s``."""
+        return self.change_box_mm(t0_s, t1_s) is not None
+
+    def _check_times(self, *times_s: float) -> None:
+        for t in times_s:
+            if not (math.isfinite(t) and -1e-9 <= t <= self.duration_s + 1e-9):
+                raise ModelInputInvalid(f"time {t!r} s is outside the scene (0 to {self.duration_s:g} s)")
+        if len(times_s) == 2 and times_s[1] < times_s[0]:
+            raise ModelInputInvalid(f"change interval runs backwards: {times_s[0]:g} s to {times_s[1]:g} s")
+
+    def _box(self, change_kpa: np.ndarray) -> tuple[float, float, float, float] | None:
+        rows, cols = np.nonzero(change_kpa > CHANGE_TOLERANCE_KPA)
+        if rows.size == 0:
+            return None
+        p = self.grid.pitch_mm
+        return float(cols.min() * p), float(rows.min() * p), float((cols.max() + 1) * p), float((rows.max() + 1) * p)
+
+
+@dataclass(frozen=True)
+class Step:
+    """One change from ``before`` to ``after`` (a placement, or None for an empty bed) over [start, end]."""
+
+    start_s: float
+    end_s: float
+    before: Placement | None
+    after: Placement | None
+
+    def weight(self, t_s: float) -> float:
+        """How far the change has gone at ``t_s``: 0 before it starts, 1 once it ends."""
+        if self.end_s <= self.start_s:
+            return 1.0 if t_s >= self.start_s else 0.0
+        return min(1.0, max(0.0, (t_s - self.start_s) / (self.end_s - self.start_s)))
+
+
+class BodyScene(Scene):
+    """A subject on the mat through a list of non-overlapping steps; the bed is empty before the first."""
+
+    def __init__(self, subject: Subject, steps: list[Step], grid: MatGrid = BED_GRID,
+                 surface: str = "standard-foam", duration_s: float | None = None):
+        self.subject, self.steps, self.grid, self.surface = subject, list(steps), grid, surface
+        end = max((s.end_s for s in self.steps), default=0.0)
+        self.duration_s = float(end if duration_s is None else duration_s)
+        if self.duration_s <= 0 or self.duration_s < end:
+            raise ModelInputInvalid(f"scene duration {self.duration_s:g} s must be positive and cover the "
+                                    f"last change, which ends at {end:g} s")
+
+    def _field(self, placement: Placement | None) -> np.ndarray:
+        if placement is None:
+            return np.zeros(self.grid.shape)
+        return body_field(self.subject, placement, self.grid, self.surface).pressure_kpa
+
+    def pressure_at(self, t_s: float) -> PressureField:
+        self._check_times(t_s)
+        started = [s for s in self.steps if s.start_s <= t_s]
+        if not started:
+            return self.grid.zeros()
+        step = started[-1]
+        w = step.weight(t_s)
+        p = self._field(step.after) if w == 1.0 else (1 - w) * self._field(step.before) + w * self._field(step.after)
+        return PressureField(p, self.grid.pitch_mm)
+
+    def change_box_mm(self, t0_s: float, t1_s: float) -> tuple[float, float, float, float] | None:
+        self._check_times(t0_s, t1_s)
+        change = np.zeros(self.grid.shape)
+        for step in self.steps:
+            dw = step.weight(t1_s) - step.weight(t0_s)
+            if dw > 0:
+                change = np.maximum(change, dw * np.abs(self._field(step.after) - self._field(step.before)))
+        return self._box(change)
+
+
+def builtin_scenes() -> tuple[str, ...]:
+    """Names of the scenarios shipped in ``appliance/sim/scenarios``."""
+    folder = resources.files("appliance.sim").joinpath("scenarios")
+    return tuple(sorted(f.name[:-5] for f in folder.iterdir() if f.name.endswith(".toml")))
+
+
+def load_scene(path) -> BodyScene:
+    """The scene in TOML file ``path``, or the built-in scenario of that name."""
+    if str(path) in builtin_scenes():
+        text = resources.files("appliance.sim").joinpath(f"scenarios/{path}.toml").read_text(encoding="utf-8")
+        data, where = tomllib.loads(text), f"built-in scenario {path}"
+    else:
+        data, where = read_toml(Path(path), "scenario file", ConfigError), f"scenario file {path}"
+    try:
+        return scene_from_mapping(data)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
+def scene_from_mapping(data: dict) -> BodyScene:
+    """Build a scene from parsed TOML; every bad key, kind, time or position is named."""
+    _only(data, {"scene", "event"}, "the scenario")
+    head = data.get("scene", {})
+    if not isinstance(head, dict):
+        raise ConfigError("[scene] must be a table")
+    _only(head, SCENE_FIELDS, "[scene]")
+    surface = head.get("surface", "standard-foam")
+    if not isinstance(head.get("description", ""), str):
+        raise ConfigError(f"[scene] description must be text, got {head['description']!r}")
+    if not isinstance(surface, str) or surface not in SURFACES:
+        raise ConfigError(f"[scene] surface must be one of {', '.join(SURFACES)}, got {surface!r}")
+    try:
+        grid = MatGrid(*(_number(head, k, "[scene]", d) for k, d in
+                         (("width_mm", 900.0), ("height_mm", 1900.0), ("pitch_mm", 10.0))))
+        subject = Subject(_number(head, "weight_kg", "[scene]", 75.0), _number(head, "height_cm", "[scene]", 175.0))
+    except ModelInputInvalid as exc:
+        raise ConfigError(f"[scene]: {exc}") from None
+    events = data.get("event", [])
+    if not isinstance(events, list) or not all(isinstance(e, dict) for e in events):
+        raise ConfigError("[[event]] entries must be tables")
+    steps = _steps(events, subject, grid, surface)
+    end = max([s.end_s for s in steps] + [_still_end(e) for e in events] + [0.0])
+    duration = _positive(head, "duration_s", "[scene]") if "duration_s" in head else end
+    if duration < end:
+        raise ConfigError(f"[scene] duration_s = {duration:g} ends before the last event, at {end:g} s")
+    if duration <= 0:
+        raise ConfigError("the scene has no length: give [scene] duration_s or a still event")
+    return BodyScene(subject, steps, grid, surface, duration)
+
+
+def _still_end(event: dict) -> float:
+    return event["at_s"] + event["duration_s"] if event.get("kind") == "still" else 0.0
+
+
+def _steps(events: list[dict], subject: Subject, grid: MatGrid, surface: str) -> list[Step]:
+    steps, state, last, free_from = [], None, None, 0.0
+    for n, event in enumerate(events, start=1):
+        kind = event.get("kind")
+        if kind not in EVENT_FIELDS:
+            raise ConfigError(f"event {n}: kind must be one of {', '.join(EVENT_FIELDS)}, got {kind!r}")
+        where = f"event {n} ({kind})"
+        _only(event, EVENT_FIELDS[kind] | {"at_s", "kind"}, where)
+        at = _number(event, "at_s", where, None)
+        if at < 0:
+            raise ConfigError(f"{where}: at_s must not be negative, got {at:g}")
+        if at < free_from:
+            raise ConfigError(f"{where}: at_s = {at:g} comes before the previous event ends, at {free_from:g} s")
+        if kind == "still":
+            free_from = at + _positive(event, "duration_s", where)
+            continue
+        span = _number(event, "transition_s", where, DEFAULT_TRANSITION_S[kind])
+        if span < 0:
+            raise ConfigError(f"{where}: transition_s must not be negative, got {span:g}")
+        after = _next_state(kind, event, state, last, where, grid, subject)
+        if after is not None:
+            _check_fits(after, where, grid, subject, surface)
+            last = after
+        steps.append(Step(at, at + span, state, after))
+        state, free_from = after, at + span
+    return steps
+
+
+def _next_state(kind, event, state, last, where, grid, subject) -> Placement | None:
+    occupied = state is not None
+    if occupied == (kind in ("lie-down", "return")):
+        raise ConfigError(f"{where}: the bed is {'occupied' if occupied else 'empty'} at this time")
+    if kind == "leave":
+        return None
+    if kind == "shift":
+        return replace(state, x_mm=state.x_mm + _number(event, "dx_mm", where, 0.0),
+                       y_mm=state.y_mm + _number(event, "dy_mm", where, 0.0),
+                       rotation_deg=state.rotation_deg + _number(event, "rotation_deg", where, 0.0))
+    base = state if kind == "turn" else (last if kind == "return" and last is not None else Placement())
+    posture = event.get("posture", base.posture)
+    if not isinstance(posture, str) or posture not in POSTURES:
+        raise ConfigError(f"{where}: posture must be one of {', '.join(POSTURES)}, got {posture!r}")
+    new = replace(base, posture=posture, **{k: _number(event, k, where, getattr(base, k))
+                                            for k in ("x_mm", "y_mm", "rotation_deg") if k in event})
+    return new.on(grid, subject)
+
+
+def _check_fits(placement: Placement, where: str, grid: MatGrid, subject: Subject, surface: str) -> None:
+    for key, value, size in (("x_mm", placement.x_mm, grid.width_mm), ("y_mm", placement.y_mm, grid.height_mm)):
+        if not 0 <= value <= size:
+            raise ConfigError(f"{where}: {key} = {value:g} puts the body off the "
+                              f"{grid.width_mm:g} x {grid.height_mm:g} mm mat")
+    try:
+        body_field(subject, placement, grid, surface)
+    except ModelInputInvalid as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
+def _only(table: dict, allowed: set, where: str) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise ConfigError(f"{where}: unknown field {unknown[0]!r}; allowed: {', '.join(sorted(allowed))}")
+
+
+def _number(table: dict, key: str, where: str, default: float | None) -> float:
+    if key not in table:
+        if default is None:
+            raise ConfigError(f"{where} is missing {key!r}")
+        return default
+    value = table[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(f"{where}: {key} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _positive(table: dict, key: str, where: str) -> float:
+    value = _number(table, key, where, None)
+    if value <= 0:
+        raise ConfigError(f"{where}: {key} must be positive, got {value:g}")
+    return value
