@@ -1,10 +1,11 @@
 """Iterative Gauss-Newton: it restores the amplitude of large changes, and knows when it is needed."""
 
+import numpy as np
 import pytest
 
 from appliance.core.fem import build_fem_model
 from appliance.core.forward import simulate
-from appliance.core.iterative import MISFIT_LIMIT, iterative_reconstruct, one_step_misfit
+from appliance.core.iterative import LOG_LIMIT, MISFIT_LIMIT, iterative_reconstruct, one_step_misfit
 from appliance.core.layouts import get_layout
 from appliance.core.phantoms import Inclusion, conductivity
 from appliance.core.protocols import default_protocol
@@ -62,3 +63,13 @@ def test_a_foreign_forward_model_is_refused(setting):
     _, reference, model = setting
     with pytest.raises(ReconstructionError, match="not the one the reconstructor was built from"):
         iterative_reconstruct(build_fem_model(LAYOUT, density=2), model.reconstructor, reference, reference)
+
+
+def test_near_insulating_data_never_ask_the_solver_for_an_impossible_sheet(setting):
+    truth, reference, model = setting
+    r = model.reconstructor
+    v = simulate(truth, conductivity(truth, [Inclusion("rect", 20, 20, 60, 60, 1e-4)]), PROTOCOL)
+    result = iterative_reconstruct(model.forward, r, v, reference)
+    assert np.isfinite(result.pixels).all()
+    assert result.pixels.min() >= np.expm1(-LOG_LIMIT) and result.pixels.max() <= np.expm1(LOG_LIMIT)
+    assert result.pixels.min() < -0.9                     # it still finds the sheet nearly cut through

@@ -33,9 +33,10 @@ from appliance.core.forward import ForwardModel, solve_electrodes
 from appliance.core.jacobian import jacobian
 from appliance.core.reconstruct import Reconstructor, solve_spd
 from appliance.core.regularisation import prior_matrix
-from appliance.errors import ReconstructionError
+from appliance.errors import ReconstructionError, SolverError
 
 MAX_ITERATIONS = 12
+LOG_LIMIT = float(np.log(1e4))      # conductivity stays within 1e-4 to 1e4 of the reference's
 STEP_TOLERANCE = 1e-3
 """Stop once no pixel's log conductivity moves by more than this in one step."""
 
@@ -103,8 +104,13 @@ def iterative_reconstruct(model: ForwardModel, r: Reconstructor, frame: np.ndarr
         step = solve_spd(jw @ j + penalty, gradient)
         length = 1.0
         while length > 1e-3:
-            trial = eta + length * step
-            t_sigma, t_fields, t_residual, t_objective = evaluate(trial)
+            # A wild step (near-saturated data) could ask for conductivities no sheet has, or that
+            # the solver cannot take: keep log-conductivity within LOG_LIMIT and halve on failure.
+            trial = np.clip(eta + length * step, -LOG_LIMIT, LOG_LIMIT)
+            try:
+                t_sigma, t_fields, t_residual, t_objective = evaluate(trial)
+            except SolverError:
+                t_objective = np.inf
             if t_objective < objective:
                 break
             length /= 2
