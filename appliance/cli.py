@@ -80,9 +80,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
     p.set_defaults(run=_reconstruct)
 
-    from appliance.cli_frontend import add_parsers
+    from appliance.cli_frontend import add_parsers as add_frontend_parsers
+    from appliance.cli_sim import add_parsers as add_sim_parsers
 
-    add_parsers(sub)
+    add_frontend_parsers(sub)
+    add_sim_parsers(sub)
     return parser
 
 

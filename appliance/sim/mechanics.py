@@ -1,0 +1,341 @@
+"""The mat's mechanics: pressure field -> membrane deflection -> liquid depth -> sheet conductance.
+
+The thesis's sensor (chapter 6) is a layer of conductive liquid under a tensioned
+rubber membrane. A load pushes the membrane down; the liquid under it thins and,
+being incompressible in a closed cell, lifts the membrane elsewhere. EIT sees the
+sheet conductance, conductivity x liquid depth, fall under the load and rise
+around it. On the pressure field's grid (deflection w in mm, positive down):
+
+    -T lap(w) + f(w) = p_eff - p_liquid,     sum(w) = 0
+
+* T lap(w): the membrane's tension spreads a load beyond its footprint; the
+  membrane is clamped at the mat's edge (w = 0 there).
+* f(w): the foundation (base, walls and the rubber's own thickness, lumped as a
+  Winkler bed of stiffness k) with an initial slack s, f = k (w - s tanh(w / s)),
+  which makes the first millimetre or so easy, as every thesis table shows (its
+  first weight sinks the load further than the next), plus a contact barrier k c^2 (1 / (d0 - w) - 1 / d0 - w / d0^2) for w > 0
+  that stiffens it without bound as the membrane nears the base: the deflection
+  saturates below the rest depth d0 and the depth stays positive.
+* p_liquid: the liquid's pressure rise, one value for the whole cell (Pascal's
+  law), a Lagrange multiplier that makes the displaced volume reappear exactly
+  as the membrane lifts elsewhere. So volume is conserved by the membrane model
+  itself, not by spreading it uniformly: the lift is largest mid-way between
+  the load and the clamped edge (the thesis's edge artefacts).
+* p_eff: the applied pressure through a frictional play. The membrane and the
+  load stick until the pressure has moved by a share h of itself, so a falling
+  pressure acts as slightly more than it is and a rising one as slightly less
+  (the decreasing branches of the tables lie a little above the increasing
+  ones); the band shrinks to nothing at zero pressure, so the mat returns to
+  rest. The play is held per cell in :class:`MatState`.
+
+A rigid platen (the thesis's weights) is a set of cells that move as one plane:
+they share three unknowns, its sink and two tilts. The problem is the minimum of
+a convex energy, solved by Newton's method on the bordered system with one
+sparse factorisation per step.
+
+>>> from appliance.sim.field import PressureField
+>>> field = PressureField.uniform(100, 100, 2.0).with_square_load(50, 50, 20, 9.81)
+>>> conductance, deflection, state = sheet_conductance(DEFAULT_PARAMETERS, field)
+>>> bool(deflection.max() < DEFAULT_PARAMETERS.rest_depth_mm), bool(abs(deflection.sum()) < 1e-9)
+(True, True)
+>>> round(float(conductance.min() / conductance.max()), 2)      # under the load, against the lifted edge
+0.17
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.interpolate import RegularGridInterpolator
+
+from appliance.core.forward import ForwardModel
+from appliance.errors import ModelInputInvalid, SolverError
+from appliance.sim.field import PressureField
+
+TEMPERATURE_RANGE_C = (0.0, 60.0)
+"""Where a linear temperature coefficient describes saline and glycol mixtures well enough."""
+
+
+@dataclass(frozen=True)
+class MatParameters:
+    """The mat's physical parameters; the defaults are fitted to the thesis (see ``DEFAULT_PARAMETERS``).
+
+    Attributes
+    ----------
+    rest_depth_mm : float
+        Liquid depth under the unloaded membrane, d0.
+    conductivity_s_per_m : float
+        Liquid conductivity at 20 C. The thesis gives "125 mS" for its ethylene
+        glycol and saline; on the scale of its "100 mS" saline tank, the 10 mS/cm
+        (1 S/m) saline of its other tanks and of the emulated sensor, that is
+        1.25 S/m. Its Table 3.2.2.1 impedances give about 1.5 S/m on our FEM, and
+        at 1.25 S/m and the fitted depth the largest reading at the thesis's
+        2.5 mA limit is 64 mV, 6.4 V after the smallest gain (100): where its
+        AD536A (7 V rms) saturates. 125 mS/cm, half saturated brine, fits
+        neither. Q and dV/V do not depend on it.
+    temperature_coefficient_per_c : float
+        Relative change of conductivity per degree C (0.02 for saline).
+    tension_n_per_m : float
+        Membrane tension T (N/m, which is kPa mm).
+    foundation_kpa_per_mm : float
+        Winkler stiffness k of what carries the membrane.
+    slack_mm : float
+        Initial slack s of the foundation; 0 for none.
+    contact_mm : float
+        Length c of the contact barrier: its stiffness, k c^2 / gap^2, matches
+        the foundation's when the gap to the base is down to c (not fitted: the
+        tables never show the membrane reaching the base).
+    hysteresis : float
+        Relative width h of the frictional play on pressure, 0 <= h < 1.
+    max_pressure_kpa : float
+        Highest pressure accepted: 2.5 times the thesis's highest (19.6 kPa) and
+        above seated interface pressures; small loads are on the base by then.
+    """
+
+    rest_depth_mm: float = 6.951
+    conductivity_s_per_m: float = 1.25
+    temperature_coefficient_per_c: float = 0.02
+    tension_n_per_m: float = 71.08
+    foundation_kpa_per_mm: float = 1.183
+    slack_mm: float = 1.806
+    contact_mm: float = 0.05
+    hysteresis: float = 0.004465
+    max_pressure_kpa: float = 50.0
+
+    def __post_init__(self):
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if not np.isfinite(value):
+                raise ModelInputInvalid(f"mat parameter {field.name} must be finite, got {value!r}")
+        for name in ("rest_depth_mm", "conductivity_s_per_m", "tension_n_per_m", "foundation_kpa_per_mm",
+                     "contact_mm", "max_pressure_kpa"):
+            if getattr(self, name) <= 0:
+                raise ModelInputInvalid(f"mat parameter {name} must be positive, got {getattr(self, name)!r}")
+        for name in ("temperature_coefficient_per_c", "slack_mm"):
+            if getattr(self, name) < 0:
+                raise ModelInputInvalid(f"mat parameter {name} must not be negative, got {getattr(self, name)!r}")
+        if not 0 <= self.hysteresis < 1:
+            raise ModelInputInvalid(f"mat parameter hysteresis must be in [0, 1), got {self.hysteresis!r}")
+        if self.contact_mm >= self.rest_depth_mm:
+            raise ModelInputInvalid(f"contact_mm ({self.contact_mm}) must be below rest_depth_mm "
+                                    f"({self.rest_depth_mm})")
+
+    def conductivity_at(self, temperature_c: float) -> float:
+        """Liquid conductivity at ``temperature_c``, S/m."""
+        low, high = TEMPERATURE_RANGE_C
+        if not (np.isfinite(temperature_c) and low <= temperature_c <= high):
+            raise ModelInputInvalid(f"mat temperature {float(temperature_c)!r} C is outside the model's range "
+                                    f"{low:g} to {high:g} C")
+        return self.conductivity_s_per_m * (1.0 + self.temperature_coefficient_per_c * (temperature_c - 20.0))
+
+
+# The defaults above are fitted by benchmarks/sensor_model.py to the 4, 9 and 25 cm2 tables of thesis
+# chapter 6, both directions: hysteresis from the deformation loops alone, then rest depth, tension,
+# foundation and slack by scipy.optimize.least_squares (soft-L1 loss) on every row of the three measures
+# weighted by 1 / max(sd, floor); conductivity and its coefficient are not fitted. Residuals row by row
+# in benchmarks/sensor_model.md.
+DEFAULT_PARAMETERS = MatParameters()
+
+
+@dataclass(frozen=True)
+class MatState:
+    """What the mat remembers between two fields: the play's effective pressure (kPa, per cell), and
+    the last deflection (mm) and liquid pressure (kPa), which only speed up the next solve."""
+
+    effective_pressure_kpa: np.ndarray
+    deflection_mm: np.ndarray
+    liquid_pressure_kpa: float = 0.0
+
+
+def sheet_conductance(params: MatParameters, field: PressureField, state: MatState | None = None,
+                      temperature_c: float = 20.0, *, platen: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, MatState]:
+    """The mat's response to ``field``: sheet conductance, deflection and the state to pass next time.
+
+    Parameters
+    ----------
+    params : MatParameters
+    field : PressureField
+        Pressure over the whole mat; its grid is the mechanics' grid, clamped at its edge.
+    state : MatState, optional
+        From the previous call on the same grid; None for a mat that has never been loaded.
+    temperature_c : float
+        Liquid temperature.
+    platen : ndarray of bool, shape (rows, cols), optional
+        Cells under a rigid flat platen (the thesis's weights): they move as one
+        plane and share the load on them. None for a soft load such as a body.
+
+    Returns
+    -------
+    conductance_s : ndarray, shape (rows, cols)
+        Conductivity x liquid depth of each cell, S.
+    deflection_mm : ndarray, shape (rows, cols)
+        Membrane deflection, positive down; the liquid depth is ``rest_depth_mm - deflection_mm``.
+    state : MatState
+
+    Raises
+    ------
+    ModelInputInvalid
+        A pressure above ``params.max_pressure_kpa``, a temperature outside the model's
+        range, a state or platen for a grid of another shape.
+    SolverError
+        Newton's method did not converge.
+    """
+    state = _checked(params, field, state, platen)
+    sigma = params.conductivity_at(temperature_c)
+    p = field.pressure_kpa
+    band = params.hysteresis * p
+    effective = np.clip(state.effective_pressure_kpa, p - band, p + band)
+    deflection, liquid = solve_deflection(params, effective, field.pitch_mm, platen, state.deflection_mm)
+    conductance = sigma * (params.rest_depth_mm - deflection) * 1e-3
+    return conductance, deflection, MatState(effective, deflection, liquid)
+
+
+def _checked(params: MatParameters, field, state: MatState | None, platen) -> MatState:
+    """Refuse a field the model is not valid for, or a state or platen of another grid; the state to use."""
+    if not isinstance(field, PressureField):
+        raise ModelInputInvalid(f"the mat needs a PressureField, got {type(field).__name__}")
+    p = field.pressure_kpa
+    if field.peak_kpa > params.max_pressure_kpa:
+        i, j = np.unravel_index(np.argmax(p), p.shape)
+        raise ModelInputInvalid(f"pressure {field.peak_kpa:.4g} kPa (row {i}, column {j}) is beyond the mat "
+                                f"model's validity limit of {params.max_pressure_kpa:g} kPa")
+    if state is not None and state.effective_pressure_kpa.shape != p.shape:
+        raise ModelInputInvalid(f"mat state is for a {state.effective_pressure_kpa.shape} grid, the field is "
+                                f"{p.shape}")
+    if platen is not None and (np.shape(platen) != p.shape or np.asarray(platen).dtype != bool):
+        raise ModelInputInvalid(f"a platen must be a boolean mask of the field's shape {p.shape}, got "
+                                f"{np.asarray(platen).dtype} {np.shape(platen)}")
+    return state if state is not None else MatState(np.zeros_like(p), np.zeros_like(p))
+
+
+def membrane_operator(shape: tuple[int, int], pitch_mm: float) -> sp.csr_matrix:
+    """-lap on a cell-centred grid clamped at its outer edge (half a cell beyond the outer centres), 1/mm^2.
+
+    Symmetric positive definite: the second difference of an edge cell sees the
+    clamp through a mirror ghost cell (w_ghost = -w), so w is zero on the edge itself.
+    """
+    def second_difference(n):
+        main = np.full(n, 2.0)
+        main[[0, -1]] += 1.0
+        return sp.diags([main, -np.ones(n - 1), -np.ones(n - 1)], [0, -1, 1]) if n > 1 else sp.diags([[4.0]], [0])
+
+    rows, cols = shape
+    return sp.csr_matrix((sp.kron(sp.identity(rows), second_difference(cols))
+                          + sp.kron(second_difference(rows), sp.identity(cols))) / pitch_mm**2)
+
+
+def foundation_force(params: MatParameters, deflection_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The foundation's pressure f(w) (kPa) and its slope df/dw (kPa/mm): slack, linear bed, contact barrier."""
+    k, s, c, d0 = params.foundation_kpa_per_mm, params.slack_mm, params.contact_mm, params.rest_depth_mm
+    w = deflection_mm
+    if s > 0:
+        t = np.tanh(w / s)
+        force, slope = k * (w - s * t), k * t**2
+    else:
+        force, slope = k * w, np.full_like(w, k)
+    down = np.maximum(w, 0.0)
+    gap = d0 - down
+    force = force + k * c**2 * (1.0 / gap - 1.0 / d0 - down / d0**2)
+    slope = slope + np.where(w > 0, k * c**2 * (1.0 / gap**2 - 1.0 / d0**2), 0.0)
+    return force, slope
+
+
+def platen_basis(shape: tuple[int, int], platen: np.ndarray | None) -> sp.csr_matrix:
+    """Map from the unknowns to every cell's deflection, shape (cells, unknowns).
+
+    A free cell is its own unknown. The cells under a rigid flat platen share three:
+    the platen's sink and its tilts about x and y (a tilt dropped when the platen is
+    one cell wide that way), so the platen takes its load's force and moments whole.
+    """
+    n = shape[0] * shape[1]
+    if platen is None or not platen.any():
+        return sp.identity(n, format="csr")
+    under = platen.ravel()
+    free = np.flatnonzero(~under)
+    cells = np.flatnonzero(under)
+    i, j = np.unravel_index(cells, shape)
+    columns = [np.ones(cells.size)]
+    for coordinate in (j, i):
+        centred = coordinate - coordinate.mean()
+        if np.ptp(centred) > 0:
+            columns.append(centred / np.abs(centred).max())
+    rows = np.concatenate([free, np.repeat(cells, len(columns))])
+    cols = np.concatenate([np.arange(free.size),
+                           free.size + np.tile(np.arange(len(columns)), cells.size)])
+    values = np.concatenate([np.ones(free.size), np.column_stack(columns).ravel()])
+    return sp.csr_matrix((values, (rows, cols)), shape=(n, free.size + len(columns)))
+
+
+def solve_deflection(params: MatParameters, pressure_kpa: np.ndarray, pitch_mm: float,
+                     platen: np.ndarray | None = None, start_mm: np.ndarray | None = None,
+                     max_steps: int = 100) -> tuple[np.ndarray, float]:
+    """Deflection (mm, positive down) and liquid pressure rise (kPa) under ``pressure_kpa`` (rows, cols).
+
+    Damped Newton on -T lap(w) + f(w) + p_liquid = p with sum(w) = 0, over the
+    unknowns of :func:`platen_basis`; a step never takes more than 90 % of the
+    remaining gap to the base, so the depth stays positive.
+    """
+    shape = np.shape(pressure_kpa)
+    p = np.asarray(pressure_kpa, dtype=float).ravel()
+    if not p.any():
+        return np.zeros(shape), 0.0
+    basis = platen_basis(shape, platen)
+    stiffness = sp.csr_matrix(basis.T @ (params.tension_n_per_m * membrane_operator(shape, pitch_mm)) @ basis)
+    load, volume = basis.T @ p, np.asarray(basis.sum(axis=0)).ravel()
+    d0 = params.rest_depth_mm
+    start = np.zeros(p.size) if start_mm is None else np.clip(np.ravel(start_mm), -d0, 0.5 * d0)
+    u = spla.spsolve(sp.csc_matrix(basis.T @ basis), basis.T @ start)
+    w, liquid = basis @ u, 0.0
+    for _ in range(max_steps):
+        force, slope = foundation_force(params, w)
+        residual = stiffness @ u + basis.T @ force + liquid * volume - load
+        lu = spla.splu(sp.csc_matrix(stiffness + basis.T @ sp.diags(slope) @ basis))
+        x1, x2 = lu.solve(-residual), lu.solve(volume)
+        liquid_step = (volume @ x1 + volume @ u) / (volume @ x2)
+        step = x1 - liquid_step * x2
+        w_step = basis @ step
+        deeper = w_step > 0
+        t = min(1.0, 0.9 * float(np.min((d0 - w[deeper]) / w_step[deeper]))) if deeper.any() else 1.0
+        u, liquid = u + t * step, liquid + t * liquid_step
+        w = basis @ u
+        if t == 1.0 and np.abs(w_step).max() <= 1e-11 * d0:
+            return w.reshape(shape), float(liquid)
+    raise SolverError(f"mat mechanics did not converge in {max_steps} Newton steps (peak pressure "
+                      f"{p.max():.4g} kPa, last step {np.abs(w_step).max():.3g} mm)")
+
+
+def conductance_on_model(model: ForwardModel, conductance_grid: np.ndarray, pitch_mm: float) -> np.ndarray:
+    """Per-element sheet conductance (S) of ``model``, sampled from a grid of cells of side ``pitch_mm``.
+
+    Bilinear interpolation between cell centres at each element's centroid (the
+    edge cells' values hold out to the mat's edge). Elements are about as large
+    as the cells (2 mm against 2.3 mm for grid-4x4 at density 1), so the centroid
+    value stands for the element. Elements the model fixes (metal electrodes of
+    the network model) get the sampled value too; the model ignores it.
+
+    Raises
+    ------
+    ModelInputInvalid
+        The grid is not 2-D and positive, or the model reaches beyond it.
+    """
+    g = np.asarray(conductance_grid, dtype=float)
+    if g.ndim != 2 or not np.isfinite(g).all() or (g <= 0).any():
+        raise ModelInputInvalid("a conductance grid must be a 2-D array of positive finite values")
+    rows, cols = g.shape
+    xs, ys = (np.arange(cols) + 0.5) * pitch_mm, (np.arange(rows) + 0.5) * pitch_mm
+    points = np.asarray(model.centroids_mm, dtype=float)
+    reach = 1e-9 * max(cols, rows) * pitch_mm
+    if (points.min(axis=0) < -reach).any() or points[:, 0].max() > cols * pitch_mm + reach \
+            or points[:, 1].max() > rows * pitch_mm + reach:
+        raise ModelInputInvalid(f"the model reaches beyond the {cols * pitch_mm:g} x {rows * pitch_mm:g} mm "
+                                f"conductance grid")
+    x = np.clip(points[:, 0], xs[0], xs[-1])
+    y = np.clip(points[:, 1], ys[0], ys[-1])
+    if rows == 1 or cols == 1:
+        return np.full(len(points), float(g.mean()))
+    return RegularGridInterpolator((ys, xs), g)(np.column_stack([y, x]))

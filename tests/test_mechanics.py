@@ -1,0 +1,148 @@
+"""The mat's mechanics: deflection, volume, spreading, the base, temperature, the play, bad input."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from appliance.core.fem import build_fem_model
+from appliance.core.layouts import get_layout
+from appliance.errors import ModelInputInvalid
+from appliance.sim.field import PressureField
+from appliance.sim.mechanics import (
+    DEFAULT_PARAMETERS,
+    conductance_on_model,
+    membrane_operator,
+    sheet_conductance,
+)
+
+PITCH_MM = 2.0
+EMPTY = PressureField.uniform(100.0, 100.0, PITCH_MM)
+NO_PLAY = dataclasses.replace(DEFAULT_PARAMETERS, hysteresis=0.0)
+
+
+def square(pressure_kpa, side_mm=30.0, x_mm=50.0, y_mm=50.0):
+    return EMPTY.with_square_load(x_mm, y_mm, side_mm, pressure_kpa)
+
+
+def platen_of(side_mm=30.0):
+    return square(1.0, side_mm).pressure_kpa >= 0.5
+
+
+def test_membrane_operator_is_symmetric_positive_definite():
+    k = membrane_operator((6, 5), 2.0).toarray()
+    assert np.allclose(k, k.T)
+    assert np.linalg.eigvalsh(k).min() > 0
+
+
+@pytest.mark.parametrize("platen", [False, True])
+def test_deflection_grows_with_pressure(platen):
+    mask = platen_of() if platen else None
+    peaks = [sheet_conductance(NO_PLAY, square(p), platen=mask)[1].max() for p in (0.5, 1, 2, 4, 8, 16, 32)]
+    assert np.all(np.diff(peaks) > 0), f"peak deflections {np.round(peaks, 3)} mm do not grow with pressure"
+
+
+@pytest.mark.parametrize("fields", [
+    [square(5.0)],
+    [square(20.0, side_mm=10.0, x_mm=20.0, y_mm=70.0)],
+    [EMPTY.with_square_load(25, 25, 20, 8).with_square_load(70, 60, 30, 3)],
+    [square(2.0), square(40.0), square(1.0)],
+])
+def test_volume_is_conserved(fields):
+    state = None
+    for field in fields:
+        platen = field.pressure_kpa >= 0.5 * field.peak_kpa
+        _, w, state = sheet_conductance(DEFAULT_PARAMETERS, field, state, platen=platen)
+        assert abs(w.sum()) <= 1e-9 * np.abs(w).sum(), f"net displaced volume {w.sum() * PITCH_MM**2:.3g} mm^3"
+
+
+def test_a_load_spreads_beyond_its_footprint_and_lifts_the_rest():
+    field = square(5.0, side_mm=20.0)
+    _, w, _ = sheet_conductance(NO_PLAY, field)
+    row = w[25]                                     # the row through the centre, cells 2 mm wide
+    inside, just_outside = row[24], row[19]         # x = 49 mm; x = 39 mm, 1 mm beyond the footprint's edge
+    assert just_outside > 0.3 * inside, f"{just_outside:.3f} mm just outside against {inside:.3f} mm under the load"
+    assert w.min() < 0, "the displaced liquid must lift the membrane somewhere"
+    assert w[0].max() < 0.1 * inside, "the membrane is clamped at the mat's edge"
+
+
+@pytest.mark.parametrize("side_mm", [10.0, 30.0, 60.0])
+def test_deflection_never_reaches_the_base(side_mm):
+    soft = dataclasses.replace(DEFAULT_PARAMETERS, foundation_kpa_per_mm=0.1, tension_n_per_m=5.0)
+    for params in (DEFAULT_PARAMETERS, soft):
+        g, w, _ = sheet_conductance(params, square(params.max_pressure_kpa, side_mm), platen=platen_of(side_mm))
+        assert w.max() < params.rest_depth_mm, f"deflection {w.max():.4f} mm reaches the {params.rest_depth_mm} mm base"
+        assert g.min() > 0
+
+
+def test_conductance_scales_with_temperature_by_the_coefficient():
+    field = square(6.0)
+    g20, w20, _ = sheet_conductance(DEFAULT_PARAMETERS, field, temperature_c=20.0)
+    g35, w35, _ = sheet_conductance(DEFAULT_PARAMETERS, field, temperature_c=35.0)
+    assert np.array_equal(w20, w35), "temperature must not move the membrane"
+    expected = 1 + DEFAULT_PARAMETERS.temperature_coefficient_per_c * 15.0
+    assert np.allclose(g35 / g20, expected, rtol=1e-12)
+    depth_m = (DEFAULT_PARAMETERS.rest_depth_mm - w20) * 1e-3
+    assert np.allclose(g20, DEFAULT_PARAMETERS.conductivity_s_per_m * depth_m, rtol=1e-12)
+
+
+def test_play_makes_falling_pressure_read_deeper_and_returns_to_rest():
+    """As the thesis's tables: the decreasing branch lies a little above the increasing one."""
+    pressures = [0.0, 2.0, 4.0, 8.0, 12.0, 8.0, 4.0, 2.0, 0.0]
+    mask, state, peaks = platen_of(), None, []
+    for p in pressures:
+        _, w, state = sheet_conductance(DEFAULT_PARAMETERS, square(p), state, platen=mask)
+        peaks.append(w.max())
+    up, down = np.array(peaks[1:4]), np.array(peaks[5:8][::-1])
+    assert np.all(down > up), f"decreasing {np.round(down, 4)} mm not above increasing {np.round(up, 4)} mm"
+    assert np.all(down - up < 0.05 * up), "the play is slight"
+    assert peaks[-1] == 0.0 and not state.effective_pressure_kpa.any(), "back at zero pressure the mat is at rest"
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"rest_depth_mm": 0.0}, "rest_depth_mm must be positive"),
+    ({"rest_depth_mm": -2.0}, "rest_depth_mm must be positive"),
+    ({"conductivity_s_per_m": float("nan")}, "conductivity_s_per_m must be finite"),
+    ({"hysteresis": 1.0}, "hysteresis must be in [0, 1)"),
+    ({"slack_mm": -0.1}, "slack_mm must not be negative"),
+    ({"contact_mm": 10.0}, "must be below rest_depth_mm"),
+])
+def test_bad_parameters_are_refused(change, message):
+    with pytest.raises(ModelInputInvalid, match=message.replace("[", r"\[").replace(")", r"\)")):
+        dataclasses.replace(DEFAULT_PARAMETERS, **change)
+
+
+def test_bad_inputs_are_refused():
+    limit = DEFAULT_PARAMETERS.max_pressure_kpa
+    with pytest.raises(ModelInputInvalid, match="beyond the mat model's validity limit"):
+        sheet_conductance(DEFAULT_PARAMETERS, square(limit * 1.5))
+    with pytest.raises(ModelInputInvalid, match="outside the model's range"):
+        sheet_conductance(DEFAULT_PARAMETERS, square(1.0), temperature_c=90.0)
+    with pytest.raises(ModelInputInvalid, match="needs a PressureField"):
+        sheet_conductance(DEFAULT_PARAMETERS, np.zeros((50, 50)))
+    _, _, state = sheet_conductance(DEFAULT_PARAMETERS, square(1.0))
+    with pytest.raises(ModelInputInvalid, match="mat state is for a"):
+        sheet_conductance(DEFAULT_PARAMETERS, PressureField.uniform(100, 100, 4.0), state)
+    with pytest.raises(ModelInputInvalid, match="boolean mask"):
+        sheet_conductance(DEFAULT_PARAMETERS, square(1.0), platen=np.ones((10, 10), bool))
+
+
+@pytest.fixture(scope="module")
+def model():
+    return build_fem_model(get_layout("grid-4x4"))
+
+
+def test_conductance_on_model_samples_the_grid(model):
+    xs, ys = EMPTY.centres_mm()
+    ramp = 0.01 + 1e-4 * xs[None, :] + 2e-4 * ys[:, None]            # linear: bilinear sampling is exact
+    sigma = conductance_on_model(model, ramp, PITCH_MM)
+    x, y = np.clip(model.centroids_mm[:, 0], xs[0], xs[-1]), np.clip(model.centroids_mm[:, 1], ys[0], ys[-1])
+    assert np.allclose(sigma, 0.01 + 1e-4 * x + 2e-4 * y, rtol=1e-12)
+    assert np.allclose(conductance_on_model(model, np.full((50, 50), 0.02), PITCH_MM), 0.02)
+
+
+def test_conductance_on_model_refuses_a_grid_too_small_or_not_positive(model):
+    with pytest.raises(ModelInputInvalid, match="reaches beyond"):
+        conductance_on_model(model, np.ones((20, 20)), PITCH_MM)
+    with pytest.raises(ModelInputInvalid, match="positive"):
+        conductance_on_model(model, np.zeros((50, 50)), PITCH_MM)
