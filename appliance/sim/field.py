@@ -9,6 +9,8 @@ down), as layouts are. Scenes produce fields; the mat's mechanics consume them.
 ((50, 50), (100.0, 100.0))
 >>> field.with_square_load(50, 50, 20, 4.9).peak_kpa
 4.9
+>>> field.with_square_load(50, 50, 20, 4.9).coarsened(5).pressure_kpa.shape
+(10, 10)
 """
 
 from __future__ import annotations
@@ -17,9 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from appliance.core.pressure import KPA_PER_MMHG  # noqa: F401  (scenes speak mmHg too)
 from appliance.errors import ModelInputInvalid
-
-KPA_PER_MMHG = 0.133322
 
 
 @dataclass(frozen=True)
@@ -62,6 +63,14 @@ class PressureField:
     def uniform(cls, width_mm: float, height_mm: float, pitch_mm: float, pressure_kpa: float = 0.0):
         cols, rows = round(width_mm / pitch_mm), round(height_mm / pitch_mm)
         return cls(np.full((rows, cols), float(pressure_kpa)), pitch_mm)
+
+    def coarsened(self, factor: int) -> "PressureField":
+        """Cells merged ``factor`` x ``factor`` (their mean pressure: the force is kept)."""
+        rows, cols = self.pressure_kpa.shape
+        if factor < 1 or rows % factor or cols % factor:
+            raise ModelInputInvalid(f"a {rows} x {cols} field cannot be merged in blocks of {factor}")
+        blocks = self.pressure_kpa.reshape(rows // factor, factor, cols // factor, factor)
+        return PressureField(blocks.mean(axis=(1, 3)), self.pitch_mm * factor)
 
     def with_square_load(self, x_mm: float, y_mm: float, side_mm: float, pressure_kpa: float) -> "PressureField":
         """This field plus a flat square load centred at (x, y); cells count by the share they overlap."""

@@ -1,0 +1,160 @@
+"""Calibration procedures: known weights on known areas to a pressure calibration, and the thesis's
+experimental sensitivity (an object on each pixel in turn, eq. 3.4.1).
+
+A procedure needs two things from its surroundings: ``acquire()``, giving a frame
+(``.volts`` and ``.temperature_c``: a scan engine on the hardware, or the virtual
+bed's front end), and ``place(load)``, putting a load on the mat or taking it off
+(``None``): on the virtual bed a scene with that weight, on the hardware a
+prompt to the operator. So the same procedure runs on both.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from appliance.core.model_cache import ReconstructionModel
+from appliance.core.pressure import (PressureCalibration, fit_pressure_curve, layout_fingerprint,
+                                     temperature_corrected)
+from appliance.errors import ConfigError
+
+KPA_PER_GRAM_PER_CM2 = 0.0980665    # 1 g on 1 cm2 (Table 6.3.1: 100 g on 4 cm2 is 2.45 kPa)
+THESIS_WEIGHTS_G = (200, 400, 600, 800, 1000)
+INSIDE_SHARE = 0.999                # a pixel counts as under a load only if it lies wholly under it
+
+
+@dataclass(frozen=True)
+class Load:
+    """A flat square weight: centre and side in mm, pressure in kPa."""
+
+    x_mm: float
+    y_mm: float
+    side_mm: float
+    pressure_kpa: float
+
+    def pixel_pressure(self, grid) -> np.ndarray:
+        """The load's pressure on each pixel of ``grid`` (rows, cols), by the share of the pixel it covers."""
+        w, h = grid.pixel_mm
+        x = np.arange(grid.cols) * w
+        y = np.arange(grid.rows) * h
+        half = self.side_mm / 2
+        share_x = np.clip(np.minimum(x + w, self.x_mm + half) - np.maximum(x, self.x_mm - half), 0, None) / w
+        share_y = np.clip(np.minimum(y + h, self.y_mm + half) - np.maximum(y, self.y_mm - half), 0, None) / h
+        return self.pressure_kpa * np.outer(share_y, share_x)
+
+
+def thesis_loads(width_mm: float, height_mm: float, areas_cm2=(9.0, 16.0, 25.0), positions: int = 3,
+                 weights_g=THESIS_WEIGHTS_G) -> list[Load]:
+    """Table 6.3.1's weights on square areas, at ``positions`` x ``positions`` places across the mat."""
+    loads = []
+    for area in areas_cm2:
+        side = 10 * np.sqrt(area)
+        xs = np.linspace(side / 2 + 0.1 * width_mm, width_mm - side / 2 - 0.1 * width_mm, positions)
+        ys = np.linspace(side / 2 + 0.1 * height_mm, height_mm - side / 2 - 0.1 * height_mm, positions)
+        for y in ys:
+            for x in xs:
+                for grams in weights_g:
+                    loads.append(Load(float(x), float(y), float(side), grams * KPA_PER_GRAM_PER_CM2 / area))
+    return loads
+
+
+def _mean_frame(acquire, averages: int) -> tuple[np.ndarray, float | None]:
+    frames = [acquire() for _ in range(averages)]
+    volts = np.nanmean(np.array([f.volts for f in frames]), axis=0) if averages > 1 else frames[0].volts
+    temperatures = [f.temperature_c for f in frames if f.temperature_c is not None]
+    return volts, (float(np.mean(temperatures)) if temperatures else None)
+
+
+def pressure_calibration(acquire: Callable, place: Callable, model: ReconstructionModel, loads: list[Load], *,
+                         averages: int = 1, iterate: str = "always",
+                         progress: Callable | None = None) -> PressureCalibration:
+    """Place each load in turn, image it against the empty mat, and fit curve and flat field to what it gave."""
+    if not loads:
+        raise ConfigError("a pressure calibration needs at least one load")
+    setup = model.setup
+    grid = model.reconstructor.grid
+    place(None)
+    reference, reference_temperature = _mean_frame(acquire, averages)
+    reference_temperature = 24.0 if reference_temperature is None else reference_temperature
+    images, truths = [], []
+    try:
+        for k, load in enumerate(loads, start=1):
+            place(load)
+            volts, temperature = _mean_frame(acquire, averages)
+            image, _ = model.reconstruct(temperature_corrected(volts, temperature, reference_temperature),
+                                         reference, iterate=iterate)
+            images.append(image)
+            truths.append(load.pixel_pressure(grid))
+            if progress is not None:
+                progress(k, len(loads), load)
+    finally:
+        place(None)
+    curve, flat = fit_with_flat_field(loads, images, truths, grid)
+    return PressureCalibration(setup.layout.name, layout_fingerprint(setup.layout), setup.options.algorithm,
+                               grid.shape, curve, reference_temperature, flat_field=flat,
+                               notes={"loads": len(loads), "averages": averages, "iterate": iterate})
+
+
+def fit_with_flat_field(loads, images, truths, grid):
+    """A first curve; each load's gain against it, spread over the pixels as the flat field; the final curve.
+
+    Only pixels wholly under a load enter the fit (with the origin): pixels beside
+    a load carry the image's blur, not the mat's response, and would outnumber them.
+    """
+    inside = [truth >= INSIDE_SHARE * load.pressure_kpa for load, truth in zip(loads, truths)]
+
+    def pairs(flat):
+        x = np.concatenate([-(image / flat)[m] for image, m in zip(images, inside)])
+        y = np.concatenate([t[m] for t, m in zip(truths, inside)])
+        return x, y
+
+    ones = np.ones(grid.shape)
+    first = fit_pressure_curve(*pairs(ones))
+    centres, gains = [], []
+    for load, image, mask in zip(loads, images, inside):
+        expected = np.interp(load.pressure_kpa, first.pressure, first.change)
+        observed = -np.nanmedian(image[mask]) if mask.any() else np.nan
+        if expected > 0 and np.isfinite(observed) and observed > 0:
+            centres.append((load.x_mm, load.y_mm))
+            gains.append(observed / expected)
+    if len(gains) < 3:
+        return first, None
+    flat = _spread(np.array(centres), np.array(gains), grid)
+    return fit_pressure_curve(*pairs(flat)), flat
+
+
+def _spread(centres: np.ndarray, gains: np.ndarray, grid) -> np.ndarray:
+    """Gains measured at load centres, spread to every pixel by inverse-distance weighting, mean 1."""
+    points = grid.centres_mm
+    d2 = ((points[:, None, :] - centres[None, :, :]) ** 2).sum(axis=2)
+    weights = 1.0 / (d2 + (0.25 * min(grid.pixel_mm)) ** 2)
+    flat = (weights @ np.log(gains)) / weights.sum(axis=1)
+    flat = np.exp(flat - flat.mean())
+    return flat.reshape(grid.shape)
+
+
+def sensitivity_calibration(acquire: Callable, place: Callable, grid, protocol, side_mm: float,
+                            pressure_kpa: float, *, progress: Callable | None = None) -> list[tuple]:
+    """The thesis's procedure: one object on each imaged pixel in turn, its frame against the empty mat.
+
+    Returns the rows of a calibration file (``core.frames.load_calibration``
+    reads it): (pixel_row, pixel_col, drive_pos, drive_neg, meas_pos, meas_neg, volts).
+    """
+    place(None)
+    rows = []
+    pixels = grid.inside_index
+    try:
+        for k, flat_index in enumerate(pixels, start=1):
+            r, c = divmod(int(flat_index), grid.cols)
+            x, y = np.clip(grid.centres_mm[flat_index], side_mm / 2, [grid.width_mm - side_mm / 2,
+                                                                      grid.height_mm - side_mm / 2])
+            place(Load(float(x), float(y), side_mm, pressure_kpa))
+            volts = acquire().volts
+            rows += [(r, c, *map(int, reading), float(v)) for reading, v in zip(protocol.readings, volts)]
+            if progress is not None:
+                progress(k, len(pixels), (r, c))
+    finally:
+        place(None)
+    return rows

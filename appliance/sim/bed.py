@@ -1,0 +1,114 @@
+"""The virtual bed: a scene on a mat, as the sensor the emulated front end measures.
+
+At any time it gives the transfer impedances of the mat under the scene's
+pressure: scene -> pressure field -> mat mechanics (membrane, liquid, hysteresis,
+temperature) -> sheet conductance on the forward model's elements -> one
+factorisation and one solve per electrode. Only what the scene needs is
+computed: nothing while the scene and the temperature stay as they were (a
+still patient costs no solve at all), and a full re-solve when they change.
+
+A scene lies head to foot along its grid's y; a bed layout lies along x, so the
+field is turned to the layout when their sides are swapped.
+
+>>> from appliance.core.layouts import get_layout
+>>> from appliance.sim.scenes import load_scene
+>>> bed = VirtualBed(get_layout("grid-8x16"), load_scene("supine-still"), density=0.5)
+>>> z0 = bed.transfer_ohm(600.0); z1 = bed.transfer_ohm(660.0)   # lying still: one solve serves both
+>>> bed.solves, bed.reuses, z0.shape
+(1, 1, (128, 128))
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from appliance.core.fem import build_fem_model
+from appliance.core.forward import solve_electrodes, with_fill_reducing_order
+from appliance.core.layouts import Layout
+from appliance.errors import ModelInputInvalid
+from appliance.sim.field import PressureField
+from appliance.sim.mechanics import DEFAULT_PARAMETERS, MatParameters, MatState, conductance_on_model, \
+    sheet_conductance
+from appliance.sim.scenes import Scene
+
+
+class VirtualBed:
+    """``scene`` on ``layout``'s mat; ``temperature_c`` is a constant or a function of time (s).
+
+    ``density`` is the forward mesh's and ``mechanics_merge`` merges the scene's cells in
+    blocks before the mechanics: the detail a mat needs (benchmarks/pressure.md).
+    """
+
+    def __init__(self, layout: Layout, scene: Scene, *, params: MatParameters = DEFAULT_PARAMETERS,
+                 density: float = 1.0, temperature_c: float | Callable[[float], float] = 24.0,
+                 mechanics_merge: int = 1):
+        self.layout, self.scene, self.params = layout, scene, params
+        self.mechanics_merge = mechanics_merge
+        self.model = with_fill_reducing_order(build_fem_model(layout, density=density))
+        self.temperature = temperature_c if callable(temperature_c) else (lambda t: float(temperature_c))
+        self._turn = _orientation(scene, layout)
+        self.state: MatState | None = None
+        self._last: tuple[float, float] | None = None       # scene time and temperature of the cached solve
+        self._transfer: np.ndarray | None = None
+        self.solves = 0
+        self.reuses = 0
+
+    @property
+    def n_electrodes(self) -> int:
+        return self.layout.n_electrodes
+
+    def set_scene(self, scene: Scene) -> None:
+        """Put another scene on the mat (a calibration weight, the next patient); the mat keeps its memory."""
+        self._turn = _orientation(scene, self.layout)
+        self.scene = scene
+        self._transfer = None
+
+    def temperature_at(self, now_s: float) -> float:
+        return self.temperature(now_s)
+
+    def field_at(self, now_s: float) -> PressureField:
+        """The scene's pressure at ``now_s`` in the layout's orientation (held after the scene ends)."""
+        field = self.scene.pressure_at(min(max(now_s, 0.0), self.scene.duration_s))
+        return PressureField(field.pressure_kpa.T, field.pitch_mm) if self._turn else field
+
+    def transfer_ohm(self, now_s: float) -> np.ndarray:
+        """Transfer impedances at ``now_s`` (ohm), re-solved only if the scene or temperature changed."""
+        t = min(max(now_s, 0.0), self.scene.duration_s)
+        temperature = self.temperature(now_s)
+        if self._transfer is not None and self._last[1] == temperature and \
+                not self.scene.changes(min(self._last[0], t), max(self._last[0], t)):
+            self.reuses += 1
+            return self._transfer
+        field = self.field_at(t)
+        platen = getattr(self.scene, "platen", None)
+        if platen is not None and self._turn:
+            platen = platen.T
+        if self.mechanics_merge > 1:
+            field = field.coarsened(self.mechanics_merge)
+            platen = None if platen is None else _merged_mask(platen, self.mechanics_merge)
+        conductance, _, self.state = sheet_conductance(self.params, field, self.state, temperature, platen=platen)
+        sigma = conductance_on_model(self.model, conductance, field.pitch_mm)
+        self._transfer = solve_electrodes(self.model, sigma).transfer
+        self._last = (t, temperature)
+        self.solves += 1
+        return self._transfer
+
+
+def _merged_mask(mask: np.ndarray, factor: int) -> np.ndarray:
+    rows, cols = mask.shape
+    return mask.reshape(rows // factor, factor, cols // factor, factor).mean(axis=(1, 3)) >= 0.5
+
+
+def _orientation(scene: Scene, layout: Layout) -> bool:
+    """Whether the scene's field must be transposed to lie on the layout's sheet."""
+    width, height = layout.sheet.size_mm
+    grid = scene.grid
+    pitch = grid.pitch_mm
+    if abs(grid.width_mm - width) <= pitch and abs(grid.height_mm - height) <= pitch:
+        return False
+    if abs(grid.width_mm - height) <= pitch and abs(grid.height_mm - width) <= pitch:
+        return True
+    raise ModelInputInvalid(f"the scene's {grid.width_mm:g} x {grid.height_mm:g} mm mat does not fit layout "
+                            f"{layout.name!r} ({width:g} x {height:g} mm)")

@@ -1,0 +1,45 @@
+"""Test loads on the mat: a scene holding one fixed pressure field, and square weights placed on it.
+
+Calibration puts known weights on known areas (the thesis's Table 6.3.1); on
+the virtual bed a :class:`StaticScene` with a square load plays the weight, on a
+rigid platen as the thesis's weights were.
+
+>>> scene = square_load_scene(100, 100, 50, 50, 30, 4.36)
+>>> round(scene.pressure_at(0.0).peak_kpa, 2), scene.changes(0.0, 10.0)
+(4.36, False)
+"""
+
+from __future__ import annotations
+
+from appliance.sim.body import MatGrid
+from appliance.sim.field import PressureField
+from appliance.sim.scenes import Scene
+
+LOAD_PITCH_MM = 2.0
+STILL_S = 1e9
+
+
+class StaticScene(Scene):
+    """One pressure field that never changes; ``platen`` marks cells under a rigid weight (they sink flat)."""
+
+    def __init__(self, field: PressureField, platen=None):
+        width, height = field.size_mm
+        self.field, self.platen = field, platen
+        self.grid = MatGrid(width, height, field.pitch_mm)
+        self.duration_s = STILL_S
+
+    def pressure_at(self, t_s: float) -> PressureField:
+        return self.field
+
+    def change_box_mm(self, t0_s: float, t1_s: float):
+        return None
+
+
+def square_load_scene(width_mm: float, height_mm: float, x_mm: float, y_mm: float, side_mm: float,
+                      pressure_kpa: float, pitch_mm: float = LOAD_PITCH_MM) -> StaticScene:
+    """A mat ``width_mm`` x ``height_mm`` with one flat square load (0 kPa for the empty mat)."""
+    field = PressureField.uniform(width_mm, height_mm, pitch_mm)
+    if pressure_kpa <= 0:
+        return StaticScene(field)
+    platen = field.with_square_load(x_mm, y_mm, side_mm, 1.0).pressure_kpa >= 0.5
+    return StaticScene(field.with_square_load(x_mm, y_mm, side_mm, pressure_kpa), platen)
