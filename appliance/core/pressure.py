@@ -37,6 +37,7 @@ from scipy.optimize import isotonic_regression
 from appliance.core.layout_files import layout_to_toml
 from appliance.core.layouts import Layout
 from appliance.errors import ConfigError, DataFileInvalid
+from appliance.files import write_atomic
 
 FORMAT = "appliance-pressure-calibration/1"
 KPA_PER_MMHG = 0.133322
@@ -137,7 +138,7 @@ def save_pressure_calibration(path: Path, calibration: PressureCalibration) -> N
             "reference_temperature_c": c.reference_temperature_c,
             "temperature_coefficient_per_c": c.temperature_coefficient_per_c,
             "flat_field": None if c.flat_field is None else c.flat_field.tolist(), "notes": c.notes}
-    Path(path).write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+    write_atomic(Path(path), json.dumps(data, indent=1) + "\n")
 
 
 def load_pressure_calibration(path: Path) -> PressureCalibration:

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from appliance.errors import ModelInputInvalid
+from appliance.files import write_atomic
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 WHITE = (255, 255, 255)
@@ -134,7 +135,7 @@ def write_png(path, values, *, vmin=None, vmax=None, palette="diverging", scale=
     Parameters
     ----------
     path : str or os.PathLike
-        File to write (overwritten).
+        File to write (replaced whole, never left half-written).
     values : array_like, shape (H, W), float
         As for `colourise`; NaN pixels are transparent.
     vmin, vmax : float, optional
@@ -158,4 +159,4 @@ def write_png(path, values, *, vmin=None, vmax=None, palette="diverging", scale=
         high = high if high > low else low + 1.0
     rgba = colourise(v, low if vmin is None else vmin, high if vmax is None else vmax, palette)
     rgba = np.repeat(np.repeat(rgba, int(scale), axis=0), int(scale), axis=1)
-    Path(path).write_bytes(encode_png(rgba))
+    write_atomic(Path(path), encode_png(rgba))

@@ -11,11 +11,11 @@ the old file or the new one, never half of one.
 from __future__ import annotations
 
 import io
-import os
 from pathlib import Path
 
 from appliance.core.frames import frame_to_csv
 from appliance.drivers.scan import AcquiredFrame, flag_names
+from appliance.files import write_atomic
 
 QUALITY_HEADER = ("drive_pos", "drive_neg", "meas_pos", "meas_neg", "measured_volts", "flags", "range",
                   "full_scale_fraction", "time_s")
@@ -44,8 +44,8 @@ def quality_to_csv(frame: AcquiredFrame) -> str:
 
 def write_frame(path: Path, frame: AcquiredFrame) -> None:
     """Write the frame file and its quality file, each atomically."""
-    _atomic_write(Path(path), frame_to_csv(frame.protocol, frame.volts))
-    _atomic_write(quality_path(path), quality_to_csv(frame))
+    write_atomic(Path(path), frame_to_csv(frame.protocol, frame.volts))
+    write_atomic(quality_path(path), quality_to_csv(frame))
 
 
 def series_paths(path: Path, count: int) -> list[Path]:
@@ -54,12 +54,3 @@ def series_paths(path: Path, count: int) -> list[Path]:
     if count == 1:
         return [path]
     return [path.with_name(f"{path.stem}-{k:03d}{path.suffix}") for k in range(1, count + 1)]
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", encoding="utf-8") as handle:
-        handle.write(text)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
