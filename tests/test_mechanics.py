@@ -8,6 +8,7 @@ import pytest
 from appliance.core.fem import build_fem_model
 from appliance.core.layouts import get_layout
 from appliance.errors import ModelInputInvalid
+from appliance.sim import mechanics
 from appliance.sim.field import PressureField
 from appliance.sim.mechanics import (
     DEFAULT_PARAMETERS,
@@ -97,6 +98,30 @@ def test_play_makes_falling_pressure_read_deeper_and_returns_to_rest():
     assert np.all(down > up), f"decreasing {np.round(down, 4)} mm not above increasing {np.round(up, 4)} mm"
     assert np.all(down - up < 0.05 * up), "the play is slight"
     assert peaks[-1] == 0.0 and not state.effective_pressure_kpa.any(), "back at zero pressure the mat is at rest"
+
+
+@pytest.mark.parametrize(("before", "after"), [(False, False), (True, True), (False, True), (True, False)])
+def test_a_warm_start_from_a_deep_press_gives_the_cold_answer(monkeypatch, before, after):
+    """The last deflection only tells Newton where to start, however close to the base it pressed (a start
+    once restarted every cell deeper than half the depth) and through a platen it was not solved with."""
+    steps = []
+    force = mechanics.foundation_force
+    monkeypatch.setattr(mechanics, "foundation_force", lambda *args: (steps.append(1), force(*args))[1])
+    _, w_start, state = sheet_conductance(NO_PLAY, square(30.0, x_mm=49.0), platen=platen_of() if before else None)
+    d0 = NO_PLAY.rest_depth_mm
+    assert d0 - w_start.max() < 1e-3, "the warm start must press the membrane nearly onto the base"
+    field, platen = square(32.0), platen_of() if after else None
+    steps.clear()
+    g_warm, w_warm, warm = sheet_conductance(NO_PLAY, field, state, platen=platen)
+    warm_steps = len(steps)
+    steps.clear()
+    g_cold, w_cold, cold = sheet_conductance(NO_PLAY, field, platen=platen)
+    cold_steps = len(steps)
+    assert np.abs(w_warm - w_cold).max() <= 1e-9 * np.abs(w_cold).max()
+    assert np.abs(g_warm - g_cold).max() <= 1e-9 * g_cold.max()
+    assert abs(warm.liquid_pressure_kpa - cold.liquid_pressure_kpa) <= 1e-9 * abs(cold.liquid_pressure_kpa)
+    if before == after:
+        assert warm_steps < cold_steps, f"a warm start took {warm_steps} Newton steps, a cold one {cold_steps}"
 
 
 @pytest.mark.parametrize(("change", "message"), [

@@ -3,9 +3,16 @@
 At any time it gives the transfer impedances of the mat under the scene's
 pressure: scene -> pressure field -> mat mechanics (membrane, liquid, hysteresis,
 temperature) -> sheet conductance on the forward model's elements -> one
-factorisation and one solve per electrode. Only what the scene needs is
-computed: nothing while the scene and the temperature stay as they were (a
-still patient costs no solve at all), and a full re-solve when they change.
+factorisation whose electrode block gives the transfer impedances
+(:mod:`appliance.sim.transfer`; ``solver="fields"`` solves one field per
+electrode instead, as :func:`~appliance.core.forward.solve_electrodes` does).
+Only what the scene needs is computed: nothing while the scene and the
+temperature stay as they were (a still patient costs no solve at all), and a
+full re-solve when they change. A low-rank or local update does not pay on a
+patient's movements: the liquid's volume is conserved and the membrane is slack
+near rest, so the conductance moves over most of the mat, and a rank-r update
+costs at least r solves through the old factorisation (benchmarks/simulator.md
+measures both, and the detail a bed needs).
 
 A scene lies head to foot along its grid's y; a bed layout lies along x, so the
 field is turned to the layout when their sides are swapped.
@@ -16,37 +23,51 @@ field is turned to the layout when their sides are swapped.
 >>> z0 = bed.transfer_ohm(600.0); z1 = bed.transfer_ohm(660.0)   # lying still: one solve serves both
 >>> bed.solves, bed.reuses, z0.shape
 (1, 1, (128, 128))
+>>> sorted(bed.seconds)                                             # where the solve's time went
+['mechanics', 'scene', 'transfer']
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 
 import numpy as np
 
 from appliance.core.fem import build_fem_model
-from appliance.core.forward import solve_electrodes, with_fill_reducing_order
+from appliance.core.forward import solve_electrodes
 from appliance.core.layouts import Layout
 from appliance.errors import ModelInputInvalid
 from appliance.sim.field import PressureField
 from appliance.sim.mechanics import DEFAULT_PARAMETERS, MatParameters, MatState, conductance_on_model, \
     sheet_conductance
 from appliance.sim.scenes import Scene
+from appliance.sim.transfer import TransferSolver
+
+SOLVERS = ("block", "fields")
 
 
 class VirtualBed:
     """``scene`` on ``layout``'s mat; ``temperature_c`` is a constant or a function of time (s).
 
     ``density`` is the forward mesh's and ``mechanics_merge`` merges the scene's cells in
-    blocks before the mechanics: the detail a mat needs (benchmarks/pressure.md).
+    blocks before the mechanics: the detail a bed needs (benchmarks/simulator.md). ``solver``
+    is ``"block"`` (the transfer alone, from one factorisation) or ``"fields"`` (a field per
+    electrode, the slower path it is checked against). ``solves`` and ``reuses`` count the
+    frames that re-solved and those served from the last solve; ``seconds`` adds up the
+    solves' time by stage.
     """
 
     def __init__(self, layout: Layout, scene: Scene, *, params: MatParameters = DEFAULT_PARAMETERS,
                  density: float = 1.0, temperature_c: float | Callable[[float], float] = 24.0,
-                 mechanics_merge: int = 1):
+                 mechanics_merge: int = 1, solver: str = "block"):
+        if solver not in SOLVERS:
+            raise ModelInputInvalid(f"solver must be one of {', '.join(SOLVERS)}, got {solver!r}")
         self.layout, self.scene, self.params = layout, scene, params
         self.mechanics_merge = mechanics_merge
-        self.model = with_fill_reducing_order(build_fem_model(layout, density=density))
+        self.solver = solver
+        self.model = build_fem_model(layout, density=density)          # numbered in a fill-reducing order
+        self._block = TransferSolver(self.model) if solver == "block" else None
         self.temperature = temperature_c if callable(temperature_c) else (lambda t: float(temperature_c))
         self._turn = _orientation(scene, layout)
         self.state: MatState | None = None
@@ -54,6 +75,7 @@ class VirtualBed:
         self._transfer: np.ndarray | None = None
         self.solves = 0
         self.reuses = 0
+        self.seconds = {"scene": 0.0, "mechanics": 0.0, "transfer": 0.0}
 
     @property
     def n_electrodes(self) -> int:
@@ -81,6 +103,7 @@ class VirtualBed:
                 not self.scene.changes(min(self._last[0], t), max(self._last[0], t)):
             self.reuses += 1
             return self._transfer
+        start = time.perf_counter()
         field = self.field_at(t)
         platen = getattr(self.scene, "platen", None)
         if platen is not None and self._turn:
@@ -88,9 +111,17 @@ class VirtualBed:
         if self.mechanics_merge > 1:
             field = field.coarsened(self.mechanics_merge)
             platen = None if platen is None else _merged_mask(platen, self.mechanics_merge)
+        scene_done = time.perf_counter()
         conductance, _, self.state = sheet_conductance(self.params, field, self.state, temperature, platen=platen)
         sigma = conductance_on_model(self.model, conductance, field.pitch_mm)
-        self._transfer = solve_electrodes(self.model, sigma).transfer
+        mechanics_done = time.perf_counter()
+        if self._block is not None:
+            self._transfer = self._block.transfer(sigma)
+        else:
+            self._transfer = solve_electrodes(self.model, sigma).transfer
+        self.seconds["scene"] += scene_done - start
+        self.seconds["mechanics"] += mechanics_done - scene_done
+        self.seconds["transfer"] += time.perf_counter() - mechanics_done
         self._last = (t, temperature)
         self.solves += 1
         return self._transfer

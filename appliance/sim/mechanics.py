@@ -45,6 +45,7 @@ sparse factorisation per step.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -278,25 +279,43 @@ def solve_deflection(params: MatParameters, pressure_kpa: np.ndarray, pitch_mm: 
 
     Damped Newton on -T lap(w) + f(w) + p_liquid = p with sum(w) = 0, over the
     unknowns of :func:`platen_basis`; a step never takes more than 90 % of the
-    remaining gap to the base, so the depth stays positive.
+    remaining gap to the base, so the depth stays positive. ``start_mm`` (the last
+    deflection) is where Newton starts; it changes the steps taken, not the answer.
     """
     shape = np.shape(pressure_kpa)
     p = np.asarray(pressure_kpa, dtype=float).ravel()
     if not p.any():
         return np.zeros(shape), 0.0
-    basis = platen_basis(shape, platen)
-    stiffness = sp.csr_matrix(basis.T @ (params.tension_n_per_m * membrane_operator(shape, pitch_mm)) @ basis)
-    load, volume = basis.T @ p, np.asarray(basis.sum(axis=0)).ravel()
+    mask = None if platen is None or not np.any(platen) else np.asarray(platen, dtype=bool)
+    system = _bordered_system(shape, float(pitch_mm), params.tension_n_per_m,
+                              None if mask is None else mask.tobytes())
+    basis, stiffness, volume = system.basis, system.stiffness, system.volume
+    load = system.basis_t @ p
     d0 = params.rest_depth_mm
-    start = np.zeros(p.size) if start_mm is None else np.clip(np.ravel(start_mm), -d0, 0.5 * d0)
-    u = spla.spsolve(sp.csc_matrix(basis.T @ basis), basis.T @ start)
+    u = np.zeros(volume.size)
+    if start_mm is not None:
+        # Keep the warm start wherever it is a depth: a converged state's gap to the base is at least
+        # about k c^2 / p_max (the barrier alone would carry the highest pressure there), so the ceiling,
+        # half that gap above the base, never moves a state this model produced. (It used to be d0 / 2,
+        # which restarted every cell deeper than that and left Newton crawling back 90 % of a gap at a time.)
+        ceiling = d0 - 0.5 * params.foundation_kpa_per_mm * params.contact_mm**2 / params.max_pressure_kpa
+        start = np.clip(np.ravel(start_mm), -d0, ceiling)
+        u = system.projector.solve(system.basis_t @ start)
+        deepest = float((basis @ u).max())
+        if not np.isfinite(deepest):
+            u = np.zeros(volume.size)
+        elif deepest > ceiling:             # a platen's plane fitted to cells of another shape: shrink it back
+            u *= ceiling / deepest
     w, liquid = basis @ u, 0.0
     for _ in range(max_steps):
         force, slope = foundation_force(params, w)
-        residual = stiffness @ u + basis.T @ force + liquid * volume - load
-        lu = spla.splu(sp.csc_matrix(stiffness + basis.T @ sp.diags(slope) @ basis))
+        residual = stiffness @ u + system.basis_t @ force + liquid * volume - load
+        matrix = sp.csc_matrix(stiffness + system.basis_t @ sp.diags(slope) @ basis)
+        # Symmetric positive definite, numbered in a fill-reducing order once for the grid: no ordering
+        # and no pivoting left to do.
+        lu = spla.splu(matrix, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
         x1, x2 = lu.solve(-residual), lu.solve(volume)
-        liquid_step = (volume @ x1 + volume @ u) / (volume @ x2)
+        liquid_step = (_dot(volume, x1) + _dot(volume, u)) / _dot(volume, x2)
         step = x1 - liquid_step * x2
         w_step = basis @ step
         deeper = w_step > 0
@@ -307,6 +326,49 @@ def solve_deflection(params: MatParameters, pressure_kpa: np.ndarray, pitch_mm: 
             return w.reshape(shape), float(liquid)
     raise SolverError(f"mat mechanics did not converge in {max_steps} Newton steps (peak pressure "
                       f"{p.max():.4g} kPa, last step {np.abs(w_step).max():.3g} mm)")
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    """a . b without BLAS: a threaded BLAS dot between two factorisations wakes idle threads that then
+    spin against the next factorisation, which cost a loaded two-core machine 25 ms a Newton step."""
+    return float(np.add.reduce(a * b))
+
+
+@dataclass(frozen=True)
+class _BorderedSystem:
+    """What a grid and platen fix for every solve: the basis (its unknowns numbered in a fill-reducing
+    order), its transpose, the membrane's stiffness and each unknown's volume on them, and the
+    factorised basis.T @ basis that projects a deflection onto the unknowns."""
+
+    basis: sp.csr_matrix
+    basis_t: sp.csr_matrix
+    stiffness: sp.csr_matrix
+    volume: np.ndarray
+    projector: spla.SuperLU
+
+
+@functools.lru_cache(maxsize=8)
+def _bordered_system(shape: tuple[int, int], pitch_mm: float, tension_n_per_m: float,
+                     platen_bytes: bytes | None) -> _BorderedSystem:
+    platen = None if platen_bytes is None else np.frombuffer(platen_bytes, dtype=bool).reshape(shape)
+    basis = platen_basis(shape, platen)
+    membrane = tension_n_per_m * membrane_operator(shape, pitch_mm)
+    gram = sp.csr_matrix(basis.T @ basis)
+    # The Newton matrix is stiffness + basis.T @ diag(slope) @ basis, whose pattern is that of
+    # stiffness + gram: order its unknowns once by minimum degree on that pattern.
+    pattern = sp.csc_matrix(basis.T @ membrane @ basis + gram)
+    order = np.argsort(spla.splu(pattern, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                 options={"SymmetricMode": True}).perm_c)
+    basis = sp.csr_matrix(basis[:, order])
+    basis_t = sp.csr_matrix(basis.T)
+    stiffness = sp.csr_matrix(basis_t @ membrane @ basis)
+    volume = np.asarray(basis.sum(axis=0)).ravel()
+    projector = spla.splu(sp.csc_matrix(basis_t @ basis))
+    for matrix in (basis, basis_t, stiffness):
+        for array in (matrix.data, matrix.indices, matrix.indptr):
+            array.flags.writeable = False
+    volume.flags.writeable = False
+    return _BorderedSystem(basis, basis_t, stiffness, volume, projector)
 
 
 def conductance_on_model(model: ForwardModel, conductance_grid: np.ndarray, pitch_mm: float) -> np.ndarray:
