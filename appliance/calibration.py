@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from appliance.core.iterative import affordable_iterate
 from appliance.core.model_cache import ReconstructionModel
 from appliance.core.pressure import (PressureCalibration, fit_pressure_curve, layout_fingerprint,
                                      temperature_corrected)
@@ -60,6 +61,38 @@ def thesis_loads(width_mm: float, height_mm: float, areas_cm2=(9.0, 16.0, 25.0),
     return loads
 
 
+CALIBRATION_PRESSURES_KPA = (2.0, 3.5, 5.0, 7.5, 10.0, 14.0, 20.0)
+SIDES_PER_SPACING = (1.2, 1.6, 2.0)
+
+
+def calibration_loads(layout, positions: int = 2, pressures_kpa=CALIBRATION_PRESSURES_KPA) -> list[Load]:
+    """The default load set: squares of 1.2, 1.6 and 2 electrode spacings (9, 16 and 25 cm2 on the
+    thesis's 25 mm grid, as Table 6.3.1), each at ``positions`` x ``positions`` places and at the
+    centre, each pressed to every pressure of the range a bed sees (2 to 20 kPa).
+
+    The centre is always loaded: the flat field is interpolated between loaded
+    places, and a mat's middle responds least (about 30 % below its corners' on grid-4x4).
+    """
+    width, height = layout.sheet.size_mm
+    rows, cols = layout.grid_shape if layout.is_grid else (4, 4)
+    spacing = min(width / cols, height / rows)
+    edge = 0.1 if layout.is_grid else 0.3          # a round sheet keeps its loads near the middle
+    loads = []
+    for side in (round(f * spacing, 1) for f in SIDES_PER_SPACING):
+        xs = np.linspace(side / 2 + edge * width, width - side / 2 - edge * width, positions) if positions > 1 else []
+        ys = np.linspace(side / 2 + edge * height, height - side / 2 - edge * height, positions) if positions > 1 \
+            else []
+        places = {(float(x), float(y)) for y in ys for x in xs} | {(width / 2, height / 2)}
+        for x, y in sorted(places, key=lambda p: (p[1], p[0])):
+            loads += [Load(x, y, side, float(p)) for p in pressures_kpa]
+    return loads
+
+
+def grams_for(load: Load) -> float:
+    """The weight that presses ``load``'s area to its pressure (what an operator puts down)."""
+    return load.pressure_kpa * (load.side_mm / 10.0) ** 2 / KPA_PER_GRAM_PER_CM2
+
+
 def _mean_frame(acquire, averages: int) -> tuple[np.ndarray, float | None]:
     frames = [acquire() for _ in range(averages)]
     volts = np.nanmean(np.array([f.volts for f in frames]), axis=0) if averages > 1 else frames[0].volts
@@ -68,12 +101,17 @@ def _mean_frame(acquire, averages: int) -> tuple[np.ndarray, float | None]:
 
 
 def pressure_calibration(acquire: Callable, place: Callable, model: ReconstructionModel, loads: list[Load], *,
-                         averages: int = 1, iterate: str = "always",
+                         averages: int = 1, iterate: str | None = None,
                          progress: Callable | None = None) -> PressureCalibration:
-    """Place each load in turn, image it against the empty mat, and fit curve and flat field to what it gave."""
+    """Place each load in turn, image it against the empty mat, and fit curve and flat field to what it gave.
+
+    ``iterate`` (default: what the layout affords, :func:`affordable_iterate`) is stored
+    with the calibration; the monitor images the same way, or the curve would not hold.
+    """
     if not loads:
         raise ConfigError("a pressure calibration needs at least one load")
     setup = model.setup
+    iterate = iterate or affordable_iterate(setup.layout.n_electrodes)
     grid = model.reconstructor.grid
     place(None)
     reference, reference_temperature = _mean_frame(acquire, averages)
@@ -98,31 +136,29 @@ def pressure_calibration(acquire: Callable, place: Callable, model: Reconstructi
 
 
 def fit_with_flat_field(loads, images, truths, grid):
-    """A first curve; each load's gain against it, spread over the pixels as the flat field; the final curve.
+    """A curve from each load's peak change to its pressure; each load's gain against that curve, spread
+    over the pixels as the flat field; the curve again with the flat field taken out.
 
-    Only pixels wholly under a load enter the fit (with the origin): pixels beside
-    a load carry the image's blur, not the mat's response, and would outnumber them.
+    The curve is fitted to peaks because the peak is what is read off a map: a
+    blurred image's peak pixel changes more than the mean under the load, and a
+    curve through all pixels under a load overstates every peak (by about a third
+    on grid-4x4). The peak is taken among pixels wholly under the load.
     """
-    inside = [truth >= INSIDE_SHARE * load.pressure_kpa for load, truth in zip(loads, truths)]
+    footprints = [truth >= INSIDE_SHARE * truth.max() for truth in truths]
+    pressures = np.array([load.pressure_kpa for load in loads])
 
-    def pairs(flat):
-        x = np.concatenate([-(image / flat)[m] for image, m in zip(images, inside)])
-        y = np.concatenate([t[m] for t, m in zip(truths, inside)])
-        return x, y
+    def peaks(flat):
+        return np.array([np.nanmax(-(image / flat)[m]) for image, m in zip(images, footprints)])
 
-    ones = np.ones(grid.shape)
-    first = fit_pressure_curve(*pairs(ones))
-    centres, gains = [], []
-    for load, image, mask in zip(loads, images, inside):
-        expected = np.interp(load.pressure_kpa, first.pressure, first.change)
-        observed = -np.nanmedian(image[mask]) if mask.any() else np.nan
-        if expected > 0 and np.isfinite(observed) and observed > 0:
-            centres.append((load.x_mm, load.y_mm))
-            gains.append(observed / expected)
-    if len(gains) < 3:
+    first = fit_pressure_curve(peaks(np.ones(grid.shape)), pressures)
+    observed = peaks(np.ones(grid.shape))
+    expected = np.interp(pressures, first.pressure, first.change)
+    usable = (expected > 0) & np.isfinite(observed) & (observed > 0)
+    if usable.sum() < 3:
         return first, None
-    flat = _spread(np.array(centres), np.array(gains), grid)
-    return fit_pressure_curve(*pairs(flat)), flat
+    centres = np.array([(load.x_mm, load.y_mm) for load in loads])[usable]
+    flat = _spread(centres, observed[usable] / expected[usable], grid)
+    return fit_pressure_curve(peaks(flat), pressures), flat
 
 
 def _spread(centres: np.ndarray, gains: np.ndarray, grid) -> np.ndarray:

@@ -310,6 +310,10 @@ def _desired_image(grid: PixelGrid, areas: np.ndarray, blur_px: float) -> np.nda
 def _backprojection(linear: LinearModel, j: np.ndarray, usable: np.ndarray, sensitivity):
     """The thesis's eq. 3.4.2 as a matrix on v - v_ref, independent of lambda."""
     ref = linear.reference
+    if sensitivity is not None:
+        # a reading unusable while the calibration object lay on some pixel is unusable for all
+        usable = usable & np.isfinite(sensitivity).all(axis=0)
+        sensitivity = np.nan_to_num(sensitivity)
     floor = 0.05 * np.sqrt(np.mean(ref[usable] ** 2))
     safe = np.where(np.abs(ref) < floor, np.copysign(floor, ref), ref)
     if sensitivity is None:

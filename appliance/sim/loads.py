@@ -11,11 +11,13 @@ rigid platen as the thesis's weights were.
 
 from __future__ import annotations
 
+from appliance.calibration import Load
 from appliance.sim.body import MatGrid
 from appliance.sim.field import PressureField
 from appliance.sim.scenes import Scene
 
 LOAD_PITCH_MM = 2.0
+CELLS_ACROSS = 90               # a bed's scenes use 10 mm cells on its 900 mm side; finer buys nothing there
 STILL_S = 1e9
 
 
@@ -43,3 +45,18 @@ def square_load_scene(width_mm: float, height_mm: float, x_mm: float, y_mm: floa
         return StaticScene(field)
     platen = field.with_square_load(x_mm, y_mm, side_mm, 1.0).pressure_kpa >= 0.5
     return StaticScene(field.with_square_load(x_mm, y_mm, side_mm, pressure_kpa), platen)
+
+
+def placer(bed):
+    """``place(load)`` for the calibration procedures: puts ``load`` (or, for None, nothing) on ``bed``."""
+    width, height = bed.layout.sheet.size_mm
+    pitch = max(LOAD_PITCH_MM, min(width, height) / CELLS_ACROSS)
+
+    def place(load: Load | None) -> None:
+        if load is None:
+            bed.set_scene(square_load_scene(width, height, width / 2, height / 2, 1.0, 0.0, pitch))
+        else:
+            bed.set_scene(square_load_scene(width, height, load.x_mm, load.y_mm, load.side_mm, load.pressure_kpa,
+                                            pitch))
+
+    return place
