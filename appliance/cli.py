@@ -77,14 +77,23 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--calibration", type=Path, help="experimental sensitivity for backprojection (eq. 3.4.1)")
     p.add_argument("--normalise", action="store_true", help="write the thesis's 0-100 display scale (eq. 3.4.3)")
     p.add_argument("--segment", type=Path, help="also write the KTC2023 256 x 256 label image (CSV) here")
+    p.add_argument("--pressure", type=Path, metavar="CAL.json",
+                   help="write the pressure map in kPa with this calibration (from appliance calibrate pressure)")
+    p.add_argument("--temperature-c", type=float, default=None,
+                   help="--pressure: the frame's liquid temperature, corrected to the calibration's "
+                        "(default: no correction)")
     p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
     p.set_defaults(run=_reconstruct)
 
+    from appliance.cli_calibrate import add_parsers as add_calibrate_parsers
     from appliance.cli_frontend import add_parsers as add_frontend_parsers
+    from appliance.cli_run import add_parsers as add_run_parsers
     from appliance.cli_sim import add_parsers as add_sim_parsers
 
     add_frontend_parsers(sub)
     add_sim_parsers(sub)
+    add_run_parsers(sub)
+    add_calibrate_parsers(sub)
     return parser
 
 
@@ -159,6 +168,10 @@ def _reconstruct(args) -> int:
     from appliance.core.regularisation import NoiseModel
     from appliance.errors import ConfigError
 
+    if args.pressure and args.normalise:
+        raise ConfigError("--pressure writes kPa; --normalise would rescale them: use one or the other")
+    if args.temperature_c is not None and not args.pressure:
+        raise ConfigError("--temperature-c corrects to the pressure calibration's temperature; add --pressure")
     layout = get_layout(args.layout)
     frames = []
     for path in (args.reference, args.frame):
@@ -183,6 +196,16 @@ def _reconstruct(args) -> int:
     pixels = tuple(int(v) for v in _floats(args.pixels.replace("x", ","), 2, "--pixels")) if args.pixels \
         else setup.pixels
     setup = ModelSetup(layout, reference.protocol, options, args.density, pixels, setup.contact_impedance_ohm_m2)
+    pressure = None
+    volts = frame.volts
+    if args.pressure:
+        from appliance.cli_calibrate import pressure_calibration_for
+        from appliance.core.pressure import temperature_corrected
+
+        pressure = pressure_calibration_for(args.pressure, layout, options.algorithm, pixels)
+        iterate = args.iterate or pressure.notes.get("iterate", iterate)      # as the calibration's images were
+        volts = temperature_corrected(volts, args.temperature_c, pressure.reference_temperature_c,
+                                      pressure.temperature_coefficient_per_c)
     start = time.perf_counter()
     model, loaded = cached_model(setup, args.cache_dir or default_cache_dir(),
                                  lambda step, share: print(f"building the model: {step} ({share:.0%})",
@@ -192,9 +215,15 @@ def _reconstruct(args) -> int:
         r = model.reconstructor
         sensitivity = load_calibration(args.calibration, reference.protocol, r.grid, reference.volts)
         model.reconstructor = build_reconstructor(r.linear, r.options, r.usable, sensitivity=sensitivity)
-    image, info = model.reconstruct(frame.volts, reference.volts, iterate=iterate)
+    image, info = model.reconstruct(volts, reference.volts, iterate=iterate)
     done = time.perf_counter()
-    _write_image(args.out, image, args.normalise)
+    if pressure is None:
+        _write_image(args.out, image, args.normalise)
+    else:
+        from appliance.cli_calibrate import write_pressure_map
+
+        pressure_kpa = pressure.pressure_kpa(image)
+        write_pressure_map(args.out, pressure_kpa)
     if args.segment:
         labels = ktc.segment(image)
         args.segment.write_text("\n".join(",".join(str(v) for v in row) for row in labels) + "\n")
@@ -202,6 +231,10 @@ def _reconstruct(args) -> int:
           f"{'loaded' if loaded else 'built'} in {(built - start) * 1e3:.0f} ms; {info['usable_readings']} of "
           f"{len(reference.protocol)} readings used, {info['iterations']} iterations, reconstructed in "
           f"{(done - built) * 1e3:.0f} ms", file=sys.stderr)
+    if pressure is not None:
+        from appliance.cli_calibrate import report_pressure
+
+        report_pressure(pressure_kpa, model.reconstructor.grid)
     return 0
 
 

@@ -1,0 +1,77 @@
+"""The appliance's embedded default: the virtual bed as its front end, calibrated as a factory would.
+
+With no hardware, the monitor measures a simulated patient (a scene) on a
+simulated mat through the simulated analogue chain. Before the patient is put
+on, the empty mat gives the reference frame and, the first time, a pressure
+calibration: the same procedure with the same loads as on a real mat, kept in
+the data directory under the layout's and reconstruction's name.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+from appliance.calibration import calibration_loads, pressure_calibration
+from appliance.core.layouts import Layout
+from appliance.core.model_cache import ReconstructionModel
+from appliance.core.pressure import PressureCalibration, load_pressure_calibration, save_pressure_calibration
+from appliance.errors import ConfigError
+from appliance.sim.bed import VirtualBed
+from appliance.sim.frontend import VirtualFrontEnd
+from appliance.sim.loads import placer
+from appliance.sim.scenes import Scene
+
+
+def default_data_dir() -> Path:
+    """``$APPLIANCE_DATA_DIR``, else ``$XDG_DATA_HOME/appliance``, else ``~/.local/share/appliance``."""
+    if os.environ.get("APPLIANCE_DATA_DIR"):
+        return Path(os.environ["APPLIANCE_DATA_DIR"])
+    base = os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share"
+    return Path(base) / "appliance"
+
+
+class VirtualBedSource:
+    """``scene`` on ``layout``'s simulated mat, read every ``frame_interval_s`` of scene time."""
+
+    def __init__(self, layout: Layout, scene: Scene, protocol, *, seed: int = 0, frame_interval_s: float = 1.0,
+                 **bed_options):
+        self.scene = scene
+        self.bed = VirtualBed(layout, scene, **bed_options)
+        self.front_end = VirtualFrontEnd(self.bed, protocol, seed=seed, frame_interval_s=frame_interval_s)
+        self.place = placer(self.bed)
+
+    def acquire(self):
+        return self.front_end.acquire()
+
+    def empty_reference(self):
+        """A frame of the empty mat; the patient's scene then starts from its beginning."""
+        self.place(None)
+        frame = self.front_end.acquire()
+        self.start_scene()
+        return frame
+
+    def start_scene(self) -> None:
+        self.bed.set_scene(self.scene)
+        self.front_end.time_s = 0.0
+
+    def calibration(self, model: ReconstructionModel, path: Path, *, progress: Callable | None = None) -> tuple[PressureCalibration, bool]:
+        """The calibration at ``path`` if it fits ``model``; else one made now on the empty mat and saved.
+
+        Returns it and whether it was made now.
+        """
+        setup = model.setup
+        if path.exists():
+            calibration = load_pressure_calibration(path)
+            try:
+                calibration.check_fits(setup.layout, setup.options.algorithm, model.reconstructor.grid.shape)
+                return calibration, False
+            except ConfigError:
+                pass                    # the virtual mat's own file, for a mat since changed: make it again
+        calibration = pressure_calibration(self.acquire, self.place, model, calibration_loads(setup.layout),
+                                           progress=progress)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_pressure_calibration(path, calibration)
+        self.start_scene()
+        return calibration, True

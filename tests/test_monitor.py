@@ -1,0 +1,138 @@
+"""The monitor: frames to pressure maps on the virtual bed, faults survived, foreign calibrations refused."""
+
+import time
+
+import numpy as np
+import pytest
+
+from appliance.calibration import Load, calibration_loads, pressure_calibration
+from appliance.cli import main
+from appliance.core.layouts import get_layout
+from appliance.core.model_cache import ModelSetup, cached_model
+from appliance.core.pressure import load_pressure_calibration, save_pressure_calibration
+from appliance.core.protocols import default_protocol
+from appliance.errors import ConfigError, TransferFailed
+from appliance.service.monitor import Monitor
+from appliance.service.virtual_bed import VirtualBedSource
+from appliance.sim.loads import square_load_scene
+from appliance.sim.scenes import load_scene
+
+GRID = get_layout("grid-4x4")
+BED = get_layout("grid-8x16")
+
+
+@pytest.fixture(scope="module")
+def small_mat(tmp_path_factory):
+    """grid-4x4 with a 40 mm weight of 12 kPa on it, calibrated with a reduced load set."""
+    protocol = default_protocol(GRID)
+    model, _ = cached_model(ModelSetup(GRID, protocol), tmp_path_factory.mktemp("models"))
+    source = VirtualBedSource(GRID, square_load_scene(100, 100, 30, 70, 40, 12.0), protocol, seed=4)
+    calibration = pressure_calibration(source.acquire, source.place, model,
+                                       calibration_loads(GRID, pressures_kpa=(2, 5, 10, 20)))
+    source.start_scene()
+    return model, source, calibration
+
+
+def test_the_monitor_maps_a_weight_where_it_lies(small_mat):
+    model, source, calibration = small_mat
+    monitor = Monitor(source.acquire, model, calibration)
+    monitor.take_reference(source.empty_reference())
+    maps = []
+    assert monitor.run(maps.append, frames=2) == 2
+    region = maps[-1].regions[0]
+    assert np.hypot(region.x_mm - 30, region.y_mm - 70) < 6
+    assert 8.0 < maps[-1].peak_kpa < 16.0
+    assert maps[1].time_s - maps[0].time_s == pytest.approx(1.0)
+    assert maps[-1].usable_readings > 0.9 * len(default_protocol(GRID))
+
+
+def test_a_bus_fault_is_reported_and_the_next_frame_is_mapped(small_mat):
+    model, source, calibration = small_mat
+    failures = iter([TransferFailed("I2C NACK from 0x48"), None, None])
+
+    def flaky_acquire():
+        fault = next(failures)
+        if fault is not None:
+            raise fault
+        return source.acquire()
+
+    monitor = Monitor(flaky_acquire, model, calibration)
+    monitor.take_reference(source.empty_reference())
+    faults, maps = [], []
+    assert monitor.run(maps.append, frames=1, on_fault=faults.append) == 1
+    assert len(faults) == 1 and "NACK" in faults[0].message and faults[0].consecutive == 1
+    assert maps[0].regions
+
+
+def test_a_calibration_for_another_mat_is_never_loaded(small_mat, tmp_path):
+    model, source, calibration = small_mat
+    bigger = get_layout("grid-4x4@120x120")
+    with pytest.raises(ConfigError, match="made for layout 'grid-4x4'"):
+        Monitor(source.acquire, cached_model(ModelSetup(bigger, default_protocol(bigger)), tmp_path)[0],
+                calibration)
+
+
+def test_the_monitor_needs_a_reference_first(small_mat):
+    model, source, calibration = small_mat
+    with pytest.raises(ConfigError, match="no reference frame"):
+        Monitor(source.acquire, model, calibration).next_map()
+
+
+@pytest.fixture(scope="module")
+def bed_run(tmp_path_factory):
+    """``appliance run`` on the virtual bed for three maps, from a fresh data directory."""
+    data = tmp_path_factory.mktemp("data")
+    cache = tmp_path_factory.mktemp("cache")
+    return data, cache
+
+
+def test_run_starts_on_the_virtual_bed_calibrates_once_and_maps_the_patient(bed_run, capsys):
+    data, cache = bed_run
+    args = ["run", "--frames", "3", "--interval", "60", "--speed", "0", "--scenario", "supine-still",
+            "--data-dir", str(data),
+            "--cache-dir", str(cache)]
+    assert main(args) == 0
+    out, err = capsys.readouterr()
+    assert "virtual bed (grid-8x16" in err and "made and saved" in err
+    lines = out.strip().splitlines()
+    assert len(lines) == 3 and all("region(s) >= 32 mmHg" in line for line in lines)
+    assert (data / "live.png").stat().st_size > 0
+    live = np.genfromtxt(data / "live.csv", delimiter=",")
+    assert live.shape == (16, 34) and np.nanmax(live) > 4.3          # a supine patient loads the sacrum
+    assert main(args) == 0                                               # the second start reuses it
+    assert "loaded from" in capsys.readouterr().err
+
+
+def test_run_refuses_a_calibration_made_for_another_layout(bed_run, tmp_path, capsys, small_mat):
+    data, cache = bed_run
+    _, _, calibration = small_mat
+    foreign = tmp_path / "grid-4x4.json"
+    save_pressure_calibration(foreign, calibration)
+    code = main(["run", "--frames", "1", "--speed", "0", "--scenario", "supine-still", "--data-dir", str(data),
+                 "--cache-dir", str(cache), "--calibration", str(foreign)])
+    assert code != 0
+    assert "made for layout 'grid-4x4', not for 'grid-8x16'" in capsys.readouterr().err
+    assert load_pressure_calibration(foreign).layout_name == "grid-4x4"  # the file is left as it was
+
+
+def test_a_whole_body_frame_on_the_bed_takes_under_a_second(bed_run):
+    """Sensor mechanics, forward model, analogue chain, reconstruction and pressure map, a moving patient."""
+    data, cache = bed_run
+    protocol = default_protocol(BED)
+    model, _ = cached_model(ModelSetup(BED, protocol), cache)
+    calibration = load_pressure_calibration(data / f"pressure-grid-8x16-{model.setup.options.algorithm}.json")
+    scene = load_scene("restless")
+    source = VirtualBedSource(BED, scene, protocol, seed=1, frame_interval_s=0.5)
+    monitor = Monitor(source.acquire, model, calibration)
+    monitor.take_reference(source.empty_reference())
+    moving = [t for t in np.arange(0.0, scene.duration_s - 0.5, 0.5) if scene.changes(t, t + 0.5)][:5]
+    assert len(moving) == 5
+    times = []
+    for t in moving:
+        source.front_end.time_s = t
+        solves = source.bed.solves
+        start = time.perf_counter()
+        monitor.next_map()
+        times.append(time.perf_counter() - start)
+        assert source.bed.solves == solves + 1                           # the patient moved: a full re-solve
+    assert np.median(times) < 1.0
