@@ -23,6 +23,15 @@ def test_the_curve_is_monotone_through_zero_and_recovers_a_smooth_law(rng):
     assert np.max(np.abs(error)) < 0.8, np.max(np.abs(error))
 
 
+def test_pressures_the_data_cannot_tell_apart_are_interpolated_not_stepped():
+    # three loads whose peak changes bunch together (a bottomed-out mat): their pressures pool
+    # into one value at the block's mean change, and pixels below it rise to it gradually
+    curve = fit_pressure_curve(np.array([1.0, 2.0, 2.9, 3.0, 3.1]), np.array([1.0, 2.0, 20.0, 3.0, 10.0]))
+    assert curve.pressure_kpa(np.array([-2.5]))[0] == pytest.approx(6.5)
+    assert curve.pressure_kpa(np.array([-3.0]))[0] == pytest.approx(11.0)
+    assert np.all(np.diff(curve.change) > 0) and np.all(np.diff(curve.pressure) >= 0)
+
+
 def test_rises_in_conductivity_and_nan_read_as_nothing_and_nan():
     curve = fit_pressure_curve(np.array([0, 0.1, 0.2]), np.array([0, 5.0, 10.0]))
     out = curve.pressure_kpa(np.array([0.3, 0.0, np.nan, -0.3]))

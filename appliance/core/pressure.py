@@ -70,8 +70,11 @@ def fit_pressure_curve(change: np.ndarray, pressure_kpa: np.ndarray, weights: np
 
     ``change`` is the size of the change (-image, positive when pressed) at pixels
     whose true pressure is ``pressure_kpa``; pixels with both near zero anchor the
-    curve at the origin. Isotonic regression, then thinned to ``knots`` points at
-    quantiles of the change.
+    curve at the origin. Centred isotonic regression: the isotonic fit's constant
+    blocks, each put at the mean change of its pixels and joined by straight lines,
+    so that pressures the data cannot tell apart are interpolated, not stepped (a
+    step would read every pixel near it as the block's top); then thinned to
+    ``knots`` points at quantiles of the change.
     """
     change, pressure_kpa = np.ravel(change).astype(float), np.ravel(pressure_kpa).astype(float)
     keep = np.isfinite(change) & np.isfinite(pressure_kpa)
@@ -80,10 +83,21 @@ def fit_pressure_curve(change: np.ndarray, pressure_kpa: np.ndarray, weights: np
     order = np.argsort(change[keep])
     x = np.r_[0.0, change[keep][order]]
     w = np.r_[10.0 * keep.sum(), (np.ones(keep.sum()) if weights is None else np.ravel(weights)[keep][order])]
-    y = isotonic_regression(np.r_[0.0, pressure_kpa[keep][order]], weights=w, increasing=True).x
-    grid = np.unique(np.quantile(x[x > 0], np.linspace(0, 1, knots))) if (x > 0).any() else np.array([1.0])
-    values = np.interp(grid, x, y)
-    return PressureCurve(np.r_[0.0, grid], np.maximum.accumulate(np.r_[0.0, values]))
+    fit = isotonic_regression(np.r_[0.0, pressure_kpa[keep][order]], weights=w, increasing=True)
+    starts = fit.blocks[:-1]
+    centres = np.add.reduceat(w * x, starts) / np.add.reduceat(w, starts)
+    values = fit.x[starts]
+    centres, first = np.unique(centres, return_index=True)
+    values = values[first]
+    if centres[0] > 0:
+        centres, values = np.r_[0.0, centres], np.r_[0.0, values]
+    if len(centres) > knots:
+        grid = np.unique(np.r_[0.0, np.quantile(centres[1:], np.linspace(0, 1, knots - 1))])
+        centres, values = grid, np.interp(grid, centres, values)
+    if len(centres) < 2:
+        centres, values = np.array([0.0, max(x.max(), 1e-6)]), np.array([0.0, max(values.max(), 0.0)])
+    values[0] = 0.0
+    return PressureCurve(centres, np.maximum.accumulate(values))
 
 
 def layout_fingerprint(layout: Layout) -> str:
