@@ -33,9 +33,9 @@ def _load_test(args) -> int:
     except ValueError:
         raise ModelInputInvalid(f"--pressures takes numbers (kPa) separated by commas, got "
                                 f"{args.pressures!r}") from None
+    drift = THESIS_DRIFT_C_PER_STEP if args.drift_c_per_step is None else args.drift_c_per_step
     rows = load_test(args.area_cm2, pressures, layout=args.layout, density=args.density,
-                     temperature_c=args.temperature_c,
-                     drift_c_per_step=THESIS_DRIFT_C_PER_STEP if args.drift_c_per_step is None else args.drift_c_per_step)
+                     temperature_c=args.temperature_c, drift_c_per_step=drift)
     lines = ["pressure_kpa,visibility,dv_over_v,deformation_mm"]
     lines += [f"{r.pressure_kpa:g},{r.visibility:.6g},{r.dv_over_v:.6g},{r.deformation_mm:.6g}" for r in rows]
     sys.stdout.write("\n".join(lines) + "\n")

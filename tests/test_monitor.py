@@ -5,7 +5,7 @@ import time
 import numpy as np
 import pytest
 
-from appliance.calibration import Load, calibration_loads, pressure_calibration
+from appliance.calibration import calibration_loads, pressure_calibration
 from appliance.cli import main
 from appliance.core.layouts import get_layout
 from appliance.core.model_cache import ModelSetup, cached_model

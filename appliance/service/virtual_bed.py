@@ -56,7 +56,8 @@ class VirtualBedSource:
         self.bed.set_scene(self.scene)
         self.front_end.time_s = 0.0
 
-    def calibration(self, model: ReconstructionModel, path: Path, *, progress: Callable | None = None) -> tuple[PressureCalibration, bool]:
+    def calibration(self, model: ReconstructionModel, path: Path, *,
+                    progress: Callable | None = None) -> tuple[PressureCalibration, bool]:
         """The calibration at ``path`` if it fits ``model``; else one made now on the empty mat and saved.
 
         Returns it and whether it was made now.

@@ -13,7 +13,8 @@ around it. On the pressure field's grid (deflection w in mm, positive down):
 * f(w): the foundation (base, walls and the rubber's own thickness, lumped as a
   Winkler bed of stiffness k) with an initial slack s, f = k (w - s tanh(w / s)),
   which makes the first millimetre or so easy, as every thesis table shows (its
-  first weight sinks the load further than the next), plus a contact barrier k c^2 (1 / (d0 - w) - 1 / d0 - w / d0^2) for w > 0
+  first weight sinks the load further than the next), plus a contact barrier
+  k c^2 (1 / (d0 - w) - 1 / d0 - w / d0^2) for w > 0
   that stiffens it without bound as the membrane nears the base: the deflection
   saturates below the rest depth d0 and the depth stays positive.
 * p_liquid: the liquid's pressure rise, one value for the whole cell (Pascal's
