@@ -49,3 +49,36 @@ def test_chapter5_sweep_and_literal_check_on_phantom_c(chapter5, monkeypatch):
 def test_chapter5_sensitivity_map_peaks_at_the_centre_for_c(chapter5):
     values = chapter5.sensitivity_map(chapter5.Phantom("C", "network"), n=5)
     assert values.shape == (5, 5) and values[2, 2] == np.nanmax(values)
+
+
+def test_pressure_benchmark_helpers_and_a_small_backprojection_run(monkeypatch):
+    pressure = load("pressure")
+    from appliance.core.layouts import get_layout
+    from appliance.core.pixels import pixel_grid
+    from appliance.core.pressure_map import loaded_regions
+    from appliance.sim.field import PressureField
+
+    grid = pixel_grid(get_layout("grid-4x4"))
+    field = PressureField.uniform(100, 100, 10.0).with_square_load(30, 60, 20, 8.0)
+    averaged = pressure.pixel_average(field, grid)
+    w, h = grid.pixel_mm
+    assert averaged.sum() * w * h == pytest.approx(8.0 * 400)       # the force is kept
+    regions = loaded_regions(averaged, grid)
+    assert pressure.match_regions(regions, regions) == [0.0]
+    assert pressure.match_regions(regions, []) == [float("inf")]
+    loads = pressure.calibration_loads
+    monkeypatch.setattr(pressure, "calibration_loads", lambda layout: loads(layout)[::7])
+    results, notes, _ = pressure.single_load_part(1, ("backprojection",), lambda message: None)
+    assert not notes
+    rows = results["backprojection"]["rows"]
+    assert [r["area"] for r in rows] == list(pressure.AREAS_CM2)
+    assert all(np.isfinite(r["peak"]) and r["rmse"] >= 0 and r["seconds"] > 0 for r in rows)
+    assert results["backprojection"]["iterate"] == "never" and pressure.iterate_for("greit") is None
+    for r in rows:
+        r["force"] = 1.0
+    blur, lumps = pressure.blur_notes(results)
+    assert blur.startswith("* backprojection") and lumps
+    assert pressure.lumpy(6.2, 25) and pressure.lumpy(13.5, 16) and not pressure.lumpy(24.2, 4)
+    from appliance.core.pressure import PressureCurve
+    note = pressure.curve_note("greit", PressureCurve(np.array([0.0, 0.1, 0.2, 0.22]), np.array([0.0, 2.0, 5.0, 20.0])))
+    assert "0.2 -> 5.0" in note and "1.10 times the change" in note
