@@ -23,6 +23,10 @@ class ProtocolInvalid(ConfigError, ValueError):
     """A measurement protocol names unknown electrodes or uses one electrode twice in a pair."""
 
 
+class CurveInvalid(ConfigError, ValueError):
+    """A tolerance curve is unknown or its points are not positive and monotone; the message names the point."""
+
+
 class DataFileInvalid(ApplianceError, ValueError):
     """A data file (protocol, frame, calibration) cannot be parsed; the message names file and row."""
 
@@ -77,3 +81,19 @@ class ChipReadbackMismatch(ChipError, ValueError):
 
 class ScanError(ApplianceError, RuntimeError):
     """A whole frame could not be acquired (the excitation failed, or no reading was usable)."""
+
+
+class StoreError(ApplianceError):
+    """The store cannot be opened or used; the message names the file."""
+
+
+class StoreCorrupt(StoreError, ValueError):
+    """The file is not an SQLite database (or is damaged); it is left as found so it can be examined."""
+
+
+class SchemaTooNew(StoreError, RuntimeError):
+    """The file was written by a newer appliance; migrating it down could lose data, so it is refused."""
+
+
+class StoreClosed(StoreError, RuntimeError):
+    """A write or query reached a store after ``close()``: it would silently be lost."""

@@ -1,0 +1,1 @@
+"""Pressure-sore alerts: regions, pressure-time dose, turn clock, alarm engine."""
