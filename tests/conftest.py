@@ -96,3 +96,25 @@ def emulated():
     yield make
     for board in opened:
         board.close()
+
+
+@pytest.fixture(scope="session")
+def model_cache(tmp_path_factory):
+    """One model cache for the session's tests, so each bed-size model is built once."""
+    return tmp_path_factory.mktemp("model-cache")
+
+
+@pytest.fixture(scope="session")
+def bed_monitoring(model_cache, tmp_path_factory):
+    """grid-8x16's reconstruction model and the virtual mat's factory calibration: (model, calibration)."""
+    from appliance.core.model_cache import ModelSetup, cached_model
+    from appliance.core.protocols import default_protocol
+    from appliance.service.virtual_bed import VirtualBedSource
+    from appliance.sim.scenes import load_scene
+
+    layout = get_layout("grid-8x16")
+    protocol = default_protocol(layout)
+    model, _ = cached_model(ModelSetup(layout, protocol), model_cache)
+    source = VirtualBedSource(layout, load_scene("supine-still"), protocol)
+    calibration, _ = source.calibration(model, tmp_path_factory.mktemp("data") / "pressure.json")
+    return model, calibration

@@ -79,11 +79,9 @@ def test_the_monitor_needs_a_reference_first(small_mat):
 
 
 @pytest.fixture(scope="module")
-def bed_run(tmp_path_factory):
-    """``appliance run`` on the virtual bed for three maps, from a fresh data directory."""
-    data = tmp_path_factory.mktemp("data")
-    cache = tmp_path_factory.mktemp("cache")
-    return data, cache
+def bed_run(tmp_path_factory, model_cache):
+    """A fresh data directory for ``appliance run``, and the session's model cache."""
+    return tmp_path_factory.mktemp("data"), model_cache
 
 
 def test_run_starts_on_the_virtual_bed_calibrates_once_and_maps_the_patient(bed_run, capsys):
@@ -115,12 +113,10 @@ def test_run_refuses_a_calibration_made_for_another_layout(bed_run, tmp_path, ca
     assert load_pressure_calibration(foreign).layout_name == "grid-4x4"  # the file is left as it was
 
 
-def test_a_whole_body_frame_on_the_bed_takes_under_a_second(bed_run):
+def test_a_whole_body_frame_on_the_bed_takes_under_a_second(bed_monitoring):
     """Sensor mechanics, forward model, analogue chain, reconstruction and pressure map, a moving patient."""
-    data, cache = bed_run
+    model, calibration = bed_monitoring
     protocol = default_protocol(BED)
-    model, _ = cached_model(ModelSetup(BED, protocol), cache)
-    calibration = load_pressure_calibration(data / f"pressure-grid-8x16-{model.setup.options.algorithm}.json")
     scene = load_scene("restless")
     source = VirtualBedSource(BED, scene, protocol, seed=1, frame_interval_s=0.5)
     monitor = Monitor(source.acquire, model, calibration)

@@ -1,0 +1,108 @@
+"""From pressure maps to alarms: regions, dose, turn clock and the alarm engine, frame by frame.
+
+Each frame: the regions at or above the threshold are tracked; every pixel's
+pressure-time dose is accumulated against the tolerance curve; the turn clock
+looks for repositioning. A region whose tissue has used its tolerance
+(dose >= 1 on any of its pixels) is a clinical alarm condition, keyed by its zone
+and identity, so the nurse is told which site; an overdue turn is a reminder.
+Technical conditions (no data, electrode fault, saturation, bus error) come
+from the caller and stay apart. The engine turns conditions into alarm events.
+
+Priorities follow the appliance's IEC 60601-1-8 mapping (clinical-anchors.md,
+section 3.1): tissue damage from sustained pressure is delayed-onset and may be
+irreversible, so MEDIUM, escalated to the ward station when unacknowledged; the
+turn reminder is LOW; equipment faults that stop monitoring are MEDIUM.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from appliance.alerts.alarms import AlarmCondition, AlarmEngine, AlarmEvent, Escalation
+from appliance.alerts.dose import DoseMap, tolerance_curve
+from appliance.alerts.regions import RegionTracker
+from appliance.alerts.turns import DEFAULT_INTERVAL_S, TurnClock, TurnEvent
+from appliance.core.pixels import PixelGrid
+from appliance.core.pressure_map import HIGH_PRESSURE_KPA, PressureMap
+
+ESCALATE_AFTER_S = 15 * 60.0
+
+
+@dataclass(frozen=True)
+class AlertSettings:
+    """What a ward configures: threshold, tolerance curve, dose at which to alarm, turn interval."""
+
+    threshold_kpa: float = HIGH_PRESSURE_KPA
+    curve: str = "reswick-rogers"
+    alarm_dose: float = 1.0
+    turn_interval_s: float = DEFAULT_INTERVAL_S
+    escalate_after_s: float = ESCALATE_AFTER_S
+    escalation_channel: str = "ward-station"
+
+
+@dataclass(frozen=True)
+class FrameAlerts:
+    """What one frame brought: alarm and turn events, and each tracked region's dose."""
+
+    alarm_events: list[AlarmEvent]
+    turn_events: list[TurnEvent]
+    region_doses: dict[int, float] = field(default_factory=dict)
+
+
+class AlertPipeline:
+    """Regions, dose, turns and alarms for one mat's pixel grid."""
+
+    def __init__(self, grid: PixelGrid, settings: AlertSettings = AlertSettings()):
+        self.grid, self.settings = grid, settings
+        self.curve = tolerance_curve(settings.curve, floor_kpa=settings.threshold_kpa)
+        self.regions = RegionTracker(grid, threshold_kpa=settings.threshold_kpa)
+        self.dose = DoseMap(grid.shape, self.curve)
+        self.turns = TurnClock(interval_s=settings.turn_interval_s, at_risk_kpa=settings.threshold_kpa)
+        self.engine = AlarmEngine()
+        self.last_time_s: float | None = None
+
+    def update(self, pressure_map: PressureMap, technical: dict[str, str] | None = None) -> FrameAlerts:
+        """One frame; ``technical`` maps a technical condition's key (``"technical:electrode:5"``) to its
+        message while it holds."""
+        now = pressure_map.time_s
+        if self.last_time_s is not None and now > self.last_time_s:
+            self.dose.update(pressure_map.pressure_kpa, now - self.last_time_s)
+        self.last_time_s = now
+        tracked = self.regions.update(pressure_map)
+        doses = {r.id: self.dose.fraction(r.mask) for r in tracked}
+        turn_events = self.turns.update(pressure_map)
+        active = {}
+        for region in tracked:
+            if doses[region.id] >= self.settings.alarm_dose:
+                condition = self._pressure_condition(region)
+                active[condition.key] = (condition, f"{doses[region.id]:.2f} of the tolerance used")
+        due = self.turns.due_in_s(now)
+        if due is not None and due <= 0:
+            condition = AlarmCondition("turn:due", "clinical", "low", False, "repositioning is due")
+            active[condition.key] = (condition, f"{-due / 60:.0f} min overdue")
+        for key, message in (technical or {}).items():
+            active[key] = (AlarmCondition(key, "technical", "medium", False, message), None)
+        return FrameAlerts(self.engine.assess(now, active), turn_events, doses)
+
+    def _pressure_condition(self, region) -> AlarmCondition:
+        site = region.zone or "region"
+        s = self.settings
+        return AlarmCondition(f"pressure:{site}:{region.id}", "clinical", "medium", False,
+                              f"sustained pressure at the {site}: reposition the patient",
+                              (Escalation(s.escalate_after_s, s.escalation_channel),))
+
+    def state(self) -> dict:
+        """Everything needed to carry on after a restart, as plain JSON types."""
+        return {"regions": self.regions.state(), "dose": self.dose.state(), "turns": self.turns.state(),
+                "alarms": self.engine.state(), "last_time_s": self.last_time_s}
+
+    @classmethod
+    def from_state(cls, grid: PixelGrid, state: dict, settings: AlertSettings = AlertSettings()) -> "AlertPipeline":
+        pipeline = cls(grid, settings)
+        pipeline.regions = RegionTracker.from_state(grid, state["regions"], threshold_kpa=settings.threshold_kpa)
+        pipeline.dose = DoseMap.from_state(state["dose"], pipeline.curve)
+        pipeline.turns = TurnClock.from_state(state["turns"], interval_s=settings.turn_interval_s,
+                                              at_risk_kpa=settings.threshold_kpa)
+        pipeline.engine = AlarmEngine.from_state(state["alarms"])
+        pipeline.last_time_s = state["last_time_s"]
+        return pipeline
