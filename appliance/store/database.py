@@ -1,0 +1,308 @@
+"""The appliance's persistence: one SQLite file holding the event log, alert checkpoints and pressure history.
+
+Durability is chosen per write. The file runs in WAL mode; alarm events and
+alert state are committed with ``synchronous=FULL`` (the WAL is fsynced before
+the commit returns), because an acknowledged alarm that reappears after a power
+cut, or an audit entry that vanishes, is a safety defect. The pressure history
+is committed with ``synchronous=NORMAL``: a power cut may lose the last few
+maps but never corrupts the file, and it spares the SD card an fsync per map.
+Because the WAL is written in order, the next FULL commit also makes every
+earlier NORMAL commit durable.
+
+Times are seconds on whatever clock the caller runs (the alarm engine's); the
+store only compares them, so retention ages are measured on that clock too.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import math
+import os
+import sqlite3
+from collections.abc import Iterable, Mapping
+from typing import Self
+
+import numpy as np
+
+from appliance.errors import SchemaTooNew, StoreClosed, StoreCorrupt, StoreError
+
+SCHEMA_VERSION = 1
+BUSY_TIMEOUT_S = 5.0
+DAY_S = 86400.0
+
+EVENT_COLUMNS = ("time_s", "kind", "alarm_id", "key", "category", "priority", "user", "channel", "message")
+
+# MIGRATIONS[v] takes a file from version v - 1 to version v; index 0 is unused.
+MIGRATIONS: tuple[tuple[str, ...], ...] = (
+    (),
+    (
+        "CREATE TABLE schema_version (version INTEGER NOT NULL)",
+        ("CREATE TABLE events (id INTEGER PRIMARY KEY, time_s REAL NOT NULL, kind TEXT NOT NULL,"
+         " alarm_id INTEGER, key TEXT, category TEXT, priority TEXT, user TEXT, channel TEXT, message TEXT,"
+         " detail TEXT NOT NULL DEFAULT '{}')"),
+        "CREATE INDEX events_time ON events (time_s)",
+        "CREATE TABLE state (name TEXT PRIMARY KEY, saved_at_s REAL NOT NULL, value TEXT NOT NULL)",
+        ("CREATE TABLE pressure_history (id INTEGER PRIMARY KEY, time_s REAL NOT NULL, rows INTEGER NOT NULL,"
+         " cols INTEGER NOT NULL, data BLOB NOT NULL, peak_kpa REAL NOT NULL)"),
+        "CREATE INDEX pressure_history_time ON pressure_history (time_s)",
+    ),
+)
+
+
+# Rough bytes per row, page and index overhead included; an underestimate would delete too many rows at once.
+_ROW_BYTES = {
+    "pressure_history": "length(data) + 64",
+    "events": "length(detail) + " + " + ".join(f"ifnull(length({c}), 0)" for c in EVENT_COLUMNS[1:]) + " + 96",
+}
+
+
+def _event_row(event) -> tuple:
+    """An event as a row: the known columns, and every other field in ``detail`` so nothing is dropped."""
+    if dataclasses.is_dataclass(event) and not isinstance(event, type):
+        fields = {f.name: getattr(event, f.name) for f in dataclasses.fields(event)}
+    elif isinstance(event, Mapping):
+        fields = dict(event)
+    else:
+        raise TypeError(f"an event must be a dataclass or a mapping, got {type(event).__name__}")
+    if "time_s" not in fields or "kind" not in fields:
+        raise ValueError(f"an event needs time_s and kind, got fields {sorted(fields)}")
+    time_s = float(fields["time_s"])
+    if not math.isfinite(time_s):
+        raise ValueError(f"event {fields['kind']!r} has a non-finite time {fields['time_s']!r}")
+    detail = {k: v for k, v in fields.items() if k not in EVENT_COLUMNS}
+    return (time_s, *(fields.get(c) for c in EVENT_COLUMNS[1:]), json.dumps(detail, allow_nan=False))
+
+
+class Store:
+    """One open store file; build it with ``Store.open``. Not thread-safe: one owner, the monitor loop."""
+
+    def __init__(self, db: sqlite3.Connection, path: str, *, history_interval_s: float, history_days: float,
+                 event_days: float, max_bytes: int):
+        self._db = db
+        self.path = path
+        self.history_interval_s = history_interval_s
+        self.history_days = history_days
+        self.event_days = event_days
+        self.max_bytes = max_bytes
+        self._last_map_s = db.execute("SELECT max(time_s) FROM pressure_history").fetchone()[0]
+
+    @classmethod
+    def open(cls, path, *, history_interval_s: float = 60.0, history_days: float = 30.0, event_days: float = 365.0,
+             max_bytes: int = 512 * 1024 * 1024) -> Store:
+        """Open or create the file at ``path`` and bring its schema up to date."""
+        if not (history_interval_s >= 0 and history_days > 0 and event_days > 0 and max_bytes > 0):
+            raise ValueError(f"store {path}: history interval {history_interval_s!r} s must not be negative; "
+                             f"history days {history_days!r}, event days {event_days!r} and max bytes "
+                             f"{max_bytes!r} must be positive")
+        path = os.fspath(path)
+        try:
+            db = sqlite3.connect(path, timeout=BUSY_TIMEOUT_S, isolation_level=None)
+        except sqlite3.Error as exc:
+            raise StoreError(f"cannot open store {path}: {exc}") from exc
+        try:
+            _configure(db, path)
+            _migrate(db, path)
+            return cls(db, path, history_interval_s=history_interval_s, history_days=history_days,
+                       event_days=event_days, max_bytes=max_bytes)
+        except BaseException:
+            db.close()
+            raise
+
+    def close(self) -> None:
+        """Checkpoint the WAL into the file and close; later calls raise ``StoreClosed``."""
+        if self._db is not None:
+            self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+            self._db.close()
+            self._db = None
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _conn(self) -> sqlite3.Connection:
+        if self._db is None:
+            raise StoreClosed(f"store {self.path} is closed")
+        return self._db
+
+    @contextlib.contextmanager
+    def _transaction(self, synchronous: str):
+        """One all-or-nothing write; ``synchronous`` is FULL for what must survive a power cut."""
+        db = self._conn()
+        db.execute(f"PRAGMA synchronous={synchronous}")
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            yield db
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+        db.execute("COMMIT")
+
+    # Events and alert state: durable.
+
+    def record_events(self, events: Iterable) -> None:
+        """Append events (``AlarmEvent``, ``TurnEvent`` or mappings) to the log in one durable commit."""
+        with self._transaction("FULL") as db:
+            _insert_events(db, events)
+
+    def save_state(self, name: str, state: dict, now_s: float) -> None:
+        """Checkpoint one alert component's state (JSON-serialisable) so a restart resumes it."""
+        with self._transaction("FULL") as db:
+            _upsert_state(db, name, state, now_s)
+
+    def commit_frame(self, now_s: float, events: Iterable, states: Mapping[str, dict]) -> None:
+        """A frame's events and the states they led to, in one transaction: a crash keeps both or neither."""
+        with self._transaction("FULL") as db:
+            for name, state in states.items():
+                _upsert_state(db, name, state, now_s)
+            _insert_events(db, events)
+
+    def load_state(self, name: str) -> dict | None:
+        """The last checkpoint saved under ``name``, or None if there is none."""
+        row = self._conn().execute("SELECT value FROM state WHERE name = ?", (name,)).fetchone()
+        return None if row is None else json.loads(row[0])
+
+    def events_since(self, t: float) -> list[dict]:
+        """Events at or after ``t`` in the order logged: the columns, plus the extra fields kept in ``detail``."""
+        out = []
+        for row in self._conn().execute(
+                f"SELECT {', '.join(EVENT_COLUMNS)}, detail FROM events WHERE time_s >= ? ORDER BY time_s, id",
+                (t,)):
+            event = dict(zip(EVENT_COLUMNS, row[:-1]))
+            event.update(json.loads(row[-1]))
+            out.append(event)
+        return out
+
+    # Pressure history: down-sampled, not fsynced per map.
+
+    def record_map(self, time_s: float, pressure_kpa) -> bool:
+        """Keep the map if ``history_interval_s`` has passed since the last kept one; returns whether it was kept.
+
+        A map earlier than the last kept one is not kept either, so a clock that
+        steps back cannot fill the history.
+        """
+        self._conn()
+        pressure = np.asarray(pressure_kpa, dtype=np.float64)
+        if pressure.ndim != 2 or pressure.size == 0:
+            raise ValueError(f"a pressure map must be a non-empty 2-D array, got shape {pressure.shape}")
+        if not np.all(np.isfinite(pressure)):
+            raise ValueError(f"the pressure map at {time_s!r} s has non-finite values")
+        if self._last_map_s is not None and time_s - self._last_map_s < self.history_interval_s:
+            return False
+        data = pressure.astype("<f4").tobytes()
+        with self._transaction("NORMAL") as db:
+            db.execute("INSERT INTO pressure_history (time_s, rows, cols, data, peak_kpa) VALUES (?, ?, ?, ?, ?)",
+                       (float(time_s), *pressure.shape, data, float(pressure.max())))
+        self._last_map_s = float(time_s)
+        return True
+
+    def history_between(self, t0: float, t1: float) -> list[tuple[float, np.ndarray]]:
+        """Stored maps with ``t0 <= time_s <= t1``, oldest first, as float32 arrays."""
+        rows = self._conn().execute("SELECT time_s, rows, cols, data FROM pressure_history"
+                                    " WHERE time_s BETWEEN ? AND ? ORDER BY time_s", (t0, t1))
+        return [(t, np.frombuffer(data, dtype="<f4").reshape(r, c).astype(np.float32)) for t, r, c, data in rows]
+
+    def last_time(self) -> float | None:
+        """The latest time anything was recorded (event, state or map), so a restarted clock can resume past it."""
+        return self._conn().execute(
+            "SELECT max(t) FROM (SELECT max(time_s) AS t FROM events UNION ALL SELECT max(saved_at_s) FROM state"
+            " UNION ALL SELECT max(time_s) FROM pressure_history)").fetchone()[0]
+
+    # Retention.
+
+    def size_bytes(self) -> int:
+        """The database's size in pages (what the file shrinks to once the WAL is checkpointed)."""
+        db = self._conn()
+        return db.execute("PRAGMA page_count").fetchone()[0] * db.execute("PRAGMA page_size").fetchone()[0]
+
+    def prune(self, now_s: float) -> dict[str, int]:
+        """Drop what is too old, then the oldest until the file fits ``max_bytes``; returns rows deleted per table.
+
+        History goes first under the size cap: it is a convenience, the event
+        log is the audit trail. Events are only cut when no history is left.
+        """
+        deleted = {"history": 0, "events": 0}
+        with self._transaction("FULL") as db:
+            deleted["history"] += db.execute("DELETE FROM pressure_history WHERE time_s < ?",
+                                             (now_s - self.history_days * DAY_S,)).rowcount
+            deleted["events"] += db.execute("DELETE FROM events WHERE time_s < ?",
+                                            (now_s - self.event_days * DAY_S,)).rowcount
+        self._vacuum()
+        for table, key in (("pressure_history", "history"), ("events", "events")):
+            while (over := self.size_bytes() - self.max_bytes) > 0:
+                with self._transaction("FULL") as db:
+                    row_bytes = db.execute(f"SELECT avg({_ROW_BYTES[table]}) FROM {table}").fetchone()[0]
+                    if row_bytes is None:
+                        break
+                    n = max(1, math.ceil(over / row_bytes))
+                    deleted[key] += db.execute(f"DELETE FROM {table} WHERE id IN"
+                                               f" (SELECT id FROM {table} ORDER BY time_s, id LIMIT ?)",
+                                               (n,)).rowcount
+                self._vacuum()
+        self._conn().execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        return deleted
+
+    def _vacuum(self) -> None:
+        """Return free pages to the file system, so deleting rows actually shrinks the file.
+
+        ``executescript`` because ``execute`` steps the pragma once, which frees a single page.
+        """
+        self._conn().executescript("PRAGMA incremental_vacuum")
+
+
+def _insert_events(db: sqlite3.Connection, events: Iterable) -> None:
+    for event in events:
+        db.execute(f"INSERT INTO events ({', '.join(EVENT_COLUMNS)}, detail) VALUES ({', '.join('?' * 10)})",
+                   _event_row(event))
+
+
+def _upsert_state(db: sqlite3.Connection, name: str, state: dict, now_s: float) -> None:
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"a state name must be a non-empty string, got {name!r}")
+    if not isinstance(state, dict):
+        raise TypeError(f"state {name!r} must be a dict, got {type(state).__name__}")
+    db.execute("INSERT INTO state (name, saved_at_s, value) VALUES (?, ?, ?)"
+               " ON CONFLICT (name) DO UPDATE SET saved_at_s = excluded.saved_at_s, value = excluded.value",
+               (name, float(now_s), json.dumps(state, allow_nan=False)))
+
+
+def _configure(db: sqlite3.Connection, path: str) -> None:
+    """Check the file really is a database before anything writes to it, then set the connection's pragmas."""
+    try:
+        fresh = db.execute("SELECT count(*) FROM sqlite_master").fetchone()[0] == 0
+    except sqlite3.DatabaseError as exc:
+        if getattr(exc, "sqlite_errorcode", None) in (sqlite3.SQLITE_NOTADB, sqlite3.SQLITE_CORRUPT):
+            raise StoreCorrupt(f"store {path} is not an SQLite database (left untouched): {exc}") from exc
+        raise StoreError(f"cannot read store {path}: {exc}") from exc
+    if fresh:
+        # Must precede the first table: SQLite cannot switch an existing file to incremental vacuum cheaply.
+        db.execute("PRAGMA auto_vacuum=INCREMENTAL")
+    if db.execute("PRAGMA journal_mode=WAL").fetchone()[0] != "wal":
+        raise StoreError(f"store {path}: cannot switch to WAL journal mode (is it on a network file system?)")
+    db.execute("PRAGMA foreign_keys=ON")
+    db.execute(f"PRAGMA busy_timeout={int(BUSY_TIMEOUT_S * 1000)}")
+    db.execute("PRAGMA synchronous=FULL")
+
+
+def _migrate(db: sqlite3.Connection, path: str) -> None:
+    """Apply the missing migrations, all in one transaction so a crash never leaves a half-migrated file."""
+    db.execute("BEGIN IMMEDIATE")
+    try:
+        has_table = db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'schema_version'"
+                               ).fetchone()
+        version = db.execute("SELECT max(version) FROM schema_version").fetchone()[0] if has_table else 0
+        if version > SCHEMA_VERSION:
+            raise SchemaTooNew(f"store {path} has schema version {version}, newer than {SCHEMA_VERSION} which "
+                               f"this software knows; update the software rather than downgrade the file")
+        for target in range(version + 1, SCHEMA_VERSION + 1):
+            for statement in MIGRATIONS[target]:
+                db.execute(statement)
+            db.execute("DELETE FROM schema_version")
+            db.execute("INSERT INTO schema_version (version) VALUES (?)", (target,))
+    except BaseException:
+        db.execute("ROLLBACK")
+        raise
+    db.execute("COMMIT")
