@@ -1,0 +1,300 @@
+"""Notifiers: carry alarm and turn events off the bed (MQTT, webhook) and onto the bed (buzzer, LED).
+
+The monitor loop must never wait on a network, so :meth:`Notifier.notify` only
+puts the event on a bounded queue; a worker thread per notifier delivers it,
+retrying with exponential backoff up to ``max_attempts``. An event that cannot be
+delivered (queue full, every attempt failed, notifier closed) is not silently
+lost: it is appended to a dead-letter JSONL file with the reason, one record a
+line::
+
+    {"dead_lettered_at": <unix time>, "notifier": "mqtt", "reason": "...",
+     "attempts": 3, "event_type": "AlarmEvent", "event": {...}}
+
+Delivery is at least once: a retry after a lost acknowledgement can repeat an
+event, so receivers de-duplicate on (``alarm_id``, ``kind``, ``time_s``).
+
+MQTT topics (``<prefix>`` is ``topic_prefix``, "appliance" by default)::
+
+    <prefix>/<bed_id>/alarm   QoS 1, not retained: one AlarmEvent as JSON
+                              {time_s, kind, alarm_id, key, category, priority,
+                               message, user, channel}
+    <prefix>/<bed_id>/turn    QoS 1, not retained: one TurnEvent as JSON
+                              {time_s, kind, relieved_share}
+    <prefix>/<bed_id>/status  QoS 1, retained: "online" once connected; "offline"
+                              on close, and as the last will when the connection
+                              dies, so a dashboard sees a silent bed as offline.
+
+An MQTT event counts as delivered only when the broker acknowledges it (PUBACK).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import queue
+import threading
+import time
+import urllib.error
+import urllib.request
+from abc import ABC, abstractmethod
+from pathlib import Path
+
+import paho.mqtt.client as mqtt
+
+from appliance.alerts.alarms import PRIORITIES, AlarmEvent
+from appliance.alerts.turns import TurnEvent
+from appliance.drivers.bus import GPIOLines, LineRequest
+
+log = logging.getLogger(__name__)
+
+
+def event_payload(event) -> dict:
+    """The event's fields as a JSON-ready dict: the one payload every channel sends."""
+    return dataclasses.asdict(event)
+
+
+class Notifier(ABC):
+    """Delivers events in its own thread so that :meth:`notify` never blocks the monitor.
+
+    ``max_attempts`` deliveries are tried per event, waiting ``backoff_s``, then
+    twice that, and so on up to ``max_backoff_s`` between them. Counters:
+    ``delivered``, ``dropped`` (queue full) and ``dead_lettered`` (all reasons).
+    """
+
+    name = "notifier"
+
+    def __init__(self, *, queue_size: int = 256, max_attempts: int = 5, backoff_s: float = 0.5,
+                 max_backoff_s: float = 30.0, dead_letter_path: str | Path | None = None):
+        if max_attempts < 1:
+            raise ValueError(f"max_attempts must be at least 1, got {max_attempts}")
+        self.max_attempts = max_attempts
+        self.backoff_s = backoff_s
+        self.max_backoff_s = max_backoff_s
+        self.dead_letter_path = Path(dead_letter_path) if dead_letter_path is not None else None
+        self.delivered = 0
+        self.dropped = 0
+        self.dead_lettered = 0
+        self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
+        # Dead letters are written by their own thread: file and log I/O in
+        # notify() let other threads take the GIL and cost milliseconds.
+        self._dead_letters: queue.SimpleQueue = queue.SimpleQueue()
+        self._closed = False
+        self._count_lock = threading.Lock()  # notify() and the worker both dead-letter
+        self._closing = threading.Event()
+        self._abort = threading.Event()
+        self._worker = threading.Thread(target=self._run, name=f"{self.name}-notifier", daemon=True)
+        self._writer = threading.Thread(target=self._write_dead_letters, name=f"{self.name}-dead-letters",
+                                        daemon=True)
+        self._worker.start()
+        self._writer.start()
+
+    def notify(self, event) -> bool:
+        """Queue ``event`` for delivery and return at once; False if it went to the dead letters instead."""
+        if self._closing.is_set():
+            self._dead_letter(event, "notifier closed", 0)
+            return False
+        try:
+            self._queue.put_nowait(event)
+        except queue.Full:
+            self.dropped += 1
+            self._dead_letter(event, f"queue full ({self._queue.maxsize} events waiting)", 0)
+            return False
+        return True
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Deliver what is queued for up to ``timeout_s``, dead-letter the rest, and release the channel."""
+        self._closing.set()
+        self._worker.join(timeout_s)
+        if self._worker.is_alive():
+            self._abort.set()
+            self._worker.join()  # one attempt is bounded by the channel's own timeout
+        while True:
+            try:
+                self._dead_letter(self._queue.get_nowait(), "notifier closed before delivery", 0)
+            except queue.Empty:
+                break
+        self._closed = True  # from now on dead letters are written at once: no writer thread is left
+        self._dead_letters.put(None)
+        self._writer.join()
+        self._shutdown()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @abstractmethod
+    def _deliver(self, event) -> None:
+        """Deliver one event or raise; returning means the receiver has it."""
+
+    def _shutdown(self) -> None:
+        """Release the channel once the worker has stopped (override)."""
+
+    def _run(self) -> None:
+        while True:
+            try:
+                event = self._queue.get(timeout=0.05)
+            except queue.Empty:
+                if self._closing.is_set():
+                    return
+                continue
+            if self._abort.is_set():
+                self._dead_letter(event, "notifier closed before delivery", 0)
+            else:
+                self._send(event)
+
+    def _send(self, event) -> None:
+        for attempt in range(1, self.max_attempts + 1):
+            try:
+                self._deliver(event)
+            except Exception as exc:  # noqa: BLE001  (any failure of the channel is a reason to retry, not to die)
+                reason = f"{type(exc).__name__}: {exc}"
+                log.warning("%s: delivery failed (attempt %d of %d): %s",
+                            self.name, attempt, self.max_attempts, reason)
+            else:
+                self.delivered += 1
+                return
+            if attempt < self.max_attempts:
+                delay = min(self.backoff_s * 2 ** (attempt - 1), self.max_backoff_s)
+                if self._abort.wait(delay):
+                    self._dead_letter(event, f"notifier closed during retries; last error: {reason}", attempt)
+                    return
+        self._dead_letter(event, f"failed {self.max_attempts} attempts; last error: {reason}", self.max_attempts)
+
+    def _dead_letter(self, event, reason: str, attempts: int) -> None:
+        with self._count_lock:
+            self.dead_lettered += 1
+        item = (time.time(), event, reason, attempts)
+        if self._closed:
+            self._write_dead_letter(*item)
+        else:
+            self._dead_letters.put(item)
+
+    def _write_dead_letters(self) -> None:
+        while (item := self._dead_letters.get()) is not None:
+            self._write_dead_letter(*item)
+
+    def _write_dead_letter(self, when: float, event, reason: str, attempts: int) -> None:
+        log.error("%s: event dead-lettered: %s: %r", self.name, reason, event)
+        if self.dead_letter_path is None:
+            return
+        record = {"dead_lettered_at": when, "notifier": self.name, "reason": reason, "attempts": attempts,
+                  "event_type": type(event).__name__, "event": event_payload(event)}
+        with self.dead_letter_path.open("a", encoding="utf-8") as f:
+            f.write(json.dumps(record) + "\n")
+
+
+class MqttNotifier(Notifier):
+    """Publishes events to an MQTT broker (topics in the module docstring); reconnects on its own.
+
+    paho's network thread keeps the connection and reconnects after an outage;
+    the worker only publishes while connected, so retries wait for the broker
+    instead of piling messages into paho's own queue.
+    """
+
+    name = "mqtt"
+
+    def __init__(self, host: str, port: int, bed_id: str, *, client_id: str, topic_prefix: str = "appliance",
+                 keepalive_s: int = 30, publish_timeout_s: float = 5.0, **options):
+        base = f"{topic_prefix}/{bed_id}"
+        self.topics = {AlarmEvent: f"{base}/alarm", TurnEvent: f"{base}/turn"}
+        self.status_topic = f"{base}/status"
+        self.publish_timeout_s = publish_timeout_s
+        self._client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id)
+        self._client.will_set(self.status_topic, "offline", qos=1, retain=True)
+        self._client.reconnect_delay_set(min_delay=1, max_delay=10)
+        self._client.on_connect = self._on_connect
+        self._client.connect_async(host, port, keepalive=keepalive_s)
+        self._client.loop_start()
+        super().__init__(**options)
+
+    def notify(self, event) -> bool:
+        if type(event) not in self.topics:
+            raise TypeError(f"MQTT notifier has no topic for {type(event).__name__}")
+        return super().notify(event)
+
+    def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
+        if reason_code.is_failure:
+            log.warning("mqtt: broker refused the connection: %s", reason_code)
+            return
+        client.publish(self.status_topic, "online", qos=1, retain=True)
+
+    def _deliver(self, event) -> None:
+        if not self._client.is_connected():
+            raise ConnectionError("not connected to the broker")
+        info = self._client.publish(self.topics[type(event)], json.dumps(event_payload(event)), qos=1)
+        info.wait_for_publish(self.publish_timeout_s)
+        if not info.is_published():
+            raise TimeoutError(f"no PUBACK within {self.publish_timeout_s} s")
+
+    def _shutdown(self) -> None:
+        if self._client.is_connected():
+            try:
+                self._client.publish(self.status_topic, "offline", qos=1, retain=True).wait_for_publish(
+                    self.publish_timeout_s)
+            except (RuntimeError, ValueError) as exc:
+                log.warning("mqtt: could not publish offline status: %s", exc)
+        self._client.disconnect()
+        self._client.loop_stop()
+
+
+class WebhookNotifier(Notifier):
+    """POSTs each event as JSON to ``url``; any 2xx answer is delivery, anything else is retried."""
+
+    name = "webhook"
+
+    def __init__(self, url: str, *, timeout_s: float = 5.0, **options):
+        self.url = url
+        self.timeout_s = timeout_s
+        super().__init__(**options)
+
+    def _deliver(self, event) -> None:
+        request = urllib.request.Request(self.url, data=json.dumps(event_payload(event)).encode(),
+                                         headers={"Content-Type": "application/json"}, method="POST")
+        try:
+            with urllib.request.urlopen(request, timeout=self.timeout_s) as response:
+                status = response.status
+        except urllib.error.HTTPError as exc:
+            exc.close()
+            raise ConnectionError(f"HTTP {exc.code} from {self.url}") from None
+        if not 200 <= status < 300:
+            raise ConnectionError(f"HTTP {status} from {self.url}")
+
+
+# Flash rates of IEC 60601-1-8 visual alarm signals: high 1.4 to 2.8 Hz, medium
+# 0.4 to 0.8 Hz, low constant. None: steady on.
+BLINK_HZ = {"high": 2.0, "medium": 0.5, "low": None}
+
+
+class GpioNotifier:
+    """Drives the bedside buzzer and LED from the alarm engine's audible priority.
+
+    Not queued like the others: setting two lines is as fast as the monitor's
+    own GPIO work. The LED flashes only as finely as :meth:`show` is called, so
+    call it at least four times a second for the 2 Hz high-priority flash.
+    """
+
+    def __init__(self, lines: GPIOLines, *, buzzer: str, led: str):
+        self.lines, self.buzzer, self.led = lines, buzzer, led
+
+    @staticmethod
+    def request(buzzer: str, led: str) -> LineRequest:
+        """The lines to ask the board for: both outputs, both off until the first alarm."""
+        return LineRequest(outputs={buzzer: 0, led: 0}, inputs={})
+
+    def show(self, priority: str | None, now_s: float) -> None:
+        """Sound and flash for ``priority`` (``AlarmEngine.audible(now_s)``) at ``now_s``; None is quiet and dark."""
+        if priority is None:
+            self.lines.set_values({self.buzzer: 0, self.led: 0})
+            return
+        if priority not in PRIORITIES:
+            raise ValueError(f"priority must be one of {PRIORITIES} or None, got {priority!r}")
+        hz = BLINK_HZ[priority]
+        led = 1 if hz is None else int((now_s * hz) % 1.0 < 0.5)
+        self.lines.set_values({self.buzzer: 1, self.led: led})
+
+    def close(self) -> None:
+        """Silence and darken before the lines are given back."""
+        self.show(None, 0.0)
