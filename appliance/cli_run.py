@@ -3,7 +3,10 @@
 It builds (or loads) the reconstruction model, calibrates the virtual mat the
 first time, takes the empty-mat reference, puts the scenario's patient on and
 prints one line per pressure map, keeping the newest map in the data directory
-(``live.png``, ``live.csv`` in kPa) for anyone to look at.
+(``live.png``, ``live.csv`` in kPa) for anyone to look at. Each map goes through
+the alert pipeline (regions, dose, turn clock, alarms); alarm and turn events are
+printed and, with the alert state, committed to the SQLite store
+(``appliance.db``) frame by frame.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ def add_parsers(sub) -> None:
 
 
 def _run(args) -> int:
+    from appliance.alerts.pipeline import AlertPipeline
     from appliance.core.layouts import get_layout
     from appliance.core.model_cache import ModelSetup, cached_model, default_cache_dir
     from appliance.core.pressure import load_pressure_calibration
@@ -43,6 +47,7 @@ def _run(args) -> int:
     from appliance.service.monitor import Monitor
     from appliance.service.virtual_bed import VirtualBedSource, default_data_dir
     from appliance.sim.scenes import load_scene
+    from appliance.store import Store
 
     if args.frames is not None and args.frames < 1:
         raise ConfigError(f"--frames must be at least 1, got {args.frames}")
@@ -69,13 +74,26 @@ def _run(args) -> int:
     monitor = Monitor(source.acquire, model, calibration)      # refuses a calibration for another mat
     monitor.take_reference(source.empty_reference())
     pace = _pacer(args.interval / args.speed if args.speed > 0 else 0.0)
+    pipeline = AlertPipeline(model.reconstructor.grid)
+    store = Store.open(data_dir / "appliance.db")
+
+    def on_map(pressure_map) -> None:
+        _show(pressure_map, model.reconstructor.grid, data_dir, len(protocol))
+        alerts = pipeline.update(pressure_map)
+        events = alerts.turn_events + alerts.alarm_events
+        for event in events:
+            print(f"  {_event_line(event)}", flush=True)
+        store.record_map(pressure_map.time_s, pressure_map.pressure_kpa)
+        store.commit_frame(pressure_map.time_s, events, {"alerts": pipeline.state()})
+
     started = time.perf_counter()
     try:
-        made = monitor.run(lambda m: _show(m, model.reconstructor.grid, data_dir, len(protocol)),
-                           frames=args.frames, pace=pace,
+        made = monitor.run(on_map, frames=args.frames, pace=pace,
                            on_fault=lambda f: say(f"FAULT ({f.consecutive} in a row): {f.message}"))
     except KeyboardInterrupt:
         made = None
+    finally:
+        store.close()
     elapsed = time.perf_counter() - started
     say(f"stopped{'' if made is None else f' after {made} maps'} in {elapsed:.1f} s; the last map is in "
         f"{data_dir / 'live.png'}")
@@ -101,6 +119,15 @@ def _show(pressure_map, grid, data_dir: Path, n_readings: int) -> None:
     write_atomic(data_dir / "live.csv", rows + "\n")
     write_png(data_dir / "live.png", m.pressure_kpa, vmin=0.0, vmax=LIVE_FULL_SCALE_MMHG * KPA_PER_MMHG,
               palette="sequential", scale=16)
+
+
+def _event_line(event) -> str:
+    """``ALARM raised (medium) pressure:sacrum:3: sustained pressure ...`` or ``TURN repositioned``."""
+    if hasattr(event, "alarm_id"):
+        who = f" by {event.user}" if event.user else ""
+        where = f" to {event.channel}" if event.channel else ""
+        return f"ALARM {event.kind}{who}{where} at {event.time_s:.0f} s ({event.priority}) {event.key}: {event.message}"
+    return f"TURN {event.kind} at {event.time_s:.0f} s"
 
 
 def _pacer(period_s: float):

@@ -16,6 +16,7 @@ from appliance.service.monitor import Monitor
 from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.loads import square_load_scene
 from appliance.sim.scenes import load_scene
+from appliance.store import Store
 
 GRID = get_layout("grid-4x4")
 BED = get_layout("grid-8x16")
@@ -92,8 +93,12 @@ def test_run_starts_on_the_virtual_bed_calibrates_once_and_maps_the_patient(bed_
     assert main(args) == 0
     out, err = capsys.readouterr()
     assert "virtual bed (grid-8x16" in err and "made and saved" in err
-    lines = out.strip().splitlines()
-    assert len(lines) == 3 and all("region(s) >= 32 mmHg" in line for line in lines)
+    maps = [line for line in out.strip().splitlines() if not line.startswith("  ")]
+    assert len(maps) == 3 and all("region(s) >= 32 mmHg" in line for line in maps)
+    assert "  TURN repositioned at 60 s" in out                         # the patient lay down
+    with Store.open(data / "appliance.db") as store:
+        assert [e["kind"] for e in store.events_since(0.0)] == ["repositioned"]
+        assert store.load_state("alerts")["last_time_s"] == 120.0
     assert (data / "live.png").stat().st_size > 0
     live = np.genfromtxt(data / "live.csv", delimiter=",")
     assert live.shape == (16, 34) and np.nanmax(live) > 4.3          # a supine patient loads the sacrum

@@ -79,7 +79,7 @@ class AlertPipeline:
         due = self.turns.due_in_s(now)
         if due is not None and due <= 0:
             condition = AlarmCondition("turn:due", "clinical", "low", False, "repositioning is due")
-            active[condition.key] = (condition, f"{-due / 60:.0f} min overdue")
+            active[condition.key] = (condition, f"{max(0.0, -due) / 60:.0f} min overdue")
         for key, message in (technical or {}).items():
             active[key] = (AlarmCondition(key, "technical", "medium", False, message), None)
         return FrameAlerts(self.engine.assess(now, active), turn_events, doses)
