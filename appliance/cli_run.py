@@ -38,7 +38,7 @@ def add_parsers(sub) -> None:
 
 
 def _run(args) -> int:
-    from appliance.alerts.pipeline import AlertPipeline
+    from appliance.alerts.pipeline import AlertPipeline, technical_alarms
     from appliance.core.layouts import get_layout
     from appliance.core.model_cache import ModelSetup, cached_model, default_cache_dir
     from appliance.core.pressure import load_pressure_calibration
@@ -79,7 +79,7 @@ def _run(args) -> int:
 
     def on_map(pressure_map) -> None:
         _show(pressure_map, model.reconstructor.grid, data_dir, len(protocol))
-        alerts = pipeline.update(pressure_map)
+        alerts = pipeline.update(pressure_map, technical_alarms(monitor.conditions))
         events = alerts.turn_events + alerts.alarm_events
         for event in events:
             print(f"  {_event_line(event)}", flush=True)

@@ -137,3 +137,27 @@ def test_a_whole_body_frame_on_the_bed_takes_under_a_second(bed_monitoring):
         times.append(time.perf_counter() - start)
         assert source.bed.solves == solves + 1                           # the patient moved: a full re-solve
     assert np.median(times) < 1.0
+
+
+def test_an_electrode_lost_mid_run_is_a_technical_alarm_and_monitoring_goes_on(small_mat):
+    from appliance.alerts.pipeline import AlertPipeline, technical_alarms
+
+    model, source, calibration = small_mat
+    monitor = Monitor(source.acquire, model, calibration)
+    monitor.take_reference(source.empty_reference())
+    pipeline = AlertPipeline(model.reconstructor.grid)
+    raised, maps = [], []
+    for frame in range(6):
+        if frame == 3:
+            source.front_end.disconnect(6)
+        m = monitor.next_map()
+        maps.append(m)
+        events = pipeline.update(m, technical_alarms(monitor.conditions)).alarm_events
+        raised += [(frame, e.key, e.category) for e in events if e.kind == "raised"]
+    assert raised == [(3, "technical:electrode:6", "technical")]          # the first frame without it
+    assert maps[-1].usable_readings < maps[2].usable_readings
+    region = maps[-1].regions[0]                                           # the weight is still seen
+    assert np.hypot(region.x_mm - 30, region.y_mm - 70) < 8
+    with pytest.raises(ValueError, match="electrode 17 is not on this 16-electrode mat"):
+        source.front_end.disconnect(17)
+    source.front_end.open_electrodes.clear()                               # the mat is shared by the module

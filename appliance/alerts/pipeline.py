@@ -49,6 +49,11 @@ class FrameAlerts:
     region_doses: dict[int, float] = field(default_factory=dict)
 
 
+def technical_alarms(conditions) -> dict[str, str]:
+    """A frame's technical conditions (``part``, ``message``) as the pipeline's technical alarm keys."""
+    return {f"technical:{c.part.replace(' ', ':')}": f"{c.part}: {c.message}" for c in conditions}
+
+
 class AlertPipeline:
     """Regions, dose, turns and alarms for one mat's pixel grid."""
 

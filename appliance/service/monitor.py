@@ -46,6 +46,7 @@ class Monitor:
         self.iterate = iterate or calibration.notes.get("iterate") or affordable_iterate(setup.layout.n_electrodes)
         self.reference: np.ndarray | None = None
         self.reference_temperature_c: float | None = None
+        self.conditions: tuple = ()         # the technical conditions of the last frame acquired
 
     def take_reference(self, frame=None) -> None:
         """The empty mat (``frame``, or the next one acquired): every map is a change from it."""
@@ -60,6 +61,7 @@ class Monitor:
         if self.reference is None:
             raise ConfigError("the monitor has no reference frame yet (take_reference first)")
         frame = self.acquire()
+        self.conditions = tuple(getattr(frame, "conditions", ()))
         volts = frame.volts
         if self.reference_temperature_c is not None:
             volts = temperature_corrected(volts, frame.temperature_c, self.reference_temperature_c)

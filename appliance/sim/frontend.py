@@ -14,7 +14,7 @@ import numpy as np
 
 from appliance.core.protocols import Protocol
 from appliance.drivers.profile import BoardProfile, board_profile
-from appliance.drivers.scan import UNUSABLE
+from appliance.drivers.scan import UNUSABLE, Flag, TechnicalCondition
 from appliance.sim.bed import VirtualBed
 from appliance.sim.chain import FrameChain
 
@@ -26,12 +26,14 @@ VIRTUAL_MAT_BOARD = {"excitation": {"current_a": 0.001}}
 
 @dataclass(frozen=True)
 class VirtualFrame:
-    """One frame: readings (NaN where unusable), their flags, the liquid's temperature, the scene time."""
+    """One frame: readings (NaN where unusable), their flags, the liquid's temperature, the scene time,
+    and the technical conditions found, as a scan engine's frame carries them."""
 
     volts: np.ndarray
     flags: np.ndarray
     temperature_c: float
     time_s: float
+    conditions: tuple[TechnicalCondition, ...] = ()
 
 
 class VirtualFrontEnd:
@@ -45,11 +47,23 @@ class VirtualFrontEnd:
         self.chain = FrameChain(profile or board_profile(VIRTUAL_MAT_BOARD), seed=seed)
         self.frame_interval_s = frame_interval_s
         self.time_s = start_s
+        self.open_electrodes: set[int] = set()
+
+    def disconnect(self, electrode: int) -> None:
+        """Lose an electrode's contact (a lead pulled off): from the next frame its readings are flagged
+        and left out, as the scan engine's contact check leaves them out."""
+        if not 1 <= electrode <= self.bed.n_electrodes:
+            raise ValueError(f"electrode {electrode} is not on this {self.bed.n_electrodes}-electrode mat")
+        self.open_electrodes.add(electrode)
 
     def acquire(self) -> VirtualFrame:
         """The next frame; scene time moves on by one frame interval."""
         t = self.time_s
         volts, flags = self.chain.readings(self.bed.transfer_ohm(t), self.protocol)
+        conditions = []
+        for electrode in sorted(self.open_electrodes):
+            flags[(self.protocol.readings == electrode).any(axis=1)] |= Flag.OPEN_ELECTRODE
+            conditions.append(TechnicalCondition(f"electrode {electrode}", "no contact: its readings are left out"))
         volts = np.where((flags & int(UNUSABLE)) == 0, volts, np.nan)
         self.time_s += self.frame_interval_s
-        return VirtualFrame(volts, flags, self.bed.temperature_at(t), t)
+        return VirtualFrame(volts, flags, self.bed.temperature_at(t), t, tuple(conditions))
