@@ -161,9 +161,10 @@ def _pixels(text: str | None) -> tuple[int, int] | None:
 def _opened_source(args, layout, protocol):
     """``(acquire, place)`` for ``args.source``; a board is closed when the procedure ends."""
     from appliance.sim.bed import VirtualBed
-    from appliance.sim.loads import placer, square_load_scene
+    from appliance.cli_frontend import board_table
+    from appliance.sim.loads import empty_mat, placer
 
-    table = _board_table(args)
+    table = board_table(args)
     if args.source == "hardware":
         sensor, place = _still_mat(layout), _operator_placer()
     else:
@@ -171,9 +172,7 @@ def _opened_source(args, layout, protocol):
         from appliance.sim.frontend import VIRTUAL_MAT_BOARD, VirtualFrontEnd
 
         table = table or VIRTUAL_MAT_BOARD          # unless told otherwise, a board the virtual mat suits
-        width, height = layout.sheet.size_mm
-        empty = square_load_scene(width, height, width / 2, height / 2, 1.0, 0.0)
-        bed = VirtualBed(layout, empty, density=args.density)
+        bed = VirtualBed(layout, empty_mat(layout), density=args.density)
         place = placer(bed)
         if args.source == "virtual":
             yield VirtualFrontEnd(bed, protocol, profile=board_profile(table), seed=args.seed).acquire, place
@@ -181,15 +180,6 @@ def _opened_source(args, layout, protocol):
         table, sensor = {**table, "backend": "emulated"}, (lambda: bed)
     with _scan_engine(table, sensor, protocol, args.seed) as engine:
         yield engine.scan, place
-
-
-def _board_table(args) -> dict:
-    from appliance.drivers.profile import board_table_from_file
-
-    table = board_table_from_file(args.config) if args.config else {}
-    if args.profile:
-        table["profile"] = args.profile
-    return table
 
 
 def _still_mat(layout):

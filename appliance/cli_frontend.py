@@ -40,19 +40,26 @@ def _board_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="emulated board only: its component errors and noise")
 
 
+def board_table(args) -> dict:
+    """The ``[board]`` table of ``--config`` (empty without one), its profile overridden by ``--profile``."""
+    from appliance.drivers.profile import board_table_from_file
+
+    table = board_table_from_file(args.config) if args.config else {}
+    if args.profile:
+        table["profile"] = args.profile
+    return table
+
+
 def _open(args):
     """The layout, the board and its front end the options ask for."""
     from appliance.cli import _parse_inclusion
     from appliance.core.layouts import get_layout
     from appliance.drivers import open_board
     from appliance.drivers.frontend import open_front_end
-    from appliance.drivers.profile import board_table_from_file
     from appliance.errors import ConfigError
 
     layout = get_layout(args.layout)
-    table = board_table_from_file(args.config) if args.config else {}
-    if args.profile:
-        table["profile"] = args.profile
+    table = board_table(args)
     if args.emulated:
         table["backend"] = "emulated"
     elif args.inclusion:

@@ -32,7 +32,7 @@ from appliance.core.protocols import default_protocol
 from appliance.core.reconstruct import ReconstructionOptions
 from appliance.sim.bed import VirtualBed
 from appliance.sim.frontend import VirtualFrontEnd
-from appliance.sim.loads import placer, square_load_scene
+from appliance.sim.loads import empty_mat, placer
 from appliance.sim.scenes import builtin_scenes, load_scene
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -181,7 +181,7 @@ def read_single_loads(model, calibration, reference, cases, iterate):
 def single_load_part(positions: int, algorithms, log):
     layout = get_layout("grid-4x4")
     protocol = default_protocol(layout)
-    bed = VirtualBed(layout, square_load_scene(100, 100, 50, 50, 1, 0.0))
+    bed = VirtualBed(layout, empty_mat(layout))
     reference, cases = single_load_frames(bed, protocol, positions)
     results, notes, examples = {}, {}, {}
     for algorithm in algorithms:

@@ -18,7 +18,7 @@ from appliance.core.pressure import layout_fingerprint, load_pressure_calibratio
 from appliance.core.protocols import default_protocol
 from appliance.sim.bed import VirtualBed
 from appliance.sim.frontend import VirtualFrontEnd
-from appliance.sim.loads import placer, square_load_scene
+from appliance.sim.loads import empty_mat, placer
 
 LAYOUT = get_layout("grid-4x4")
 PROTOCOL = default_protocol(LAYOUT)
@@ -46,7 +46,7 @@ def calibrated(tmp_path_factory):
 
 def write_frames(folder, load, *, temperature_c=24.0, seed=1):
     """Reference (empty mat, 24 C) and frame (``load`` on the mat at ``temperature_c``) from the virtual bed."""
-    bed = VirtualBed(LAYOUT, square_load_scene(100, 100, 50, 50, 1, 0.0),
+    bed = VirtualBed(LAYOUT, empty_mat(LAYOUT),
                      temperature_c=lambda t: 24.0 if t < 0.5 else temperature_c)
     front_end = VirtualFrontEnd(bed, PROTOCOL, seed=seed)
     place = placer(bed)

@@ -18,7 +18,7 @@ from appliance.errors import ConfigError, ModelInputInvalid
 from appliance.sim.bed import VirtualBed
 from appliance.sim.field import PressureField
 from appliance.sim.frontend import VIRTUAL_MAT_BOARD, VirtualFrontEnd
-from appliance.sim.loads import StaticScene, placer, square_load_scene
+from appliance.sim.loads import StaticScene, empty_mat, placer, square_load_scene
 from appliance.sim.scenes import load_scene
 
 GRID = get_layout("grid-4x4")
@@ -26,7 +26,7 @@ PROTOCOL = default_protocol(GRID)
 
 
 def empty_bed(**options):
-    return VirtualBed(GRID, square_load_scene(100, 100, 50, 50, 1, 0.0), **options)
+    return VirtualBed(GRID, empty_mat(GRID), **options)
 
 
 def test_a_still_scene_is_solved_once_and_a_new_scene_or_temperature_is_solved_again():

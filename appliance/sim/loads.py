@@ -47,14 +47,24 @@ def square_load_scene(width_mm: float, height_mm: float, x_mm: float, y_mm: floa
     return StaticScene(field.with_square_load(x_mm, y_mm, side_mm, pressure_kpa), platen)
 
 
+def _pitch_mm(layout) -> float:
+    return max(LOAD_PITCH_MM, min(layout.sheet.size_mm) / CELLS_ACROSS)
+
+
+def empty_mat(layout) -> StaticScene:
+    """``layout``'s mat with nothing on it."""
+    width, height = layout.sheet.size_mm
+    return square_load_scene(width, height, width / 2, height / 2, 1.0, 0.0, _pitch_mm(layout))
+
+
 def placer(bed):
     """``place(load)`` for the calibration procedures: puts ``load`` (or, for None, nothing) on ``bed``."""
     width, height = bed.layout.sheet.size_mm
-    pitch = max(LOAD_PITCH_MM, min(width, height) / CELLS_ACROSS)
+    pitch = _pitch_mm(bed.layout)
 
     def place(load: Load | None) -> None:
         if load is None:
-            bed.set_scene(square_load_scene(width, height, width / 2, height / 2, 1.0, 0.0, pitch))
+            bed.set_scene(empty_mat(bed.layout))
         else:
             bed.set_scene(square_load_scene(width, height, load.x_mm, load.y_mm, load.side_mm, load.pressure_kpa,
                                             pitch))
