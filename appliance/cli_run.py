@@ -6,7 +6,11 @@ prints one line per pressure map, keeping the newest map in the data directory
 (``live.png``, ``live.csv`` in kPa) for anyone to look at. Each map goes through
 the alert pipeline (regions, dose, turn clock, alarms); alarm and turn events are
 printed and, with the alert state, committed to the SQLite store
-(``appliance.db``) frame by frame.
+(``appliance.db``) frame by frame; ``live.json`` is the web screen's view.
+
+``--config`` reads the monitor's TOML file (:mod:`appliance.service.config`);
+the options override it. Started again on the same data directory, it resumes
+where the store left off. SIGTERM (systemd's stop) ends it after the frame.
 """
 
 from __future__ import annotations
@@ -20,83 +24,81 @@ LIVE_FULL_SCALE_MMHG = 100.0      # the live map's colour scale: white at 0, dar
 
 def add_parsers(sub) -> None:
     p = sub.add_parser("run", help="run the monitor (the virtual bed when there is no hardware)")
-    p.add_argument("--layout", default="grid-8x16", help="mat layout (default grid-8x16, a 900 x 1900 mm bed)")
-    p.add_argument("--scenario", default="turn-schedule",
+    p.add_argument("--config", type=Path, default=None,
+                   help="the monitor's TOML configuration (default: none, the virtual bed); the options below "
+                        "override it")
+    p.add_argument("--check-config", action="store_true", help="check the configuration, print it and exit")
+    p.add_argument("--layout", default=None, help="mat layout (default grid-8x16, a 900 x 1900 mm bed)")
+    p.add_argument("--scenario", default=None,
                    help="the virtual patient: a built-in scenario or a scenario .toml file (default turn-schedule)")
-    p.add_argument("--frames", type=int, default=None, help="stop after this many maps (default: run until Ctrl-C)")
-    p.add_argument("--interval", type=float, default=1.0, help="scene seconds between frames (default 1)")
-    p.add_argument("--speed", type=float, default=1.0,
-                   help="scene seconds per wall-clock second (default 1, real time; 0 for as fast as it goes)")
+    p.add_argument("--frames", type=int, default=None, help="stop after this many frames (default: run until "
+                                                            "stopped or the scenario ends)")
+    p.add_argument("--interval", type=float, default=None, help="seconds between frames (default 1)")
+    p.add_argument("--speed", type=float, default=None,
+                   help="virtual bed: scene seconds per wall-clock second (default 1, real time; 0 for as fast as "
+                        "it goes)")
     p.add_argument("--data-dir", type=Path, default=None,
-                   help="where calibrations and the live map are kept (default $APPLIANCE_DATA_DIR or "
-                        "~/.local/share/appliance)")
+                   help="where the store, calibrations and the live view are kept (default $APPLIANCE_DATA_DIR "
+                        "or ~/.local/share/appliance)")
     p.add_argument("--calibration", type=Path, default=None,
                    help="pressure calibration to use (refused unless made for this layout and reconstruction)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the simulated noise")
+    p.add_argument("--seed", type=int, default=None, help="seed of the simulated noise")
     p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
     p.set_defaults(run=_run)
 
 
-def _run(args) -> int:
-    from appliance.alerts.pipeline import AlertPipeline, technical_alarms
-    from appliance.core.layouts import get_layout
-    from appliance.core.model_cache import ModelSetup, cached_model, default_cache_dir
-    from appliance.core.pressure import load_pressure_calibration
-    from appliance.core.protocols import default_protocol
+OVERRIDES = {"layout": "layout", "scenario": "scenario", "interval": "frame_interval_s", "speed": "speed",
+             "data_dir": "data_dir", "calibration": "calibration", "seed": "seed", "cache_dir": "cache_dir"}
+
+
+def monitor_config(args, **fixed):
+    """The configuration file's settings (or the defaults), with the command line's options over them."""
+    import dataclasses
+
     from appliance.errors import ConfigError
-    from appliance.service.monitor import Monitor
-    from appliance.service.virtual_bed import VirtualBedSource, default_data_dir
-    from appliance.sim.scenes import load_scene
-    from appliance.store import Store
+    from appliance.service.config import config_from_mapping, load_config
+
+    config = load_config(args.config) if args.config else config_from_mapping({})
+    changes = {field: getattr(args, option) for option, field in OVERRIDES.items()
+               if getattr(args, option, None) is not None}
+    changes.update(fixed)
+    if changes.get("scenario") is not None and config.source != "virtual":
+        raise ConfigError("--scenario is for the virtual bed, but the configuration's source is a board")
+    config = dataclasses.replace(config, **changes)
+    if not config.frame_interval_s > 0 or config.speed < 0:
+        raise ConfigError("--interval must be positive and --speed not negative")
+    return config
+
+
+def _run(args) -> int:
+    import signal
+
+    from appliance.errors import ConfigError
+    from appliance.service.assemble import assemble
 
     if args.frames is not None and args.frames < 1:
         raise ConfigError(f"--frames must be at least 1, got {args.frames}")
-    if not args.interval > 0 or args.speed < 0:
-        raise ConfigError("--interval must be positive and --speed not negative")
-    layout = get_layout(args.layout)
-    scene = load_scene(args.scenario)
-    protocol = default_protocol(layout)
-    data_dir = args.data_dir or default_data_dir()
-    data_dir.mkdir(parents=True, exist_ok=True)
+    config = monitor_config(args)
+    if args.check_config:
+        print(config)
+        return 0
     say = _printer()
-    say(f"appliance: monitoring a virtual bed ({layout.name}, scenario {args.scenario}); no hardware, no server; "
-        f"data in {data_dir}")
-    model, _ = cached_model(ModelSetup(layout, protocol), args.cache_dir or default_cache_dir(),
-                            lambda step, share: say(f"building the reconstruction model: {step} ({share:.0%})"))
-    source = VirtualBedSource(layout, scene, protocol, seed=args.seed, frame_interval_s=args.interval)
-    if args.calibration:
-        calibration = load_pressure_calibration(args.calibration)
-    else:
-        path = data_dir / f"pressure-{layout.name}-{model.setup.options.algorithm}.json"
-        calibration, made = source.calibration(
-            model, path, progress=lambda k, n, load: say(f"calibrating the virtual mat: load {k}/{n}", every=10, k=k))
-        say(f"pressure calibration {'made and saved to' if made else 'loaded from'} {path}")
-    monitor = Monitor(source.acquire, model, calibration)      # refuses a calibration for another mat
-    monitor.take_reference(source.empty_reference())
-    pace = _pacer(args.interval / args.speed if args.speed > 0 else 0.0)
-    pipeline = AlertPipeline(model.reconstructor.grid)
-    store = Store.open(data_dir / "appliance.db")
-
-    def on_map(pressure_map) -> None:
-        _show(pressure_map, model.reconstructor.grid, data_dir, len(protocol))
-        alerts = pipeline.update(pressure_map, technical_alarms(monitor.conditions))
-        events = alerts.turn_events + alerts.alarm_events
-        for event in events:
-            print(f"  {_event_line(event)}", flush=True)
-        store.record_map(pressure_map.time_s, pressure_map.pressure_kpa)
-        store.commit_frame(pressure_map.time_s, events, {"alerts": pipeline.state()})
-
+    where = (f"a virtual bed ({config.layout}, scenario {config.scenario}); no hardware, no server"
+             if config.source == "virtual" else f"the front end board ({config.layout})")
+    say(f"appliance: monitoring {where}; bed {config.bed_id}")
+    daemon = assemble(config, say=say, on_event=lambda e: print(f"  {_event_line(e)}", flush=True),
+                      on_map=lambda m: _show(m, daemon.grid, daemon.config.data_dir, len(daemon.model.setup.protocol)))
+    signal.signal(signal.SIGTERM, daemon.request_stop)
     started = time.perf_counter()
     try:
-        made = monitor.run(on_map, frames=args.frames, pace=pace,
-                           on_fault=lambda f: say(f"FAULT ({f.consecutive} in a row): {f.message}"))
+        done = daemon.run(args.frames)
     except KeyboardInterrupt:
-        made = None
+        done = None
     finally:
-        store.close()
+        daemon.close()
     elapsed = time.perf_counter() - started
-    say(f"stopped{'' if made is None else f' after {made} maps'} in {elapsed:.1f} s; the last map is in "
-        f"{data_dir / 'live.png'}")
+    say(f"stopped{'' if done is None else f' after {done} frames'} in {elapsed:.1f} s; data in "
+        f"{daemon.config.data_dir}")
     return 0
 
 
@@ -122,30 +124,17 @@ def _show(pressure_map, grid, data_dir: Path, n_readings: int) -> None:
 
 
 def _event_line(event) -> str:
-    """``ALARM raised (medium) pressure:sacrum:3: sustained pressure ...`` or ``TURN repositioned``."""
-    if hasattr(event, "alarm_id"):
+    """``ALARM raised (medium) pressure:sacrum:3: sustained pressure ...`` or ``TURN repositioned at 60 s``."""
+    if event.type == "alarm":
         who = f" by {event.user}" if event.user else ""
         where = f" to {event.channel}" if event.channel else ""
-        return f"ALARM {event.kind}{who}{where} at {event.time_s:.0f} s ({event.priority}) {event.key}: {event.message}"
+        return (f"ALARM {event.kind}{who}{where} at {event.time_s:.0f} s ({event.priority}) {event.key}: "
+                f"{event.message}")
     return f"TURN {event.kind} at {event.time_s:.0f} s"
 
 
-def _pacer(period_s: float):
-    """A function that sleeps until ``period_s`` after its previous return (no sleep for 0)."""
-    state = {"next": None}
-
-    def pace() -> None:
-        now = time.monotonic()
-        if state["next"] is not None and state["next"] > now:
-            time.sleep(state["next"] - now)
-        state["next"] = max(now, state["next"] or now) + period_s
-
-    return pace
-
-
 def _printer():
-    def say(text: str, every: int = 1, k: int = 0) -> None:
-        if k % every == 0 or k == 1:
-            print(text, file=sys.stderr, flush=True)
+    def say(text: str) -> None:
+        print(text, file=sys.stderr, flush=True)
 
     return say

@@ -2,11 +2,23 @@
 
 ``appliance sim load-test`` repeats the thesis's load test (chapter 6.3) on the
 simulated mat and prints one CSV row per pressure on stdout.
+
+``appliance sim run`` replays a scenario through the whole monitor (the same
+daemon ``appliance run`` starts) on a simulated clock, as fast as the machine
+goes, and writes every event as one JSON object per line::
+
+    {"time_s": 22920.0, "type": "alarm", "kind": "raised", "priority": "medium",
+     "category": "clinical", "key": "pressure:sacrum:2", "region": "sacrum",
+     "region_id": 2, "alarm_id": 1, "message": "...", "user": null, "channel": null}
+
+``--acknowledge-after-min`` plays a nurse who acknowledges each alarm that long
+after it is raised, so the record shows acknowledgements and what they end.
 """
 
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 
 def add_parsers(sub) -> None:
@@ -22,6 +34,24 @@ def add_parsers(sub) -> None:
     p.add_argument("--drift-c-per-step", type=float, default=None,
                    help="warming of the liquid between steps, C (default: the thesis's, fitted; 0 for none)")
     p.set_defaults(run=_load_test)
+
+    p = sim.add_parser("run", help="replay a scenario through the whole monitor on a simulated clock, events to "
+                                   "JSON lines")
+    p.add_argument("--scenario", required=True, help="a built-in scenario's name or a scenario .toml file")
+    p.add_argument("--hours", required=True, type=float, help="simulated hours to run (within the scenario)")
+    p.add_argument("--out", required=True, type=Path, help="the event record (JSON lines)")
+    p.add_argument("--interval", type=float, default=60.0,
+                   help="simulated seconds between frames (default 60: one map a minute)")
+    p.add_argument("--config", type=Path, default=None,
+                   help="the monitor's TOML configuration (alert settings, layout); its source must be virtual")
+    p.add_argument("--layout", default=None, help="mat layout (default grid-8x16)")
+    p.add_argument("--seed", type=int, default=None, help="seed of the simulated noise")
+    p.add_argument("--acknowledge-after-min", type=float, default=None, metavar="M",
+                   help="a simulated nurse acknowledges each alarm M minutes after it is raised")
+    p.add_argument("--data-dir", type=Path, default=None,
+                   help="where the run's store is kept (default: a fresh temporary folder, removed afterwards)")
+    p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
+    p.set_defaults(run=_run)
 
 
 def _load_test(args) -> int:
@@ -39,4 +69,59 @@ def _load_test(args) -> int:
     lines = ["pressure_kpa,visibility,dv_over_v,deformation_mm"]
     lines += [f"{r.pressure_kpa:g},{r.visibility:.6g},{r.dv_over_v:.6g},{r.deformation_mm:.6g}" for r in rows]
     sys.stdout.write("\n".join(lines) + "\n")
+    return 0
+
+
+def _run(args) -> int:
+    import json
+    import tempfile
+    import time
+    from collections import Counter
+
+    from appliance.cli_run import monitor_config
+    from appliance.errors import ConfigError
+    from appliance.service.assemble import assemble
+    from appliance.sim.scenes import load_scene
+
+    if not args.hours > 0 or not args.interval > 0:
+        raise ConfigError("--hours and --interval must be positive")
+    if args.acknowledge_after_min is not None and args.acknowledge_after_min < 0:
+        raise ConfigError("--acknowledge-after-min must not be negative")
+    scene = load_scene(args.scenario)
+    if args.hours * 3600 > scene.duration_s:
+        raise ConfigError(f"scenario {args.scenario} lasts {scene.duration_s / 3600:g} h; --hours {args.hours:g} "
+                          "is longer")
+    args.speed = 0.0
+    with tempfile.TemporaryDirectory(prefix="appliance-sim-") as scratch:
+        config = monitor_config(args, data_dir=args.data_dir or Path(scratch))
+        if config.source != "virtual":
+            raise ConfigError("sim run needs the virtual bed: the configuration's source is a board")
+        frames = int(args.hours * 3600 / args.interval) + 1
+        counts, pending = Counter(), []
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        with args.out.open("w", encoding="utf-8") as out:
+            def record(event) -> None:
+                out.write(json.dumps(event.to_dict()) + "\n")
+                counts[(event.type, event.kind)] += 1
+                if event.kind == "raised" and args.acknowledge_after_min is not None:
+                    pending.append((event.time_s + 60 * args.acknowledge_after_min, event.alarm_id))
+
+            def nurse(pressure_map) -> None:
+                """Acknowledge, at the next frame, each alarm whose response time has come by then."""
+                due = pressure_map.time_s + config.frame_interval_s
+                for item in [p for p in pending if p[0] <= due]:
+                    pending.remove(item)
+                    daemon.acknowledge(item[1], "simulated-nurse")
+
+            say = (lambda text: print(text, file=sys.stderr, flush=True))
+            daemon = assemble(config, say=say, on_event=record, on_map=nurse, live=False)
+            started = time.perf_counter()
+            try:
+                done = daemon.run(frames)
+            finally:
+                daemon.close()
+    elapsed = time.perf_counter() - started
+    summary = ", ".join(f"{n} {kind} {type_}" for (type_, kind), n in sorted(counts.items())) or "no events"
+    print(f"{args.scenario}: {done} frames ({done * args.interval / 3600:g} simulated h) in {elapsed:.1f} s "
+          f"({done / max(elapsed, 1e-9):.0f} frames/s); {summary}; written to {args.out}", file=sys.stderr)
     return 0

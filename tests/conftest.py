@@ -105,10 +105,11 @@ def model_cache(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def bed_monitoring(model_cache, tmp_path_factory):
+def bed_monitoring(model_cache):
     """grid-8x16's reconstruction model and the virtual mat's factory calibration: (model, calibration)."""
     from appliance.core.model_cache import ModelSetup, cached_model
     from appliance.core.protocols import default_protocol
+    from appliance.service.assemble import virtual_calibration_path
     from appliance.service.virtual_bed import VirtualBedSource
     from appliance.sim.scenes import load_scene
 
@@ -116,5 +117,5 @@ def bed_monitoring(model_cache, tmp_path_factory):
     protocol = default_protocol(layout)
     model, _ = cached_model(ModelSetup(layout, protocol), model_cache)
     source = VirtualBedSource(layout, load_scene("supine-still"), protocol)
-    calibration, _ = source.calibration(model, tmp_path_factory.mktemp("data") / "pressure.json")
+    calibration, _ = source.calibration(model, virtual_calibration_path(model_cache, model))   # where `run` finds it
     return model, calibration

@@ -18,6 +18,7 @@ import paho.mqtt.client as mqtt
 import pytest
 
 from appliance.alerts.alarms import AlarmEvent
+from appliance.alerts.events import Event, as_event
 from appliance.alerts.notifiers import (
     GpioNotifier,
     MqttNotifier,
@@ -28,12 +29,13 @@ from appliance.alerts.turns import TurnEvent
 from appliance.drivers.emulated.buses import BusTiming, EmulatedGPIOLines, GPIOBank
 from appliance.drivers.emulated.clock import SimulatedClock
 
-ALARM_FIELDS = {"time_s", "kind", "alarm_id", "key", "category", "priority", "message", "user", "channel"}
+EVENT_FIELDS = {"time_s", "type", "kind", "priority", "category", "key", "region", "region_id", "alarm_id", "message",
+                "user", "channel"}
 
 
 def alarm(alarm_id=1, kind="raised", priority="high"):
-    return AlarmEvent(time_s=10.0 * alarm_id, kind=kind, alarm_id=alarm_id, key="sacrum-dose",
-                      category="clinical", priority=priority, message="Sacrum dose over limit")
+    return as_event(AlarmEvent(time_s=10.0 * alarm_id, kind=kind, alarm_id=alarm_id, key="pressure:sacrum:4",
+                               category="clinical", priority=priority, message="Sacrum dose over limit"))
 
 
 def free_port() -> int:
@@ -138,11 +140,11 @@ def test_alarm_arrives_with_qos1_and_documented_payload(broker, subscriber, tmp_
         _, qos, retain, payload = subscriber.next("appliance/bed7/alarm")
         assert (qos, retain) == (1, False)
         body = json.loads(payload)
-        assert set(body) == ALARM_FIELDS
-        assert AlarmEvent(**body) == event
-        notifier.notify(TurnEvent(time_s=5.0, kind="turned", relieved_share=0.4))
+        assert set(body) == EVENT_FIELDS
+        assert Event(**body) == event and (body["region"], body["region_id"]) == ("sacrum", 4)
+        notifier.notify(as_event(TurnEvent(time_s=5.0, kind="repositioned", relieved_share=0.4)))
         _, qos, _, payload = subscriber.next("appliance/bed7/turn")
-        assert qos == 1 and json.loads(payload)["relieved_share"] == 0.4
+        assert qos == 1 and json.loads(payload)["message"] == "repositioned: 40% of the at-risk load relieved"
         assert wait_until(lambda: notifier.delivered == 2)
     finally:
         notifier.close()
@@ -203,7 +205,7 @@ def test_events_are_dead_lettered_when_the_outage_outlasts_the_attempts(broker, 
         records = dead_letters(tmp_path / "dead.jsonl")
         assert [r["event"]["alarm_id"] for r in records] == [1, 2]
         assert all(r["attempts"] == 3 and "not connected" in r["reason"] for r in records)
-        assert records[0]["event_type"] == "AlarmEvent" and set(records[0]["event"]) == ALARM_FIELDS
+        assert set(records[0]["event"]) == EVENT_FIELDS
     finally:
         notifier.close(timeout_s=0.5)
 
@@ -304,7 +306,7 @@ def test_webhook_posts_the_event(webhook, tmp_path):
     notifier.notify(alarm())
     notifier.close()
     assert notifier.delivered == 1
-    assert len(hook.bodies) == 1 and AlarmEvent(**hook.bodies[0]) == alarm()
+    assert len(hook.bodies) == 1 and Event(**hook.bodies[0]) == alarm()
 
 
 def test_webhook_retries_a_500_then_succeeds(webhook, tmp_path):

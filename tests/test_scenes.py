@@ -6,10 +6,14 @@ import numpy as np
 import pytest
 
 from appliance.errors import ConfigError, ModelInputInvalid
-from appliance.sim.body import G_M_S2, MatGrid, Placement, Subject, body_field, outline_box_mm, total_force_n
-from appliance.sim.scenes import builtin_scenes, load_scene, scene_from_mapping
+from appliance.sim.body import (G_M_S2, MatGrid, Placement, Subject, body_field, body_patches, outline_box_mm,
+                                total_force_n)
+from appliance.sim.scenes import ElectrodeFault, builtin_scenes, load_scene, scene_from_mapping
 
 LIE = {"at_s": 0, "kind": "lie-down", "posture": "supine", "x_mm": 450, "y_mm": 80}
+
+
+FAULT = {"at_s": 60, "electrode": 5, "kind": "disconnect"}
 
 
 def scenario(*events, **scene):
@@ -102,6 +106,17 @@ BAD = [
     ({"event": [dict(LIE, x_mm="middle")]}, r"event 1 \(lie-down\): x_mm must be a finite number"),
     ({"event": [dict(LIE), {"at_s": 60, "kind": "still", "duration_s": 0}]}, r"event 2 \(still\): duration_s"),
     ({"scene": {"duration_s": 5}}, r"\[scene\] duration_s = 5 ends before"),
+    ({"scene": {"sites": ["heel-left", "tail"]}}, r"\[scene\]: unknown site 'tail': use one of .*heel-right"),
+    ({"scene": {"sites": []}}, r"\[scene\]: no site on the mat"),
+    ({"scene": {"sites": "heel-left"}}, r"\[scene\] sites must be a list"),
+    ({"fault": [FAULT, dict(FAULT, kind="break")]}, "fault 2: kind must be one of disconnect, reconnect"),
+    ({"fault": [dict(FAULT, at_s=-1)]}, "fault 1: at_s must not be negative"),
+    ({"fault": [dict(FAULT, wire=3)]}, "fault 1: unknown field 'wire'"),
+    ({"fault": [dict(FAULT, electrode=0)]}, "fault 1: electrode must be an electrode number"),
+    ({"fault": [dict(FAULT, electrode=2.0)]}, "fault 1: electrode must be"),
+    ({"fault": [dict(FAULT, electrode=True)]}, "fault 1: electrode must be"),
+    ({"fault": [{"electrode": 5, "kind": "disconnect"}]}, "fault 1 is missing 'at_s'"),
+    ({"fault": [dict(FAULT, at_s=601)]}, "fault at 601 s comes after the scene's end"),
 ]
 
 
@@ -128,3 +143,44 @@ def test_scenario_file_errors_name_the_file(tmp_path):
                     '[[event]]\nat_s = 0\nkind = "lie-down"\nposture = "right-30"\n', encoding="utf-8")
     scene = load_scene(path)
     assert scene.grid == MatGrid(1000.0, 2000.0, 20.0) and scene.pressure_at(30.0).pressure_kpa.shape == (100, 50)
+
+
+def _cell(patch, placement: Placement, pitch_mm: float = 10.0) -> tuple[int, int]:
+    """(row, col) under a supine, unrotated patch's centre."""
+    return int((placement.y_mm + patch.s) // pitch_mm), int((placement.x_mm + patch.u) // pitch_mm)
+
+
+def test_heel_only_field_keeps_the_heels_at_their_whole_body_pressures():
+    subject, placement = Subject(), Placement("supine").on(MatGrid(), Subject())
+    heels = body_field(subject, placement, sites={"heel-left", "heel-right"}).pressure_kpa
+    whole = body_field(subject, placement).pressure_kpa
+    patches = {p.site: p for p in body_patches(subject, "supine")}
+    for site in ("sacrum", "occiput", "scapula-left", "buttock-right"):
+        assert heels[_cell(patches[site], placement)] == 0.0, site
+    assert whole[_cell(patches["sacrum"], placement)] > 3.0
+    for site in ("heel-left", "heel-right"):
+        row, col = _cell(patches[site], placement)
+        near = np.s_[row - 3:row + 4, col - 3:col + 4]
+        assert heels[near].max() == pytest.approx(whole[near].max(), rel=0.01), site
+    share = total_force_n(body_field(subject, placement, sites={"heel-left", "heel-right"})) / (75 * G_M_S2)
+    assert 0.01 < share < 0.1, f"the heels carry a small share of the weight, not all of it: {share:.3f}"
+    assert total_force_n(body_field(subject, placement)) == pytest.approx(75 * G_M_S2, rel=1e-12), \
+        "the whole-body field is unchanged by an earlier field limited to some sites"
+
+
+def test_heel_only_scenario_is_the_heel_field_all_night():
+    scene = load_scene("heel-only")
+    expected = body_field(scene.subject, Placement("supine"), sites={"heel-left", "heel-right"}).pressure_kpa
+    assert scene.sites == {"heel-left", "heel-right"}
+    assert np.array_equal(scene.pressure_at(3600.0).pressure_kpa, expected)
+    assert not scene.changes(60.0, scene.duration_s)
+
+
+def test_faults_are_parsed_and_sorted_by_time():
+    data = scenario()
+    data["fault"] = [{"at_s": 300, "electrode": 5, "kind": "reconnect"}, FAULT,
+                     {"at_s": 300, "electrode": 7, "kind": "disconnect"}]
+    scene = scene_from_mapping(data)
+    assert scene.faults == (ElectrodeFault(60.0, 5, False), ElectrodeFault(300.0, 5, True),
+                            ElectrodeFault(300.0, 7, False))
+    assert load_scene("supine-still").faults == ()

@@ -8,18 +8,20 @@ lost: it is appended to a dead-letter JSONL file with the reason, one record a
 line::
 
     {"dead_lettered_at": <unix time>, "notifier": "mqtt", "reason": "...",
-     "attempts": 3, "event_type": "AlarmEvent", "event": {...}}
+     "attempts": 3, "event": {...}}
 
 Delivery is at least once: a retry after a lost acknowledgement can repeat an
 event, so receivers de-duplicate on (``alarm_id``, ``kind``, ``time_s``).
 
 MQTT topics (``<prefix>`` is ``topic_prefix``, "appliance" by default)::
 
-    <prefix>/<bed_id>/alarm   QoS 1, not retained: one AlarmEvent as JSON
-                              {time_s, kind, alarm_id, key, category, priority,
-                               message, user, channel}
-    <prefix>/<bed_id>/turn    QoS 1, not retained: one TurnEvent as JSON
-                              {time_s, kind, relieved_share}
+    <prefix>/<bed_id>/alarm   QoS 1, not retained: one alarm Event as JSON
+                              {time_s, type: "alarm", kind, priority, category,
+                               key, region, region_id, alarm_id, message, user,
+                               channel}
+    <prefix>/<bed_id>/turn    QoS 1, not retained: one turn Event as JSON
+                              (the same fields; type "turn", kind repositioned,
+                               bed-empty or turn-due)
     <prefix>/<bed_id>/status  QoS 1, retained: "online" once connected; "offline"
                               on close, and as the last will when the connection
                               dies, so a dashboard sees a silent bed as offline.
@@ -29,7 +31,6 @@ An MQTT event counts as delivered only when the broker acknowledges it (PUBACK).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import queue
@@ -42,16 +43,11 @@ from pathlib import Path
 
 import paho.mqtt.client as mqtt
 
-from appliance.alerts.alarms import PRIORITIES, AlarmEvent
-from appliance.alerts.turns import TurnEvent
+from appliance.alerts.alarms import PRIORITIES
+from appliance.alerts.events import EVENT_TYPES, Event
 from appliance.drivers.bus import GPIOLines, LineRequest
 
 log = logging.getLogger(__name__)
-
-
-def event_payload(event) -> dict:
-    """The event's fields as a JSON-ready dict: the one payload every channel sends."""
-    return dataclasses.asdict(event)
 
 
 class Notifier(ABC):
@@ -89,8 +85,10 @@ class Notifier(ABC):
         self._worker.start()
         self._writer.start()
 
-    def notify(self, event) -> bool:
+    def notify(self, event: Event) -> bool:
         """Queue ``event`` for delivery and return at once; False if it went to the dead letters instead."""
+        if not isinstance(event, Event):
+            raise TypeError(f"notifiers send Event records, got {type(event).__name__}")
         if self._closing.is_set():
             self._dead_letter(event, "notifier closed", 0)
             return False
@@ -181,7 +179,7 @@ class Notifier(ABC):
         if self.dead_letter_path is None:
             return
         record = {"dead_lettered_at": when, "notifier": self.name, "reason": reason, "attempts": attempts,
-                  "event_type": type(event).__name__, "event": event_payload(event)}
+                  "event": event.to_dict()}
         with self.dead_letter_path.open("a", encoding="utf-8") as f:
             f.write(json.dumps(record) + "\n")
 
@@ -199,7 +197,7 @@ class MqttNotifier(Notifier):
     def __init__(self, host: str, port: int, bed_id: str, *, client_id: str, topic_prefix: str = "appliance",
                  keepalive_s: int = 30, publish_timeout_s: float = 5.0, **options):
         base = f"{topic_prefix}/{bed_id}"
-        self.topics = {AlarmEvent: f"{base}/alarm", TurnEvent: f"{base}/turn"}
+        self.topics = {kind: f"{base}/{kind}" for kind in EVENT_TYPES}
         self.status_topic = f"{base}/status"
         self.publish_timeout_s = publish_timeout_s
         self._client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id)
@@ -210,11 +208,6 @@ class MqttNotifier(Notifier):
         self._client.loop_start()
         super().__init__(**options)
 
-    def notify(self, event) -> bool:
-        if type(event) not in self.topics:
-            raise TypeError(f"MQTT notifier has no topic for {type(event).__name__}")
-        return super().notify(event)
-
     def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
         if reason_code.is_failure:
             log.warning("mqtt: broker refused the connection: %s", reason_code)
@@ -224,7 +217,7 @@ class MqttNotifier(Notifier):
     def _deliver(self, event) -> None:
         if not self._client.is_connected():
             raise ConnectionError("not connected to the broker")
-        info = self._client.publish(self.topics[type(event)], json.dumps(event_payload(event)), qos=1)
+        info = self._client.publish(self.topics[event.type], json.dumps(event.to_dict()), qos=1)
         info.wait_for_publish(self.publish_timeout_s)
         if not info.is_published():
             raise TimeoutError(f"no PUBACK within {self.publish_timeout_s} s")
@@ -251,7 +244,7 @@ class WebhookNotifier(Notifier):
         super().__init__(**options)
 
     def _deliver(self, event) -> None:
-        request = urllib.request.Request(self.url, data=json.dumps(event_payload(event)).encode(),
+        request = urllib.request.Request(self.url, data=json.dumps(event.to_dict()).encode(),
                                          headers={"Content-Type": "application/json"}, method="POST")
         try:
             with urllib.request.urlopen(request, timeout=self.timeout_s) as response:

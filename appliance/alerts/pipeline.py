@@ -19,7 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from appliance.alerts.alarms import AlarmCondition, AlarmEngine, AlarmEvent, Escalation
-from appliance.alerts.dose import DoseMap, tolerance_curve
+from appliance.alerts.dose import DoseMap, custom_curve, tolerance_curve
 from appliance.alerts.regions import RegionTracker
 from appliance.alerts.turns import DEFAULT_INTERVAL_S, TurnClock, TurnEvent
 from appliance.core.pixels import PixelGrid
@@ -30,10 +30,13 @@ ESCALATE_AFTER_S = 15 * 60.0
 
 @dataclass(frozen=True)
 class AlertSettings:
-    """What a ward configures: threshold, tolerance curve, dose at which to alarm, turn interval."""
+    """What a ward configures: threshold, tolerance curve (a built-in's name, or ``curve_points`` of
+    (minutes, mmHg) with ``curve`` naming them), dose at which to alarm, recovery, turn interval."""
 
     threshold_kpa: float = HIGH_PRESSURE_KPA
     curve: str = "reswick-rogers"
+    curve_points: tuple[tuple[float, float], ...] | None = None
+    recovery: str = "reset"
     alarm_dose: float = 1.0
     turn_interval_s: float = DEFAULT_INTERVAL_S
     escalate_after_s: float = ESCALATE_AFTER_S
@@ -54,17 +57,27 @@ def technical_alarms(conditions) -> dict[str, str]:
     return {f"technical:{c.part.replace(' ', ':')}": f"{c.part}: {c.message}" for c in conditions}
 
 
+def _technical(technical: dict[str, str] | None) -> dict:
+    return {key: (AlarmCondition(key, "technical", "medium", False, message), None)
+            for key, message in (technical or {}).items()}
+
+
 class AlertPipeline:
     """Regions, dose, turns and alarms for one mat's pixel grid."""
 
     def __init__(self, grid: PixelGrid, settings: AlertSettings = AlertSettings()):
         self.grid, self.settings = grid, settings
-        self.curve = tolerance_curve(settings.curve, floor_kpa=settings.threshold_kpa)
+        if settings.curve_points:
+            self.curve = custom_curve(settings.curve_points, name=settings.curve, floor_kpa=settings.threshold_kpa)
+        else:
+            self.curve = tolerance_curve(settings.curve, floor_kpa=settings.threshold_kpa)
         self.regions = RegionTracker(grid, threshold_kpa=settings.threshold_kpa)
-        self.dose = DoseMap(grid.shape, self.curve)
+        self.dose = DoseMap(grid.shape, self.curve, recovery=settings.recovery)
         self.turns = TurnClock(interval_s=settings.turn_interval_s, at_risk_kpa=settings.threshold_kpa)
         self.engine = AlarmEngine()
         self.last_time_s: float | None = None
+        self.clinical: dict[str, tuple[AlarmCondition, str | None]] = {}   # the last map's clinical conditions
+        self.tracked: list = []                                              # the last map's regions
 
     def update(self, pressure_map: PressureMap, technical: dict[str, str] | None = None) -> FrameAlerts:
         """One frame; ``technical`` maps a technical condition's key (``"technical:electrode:5"``) to its
@@ -73,7 +86,7 @@ class AlertPipeline:
         if self.last_time_s is not None and now > self.last_time_s:
             self.dose.update(pressure_map.pressure_kpa, now - self.last_time_s)
         self.last_time_s = now
-        tracked = self.regions.update(pressure_map)
+        tracked = self.tracked = self.regions.update(pressure_map)
         doses = {r.id: self.dose.fraction(r.mask) for r in tracked}
         turn_events = self.turns.update(pressure_map)
         active = {}
@@ -85,9 +98,16 @@ class AlertPipeline:
         if due is not None and due <= 0:
             condition = AlarmCondition("turn:due", "clinical", "low", False, "repositioning is due")
             active[condition.key] = (condition, f"{max(0.0, -due) / 60:.0f} min overdue")
-        for key, message in (technical or {}).items():
-            active[key] = (AlarmCondition(key, "technical", "medium", False, message), None)
-        return FrameAlerts(self.engine.assess(now, active), turn_events, doses)
+        self.clinical = dict(active)
+        return FrameAlerts(self.engine.assess(now, {**active, **_technical(technical)}), turn_events, doses)
+
+    def hold(self, now_s: float, technical: dict[str, str]) -> FrameAlerts:
+        """A frame time with no map: technical alarms move on, clinical ones stay as the last map left them.
+
+        Without a map nothing is known of the skin, so no clinical alarm may end
+        for want of data; the dose of the gap is added with the next map.
+        """
+        return FrameAlerts(self.engine.assess(now_s, {**self.clinical, **_technical(technical)}), [])
 
     def _pressure_condition(self, region) -> AlarmCondition:
         site = region.zone or "region"
@@ -99,7 +119,8 @@ class AlertPipeline:
     def state(self) -> dict:
         """Everything needed to carry on after a restart, as plain JSON types."""
         return {"regions": self.regions.state(), "dose": self.dose.state(), "turns": self.turns.state(),
-                "alarms": self.engine.state(), "last_time_s": self.last_time_s}
+                "alarms": self.engine.state(), "last_time_s": self.last_time_s,
+                "clinical": [[c.to_dict(), detail] for c, detail in self.clinical.values()]}
 
     @classmethod
     def from_state(cls, grid: PixelGrid, state: dict, settings: AlertSettings = AlertSettings()) -> "AlertPipeline":
@@ -110,4 +131,5 @@ class AlertPipeline:
                                               at_risk_kpa=settings.threshold_kpa)
         pipeline.engine = AlarmEngine.from_state(state["alarms"])
         pipeline.last_time_s = state["last_time_s"]
+        pipeline.clinical = {c["key"]: (AlarmCondition.from_dict(c), detail) for c, detail in state.get("clinical", [])}
         return pipeline

@@ -97,6 +97,23 @@ class AcquiredFrame:
         return (self.flags & int(UNUSABLE)) == 0
 
 
+SATURATION_PART = "measuring channel"
+
+
+def saturation_condition(flags: np.ndarray, protocol: Protocol) -> TechnicalCondition | None:
+    """The condition readings over range at the lowest gain raise, naming the measuring electrodes most
+    involved (where to look for a bad contact or a short); None when no reading saturated."""
+    saturated = (np.asarray(flags) & int(Flag.SATURATED)) != 0
+    if not saturated.any():
+        return None
+    electrodes = protocol.readings[saturated][:, 2:].ravel()
+    counts = np.bincount(electrodes, minlength=protocol.n_electrodes + 1)
+    worst = [int(e) for e in np.flatnonzero(counts == counts.max())]
+    return TechnicalCondition(
+        SATURATION_PART, f"{int(saturated.sum())} readings over range even at the lowest gain; measuring "
+        f"electrode(s) most involved: {', '.join(map(str, worst))}")
+
+
 @dataclass
 class _Tally:
     """What one scan gathers, in protocol order."""
@@ -177,7 +194,9 @@ class ScanEngine:
             self._safe_state(conditions)
         self._check_drives(tally, conditions)
         self._check_reciprocity(tally, conditions)
-        self._report_saturation(tally, conditions)
+        saturation = saturation_condition(tally.flags, self.protocol)
+        if saturation is not None:
+            conditions.append(saturation)
         self._update_plan(tally)
         volts = np.where((tally.flags & int(UNUSABLE)) == 0, tally.volts, np.nan)
         if not np.isfinite(volts).any():
@@ -293,17 +312,6 @@ class ScanEngine:
         if bad:
             conditions.append(TechnicalCondition("measurement", f"{bad} of {len(pairs)} reciprocal pairs disagree "
                                                  "beyond the stated accuracy"))
-
-    def _report_saturation(self, tally: _Tally, conditions) -> None:
-        saturated = (tally.flags & int(Flag.SATURATED)) != 0
-        if not saturated.any():
-            return
-        electrodes = self.protocol.readings[saturated][:, 2:].ravel()
-        counts = np.bincount(electrodes, minlength=self.protocol.n_electrodes + 1)
-        worst = [int(e) for e in np.flatnonzero(counts == counts.max())]
-        conditions.append(TechnicalCondition(
-            "measuring channel", f"{int(saturated.sum())} readings over range even at the lowest gain; measuring "
-            f"electrode(s) most involved: {', '.join(map(str, worst))}"))
 
     def _update_plan(self, tally: _Tally) -> None:
         fresh = tally.ranges >= 0

@@ -3,15 +3,14 @@
 It holds the pieces fixed at start-up (the reconstruction model, the pressure
 calibration, the reference frame) and refuses a calibration that does not fit
 the model's layout and reconstruction, so a running appliance never reads
-pressure through another mat's calibration. A frame that cannot be taken (a
-bus or scan fault) is reported and the loop goes on with the next one.
+pressure through another mat's calibration. The loop around it, and what a
+frame that cannot be taken becomes, is the daemon's (:mod:`appliance.service.daemon`).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -19,16 +18,28 @@ from appliance.core.iterative import affordable_iterate
 from appliance.core.model_cache import ReconstructionModel
 from appliance.core.pressure import PressureCalibration, temperature_corrected
 from appliance.core.pressure_map import PressureMap, pressure_map
-from appliance.errors import ApplianceError, ConfigError
+from appliance.drivers.scan import SATURATION_PART, Flag, TechnicalCondition
+from appliance.errors import ConfigError
 
 
-@dataclass(frozen=True)
-class Fault:
-    """A frame that could not be taken or imaged, and why."""
+SATURATION_ALARM_SHARE = 0.05
+"""Saturated readings are left out of the image; only when more than this share of a frame is lost
+to them (a short, a failing gain stage, a load far beyond the mat's range) does the image suffer enough
+for a technical alarm. A lateral tilt on the bed saturates up to 6 of 6020 readings (0.1 %)."""
 
-    time_s: float
-    message: str
-    consecutive: int
+
+def alarm_worthy(frame) -> tuple[TechnicalCondition, ...]:
+    """The frame's technical conditions that stop or degrade monitoring: every one but a few saturated
+    readings, which become ``saturation`` only above ``SATURATION_ALARM_SHARE``."""
+    conditions = tuple(c for c in getattr(frame, "conditions", ()) if c.part != SATURATION_PART)
+    flags = getattr(frame, "flags", None)
+    if flags is None:
+        return conditions
+    saturated = int(np.count_nonzero(np.asarray(flags) & int(Flag.SATURATED)))
+    if saturated > SATURATION_ALARM_SHARE * len(flags):
+        conditions += (TechnicalCondition("saturation", f"{saturated} of {len(flags)} readings over range even at "
+                                                        "the lowest gain: the map is degraded"),)
+    return conditions
 
 
 class Monitor:
@@ -46,7 +57,7 @@ class Monitor:
         self.iterate = iterate or calibration.notes.get("iterate") or affordable_iterate(setup.layout.n_electrodes)
         self.reference: np.ndarray | None = None
         self.reference_temperature_c: float | None = None
-        self.conditions: tuple = ()         # the technical conditions of the last frame acquired
+        self.conditions: tuple = ()         # the alarm-worthy technical conditions of the last frame acquired
 
     def take_reference(self, frame=None) -> None:
         """The empty mat (``frame``, or the next one acquired): every map is a change from it."""
@@ -61,7 +72,7 @@ class Monitor:
         if self.reference is None:
             raise ConfigError("the monitor has no reference frame yet (take_reference first)")
         frame = self.acquire()
-        self.conditions = tuple(getattr(frame, "conditions", ()))
+        self.conditions = alarm_worthy(frame)
         volts = frame.volts
         if self.reference_temperature_c is not None:
             volts = temperature_corrected(volts, frame.temperature_c, self.reference_temperature_c)
@@ -69,27 +80,3 @@ class Monitor:
         return pressure_map(image, self.calibration, self.model.reconstructor.grid,
                             time_s=getattr(frame, "time_s", time.monotonic()), temperature_c=frame.temperature_c,
                             usable_readings=info["usable_readings"])
-
-    def run(self, on_map: Callable[[PressureMap], None], *, frames: int | None = None,
-            on_fault: Callable[[Fault], None] | None = None, pace: Callable[[], None] | None = None,
-            should_stop: Callable[[], bool] = lambda: False) -> int:
-        """Maps to ``on_map`` until ``frames`` were made or ``should_stop()``; faults go to ``on_fault``.
-
-        ``pace()`` is called before each frame (to keep a frame rate). Returns the
-        number of maps made.
-        """
-        made = consecutive = 0
-        while (frames is None or made < frames) and not should_stop():
-            if pace is not None:
-                pace()
-            try:
-                result = self.next_map()
-            except (ApplianceError, OSError) as exc:
-                consecutive += 1
-                if on_fault is not None:
-                    on_fault(Fault(time.monotonic(), f"{type(exc).__name__}: {exc}", consecutive))
-                continue
-            consecutive = 0
-            made += 1
-            on_map(result)
-        return made

@@ -10,6 +10,8 @@ the data directory under the layout's and reconstruction's name.
 from __future__ import annotations
 
 import os
+import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -33,17 +35,48 @@ def default_data_dir() -> Path:
 
 
 class VirtualBedSource:
-    """``scene`` on ``layout``'s simulated mat, read every ``frame_interval_s`` of scene time."""
+    """``scene`` on ``layout``'s simulated mat, read every ``frame_interval_s`` of scene time.
+
+    As the monitor daemon's frame source it runs on scene time: a frame every
+    ``frame_interval_s / speed`` wall seconds (``speed`` 0: no waiting), ending
+    with the scene, and resuming after a restart at the frame after the last one
+    the store holds.
+    """
 
     def __init__(self, layout: Layout, scene: Scene, protocol, *, seed: int = 0, frame_interval_s: float = 1.0,
-                 **bed_options):
+                 speed: float = 0.0, **bed_options):
         self.scene = scene
         self.bed = VirtualBed(layout, scene, **bed_options)
         self.front_end = VirtualFrontEnd(self.bed, protocol, seed=seed, frame_interval_s=frame_interval_s)
         self.place = placer(self.bed)
+        self.period_s = frame_interval_s / speed if speed > 0 else 0.0
+        self._next_wall: float | None = None
 
     def acquire(self):
         return self.front_end.acquire()
+
+    def now(self) -> float:
+        """The scene time of the next frame."""
+        return self.front_end.time_s
+
+    def wait_for_frame(self, stop: threading.Event) -> bool:
+        """Wait for the next frame's turn; False when the scene is over or ``stop`` was set meanwhile."""
+        if self.front_end.time_s > self.scene.duration_s:
+            return False
+        now = time.monotonic()
+        if self._next_wall is not None and self._next_wall > now and stop.wait(self._next_wall - now):
+            return False
+        self._next_wall = max(now, self._next_wall or now) + self.period_s
+        return True
+
+    def resume_after(self, time_s: float) -> None:
+        """Carry on with the frame after scene time ``time_s`` (the last one recorded before a restart)."""
+        self.start_scene()
+        self.front_end.time_s = time_s + self.front_end.frame_interval_s
+
+    def reference(self):
+        """The empty-mat reference the daemon takes on a fresh start."""
+        return self.empty_reference()
 
     def empty_reference(self):
         """A frame of the empty mat; the patient's scene then starts from its beginning."""
@@ -55,6 +88,7 @@ class VirtualBedSource:
     def start_scene(self) -> None:
         self.bed.set_scene(self.scene)
         self.front_end.time_s = 0.0
+        self.front_end.schedule_faults(self.scene.faults)
 
     def calibration(self, model: ReconstructionModel, path: Path, *,
                     progress: Callable | None = None) -> tuple[PressureCalibration, bool]:

@@ -5,7 +5,10 @@ soft edges) at the sites that carry load: occiput, scapulae, back, sacrum,
 buttocks, thighs, calves, heels and the arms beside the trunk; a 30-degree
 lateral tilt adds the loaded side's shoulder and trochanter and the wedge
 behind the back, and a raised head of bed moves trunk load onto the pelvis.
-The whole field is scaled so that sum(p * cell area) = m g exactly.
+The whole field is scaled so that sum(p * cell area) = m g exactly. A field
+limited to some ``sites`` (the heels alone on the mat, the rest of the body on
+another surface) keeps those patches at their whole-body pressures, so its force
+is their share of m g.
 
 Peaks aimed at (75 kg, 175 cm, standard foam), clinical-anchors.md section 2.5:
 
@@ -194,6 +197,8 @@ def _head_raised(angle_deg: float):
 
 _TABLES = {"supine": _SUPINE, "left-30": _LEFT_30, "right-30": _mirrored(_LEFT_30),
            "head-raised-30": _head_raised(30.0), "head-raised-45": _head_raised(45.0)}
+SITES = tuple(sorted({p.site for table in _TABLES.values() for p in table}))
+"""Every anatomical site a posture loads; a posture loads only some of them."""
 
 
 def _surface_factor(surface: str) -> float:
@@ -241,11 +246,13 @@ def outline_box_mm(subject: Subject, placement: Placement, grid: MatGrid = BED_G
 
 
 def body_field(subject: Subject = Subject(), placement: Placement = Placement(), grid: MatGrid = BED_GRID,
-               surface: str = "standard-foam") -> PressureField:
-    """The field ``subject`` presses into the mat in ``placement``; total force m g exactly.
+               surface: str = "standard-foam", sites: frozenset[str] | None = None) -> PressureField:
+    """The field ``subject`` presses into the mat in ``placement``; total force m g exactly, or, with
+    ``sites``, only those sites' patches at their whole-body pressures.
 
-    Raises ModelInputInvalid when the body's outline leaves the mat.
+    Raises ModelInputInvalid when the body's whole outline leaves the mat or a site is unknown.
     """
+    sites = check_sites(sites)
     placement = placement.on(grid, subject)
     x0, y0, x1, y1 = outline_box_mm(subject, placement, grid, surface)
     if x0 < 0 or y0 < 0 or x1 > grid.width_mm or y1 > grid.height_mm:
@@ -253,23 +260,40 @@ def body_field(subject: Subject = Subject(), placement: Placement = Placement(),
             f"a {subject.height_cm:g} cm, {subject.weight_kg:g} kg body {placement.posture} at "
             f"({placement.x_mm:g}, {placement.y_mm:g}) mm, turned {placement.rotation_deg:g} deg, reaches "
             f"x {x0:.0f} to {x1:.0f}, y {y0:.0f} to {y1:.0f} mm: off the {grid.width_mm:g} x {grid.height_mm:g} mm mat")
-    return PressureField(_cached_field(subject, placement, grid, surface).copy(), grid.pitch_mm)
+    return PressureField(_cached_field(subject, placement, grid, surface, sites).copy(), grid.pitch_mm)
+
+
+def check_sites(sites) -> frozenset[str] | None:
+    """``sites`` as a frozenset (None: the whole body); unknown names and an empty set are refused."""
+    if sites is None:
+        return None
+    sites = frozenset(sites)
+    if not sites:
+        raise ModelInputInvalid(f"no site on the mat: give at least one of {', '.join(SITES)}")
+    unknown = sorted(sites - set(SITES))
+    if unknown:
+        raise ModelInputInvalid(f"unknown site {unknown[0]!r}: use one of {', '.join(SITES)}")
+    return sites
 
 
 @functools.lru_cache(maxsize=64)
-def _cached_field(subject, placement, grid, surface) -> np.ndarray:
+def _cached_field(subject, placement, grid, surface, sites) -> np.ndarray:
     rows, cols = grid.shape
     k = max(1, math.ceil(grid.pitch_mm / 5.0))         # sub-samples per cell side: cell averages
     sub = (np.arange(k) + 0.5) / k * grid.pitch_mm
     y = (np.arange(rows)[:, None] * grid.pitch_mm + sub[None, :]).ravel()
     x = (np.arange(cols)[:, None] * grid.pitch_mm + sub[None, :]).ravel()
     s, u = _frame(placement, x[None, :], y[:, None])
-    fine = np.zeros_like(s)
+    fine, kept = np.zeros_like(s), np.zeros_like(s)
     for p in body_patches(subject, placement.posture, surface):
         r2 = ((u - p.u) / p.a_u) ** 2 + ((s - p.s) / p.a_s) ** 2
-        fine += p.peak * np.exp(-(r2**2))
-    cells = fine.reshape(rows, k, cols, k).mean(axis=(1, 3))
-    cells *= subject.weight_kg * G_M_S2 / (cells.sum() * grid.pitch_mm**2 * 1e-3)
+        patch = p.peak * np.exp(-(r2**2))
+        fine += patch
+        if sites is not None and p.site in sites:
+            kept += patch
+    whole = fine.reshape(rows, k, cols, k).mean(axis=(1, 3))
+    scale = subject.weight_kg * G_M_S2 / (whole.sum() * grid.pitch_mm**2 * 1e-3)
+    cells = (whole if sites is None else kept.reshape(rows, k, cols, k).mean(axis=(1, 3))) * scale
     cells.setflags(write=False)
     return cells
 

@@ -8,15 +8,17 @@ calibration procedures and the monitor use with a real scan engine.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
 
 from appliance.core.protocols import Protocol
 from appliance.drivers.profile import BoardProfile, board_profile
-from appliance.drivers.scan import UNUSABLE, Flag, TechnicalCondition
+from appliance.drivers.scan import UNUSABLE, Flag, TechnicalCondition, saturation_condition
 from appliance.sim.bed import VirtualBed
 from appliance.sim.chain import FrameChain
+from appliance.sim.scenes import ElectrodeFault
 
 # The mat's liquid layer (7 mm at 1.25 S/m, 0.0094 S) conducts half as well as the
 # saline sheet the board's 2 mA was chosen for; 1 mA keeps an empty mat's largest
@@ -45,25 +47,60 @@ class VirtualFrontEnd:
             raise ValueError(f"protocol for {protocol.n_electrodes} electrodes on a {bed.n_electrodes}-electrode mat")
         self.bed, self.protocol = bed, protocol
         self.chain = FrameChain(profile or board_profile(VIRTUAL_MAT_BOARD), seed=seed)
+        self.seed = seed
+        self._noise_key: tuple[int, int] = (-1, -1)        # (scene ms, frames already taken at that instant)
         self.frame_interval_s = frame_interval_s
         self.time_s = start_s
         self.open_electrodes: set[int] = set()
+        self.pending_faults: list[ElectrodeFault] = []
 
     def disconnect(self, electrode: int) -> None:
         """Lose an electrode's contact (a lead pulled off): from the next frame its readings are flagged
         and left out, as the scan engine's contact check leaves them out."""
+        self.open_electrodes.add(self._checked(electrode))
+
+    def reconnect(self, electrode: int) -> None:
+        """Restore an electrode's contact: from the next frame its readings are used again."""
+        self.open_electrodes.discard(self._checked(electrode))
+
+    def schedule_faults(self, faults: Iterable[ElectrodeFault]) -> None:
+        """Play ``faults`` (a scene's electrode faults) as scene time passes, in place of any earlier
+        schedule and with every electrode connected; an electrode beyond the mat is refused."""
+        faults = sorted(faults, key=lambda f: f.at_s)
+        for fault in faults:
+            self._checked(fault.electrode)
+        self.pending_faults = faults
+        self.open_electrodes.clear()
+
+    def _seed_noise(self, t: float) -> None:
+        """Noise drawn from the frame's scene time (and how many frames came before it at that instant),
+        so a monitor restarted mid-scene reads the very frames an uninterrupted one would have."""
+        ms = int(round(t * 1000))
+        repeat = self._noise_key[1] + 1 if self._noise_key[0] == ms else 0
+        self._noise_key = (ms, repeat)
+        self.chain.rng = np.random.default_rng([self.seed, ms, repeat])
+
+    def _checked(self, electrode: int) -> int:
         if not 1 <= electrode <= self.bed.n_electrodes:
             raise ValueError(f"electrode {electrode} is not on this {self.bed.n_electrodes}-electrode mat")
-        self.open_electrodes.add(electrode)
+        return electrode
 
     def acquire(self) -> VirtualFrame:
-        """The next frame; scene time moves on by one frame interval."""
+        """The next frame, after the scheduled faults due by its time; scene time moves on by one frame
+        interval."""
         t = self.time_s
+        while self.pending_faults and self.pending_faults[0].at_s <= t:
+            fault = self.pending_faults.pop(0)
+            (self.reconnect if fault.connected else self.disconnect)(fault.electrode)
+        self._seed_noise(t)
         volts, flags = self.chain.readings(self.bed.transfer_ohm(t), self.protocol)
         conditions = []
         for electrode in sorted(self.open_electrodes):
             flags[(self.protocol.readings == electrode).any(axis=1)] |= Flag.OPEN_ELECTRODE
             conditions.append(TechnicalCondition(f"electrode {electrode}", "no contact: its readings are left out"))
+        saturation = saturation_condition(flags, self.protocol)
+        if saturation is not None:
+            conditions.append(saturation)
         volts = np.where((flags & int(UNUSABLE)) == 0, volts, np.nan)
         self.time_s += self.frame_interval_s
         return VirtualFrame(volts, flags, self.bed.temperature_at(t), t, tuple(conditions))

@@ -45,7 +45,7 @@ from scipy.ndimage import maximum_filter, median_filter
 from appliance.errors import DataFileInvalid
 from appliance.sim.body import BED_GRID, G_M_S2, MatGrid
 from appliance.sim.field import KPA_PER_MMHG, PressureField
-from appliance.sim.scenes import Scene
+from appliance.sim.scenes import ElectrodeFault, Scene
 
 PMAT_SHAPE, PMAT_SENSEL_MM, PMAT_SATURATED = (64, 32), 28.5, 4095
 POPU_SHAPE, POPU_SENSEL_MM, POPU_SNAPSHOT_S = (64, 27), 31.75, 0.5
@@ -53,12 +53,17 @@ _RING = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], dtype=bool)
 
 
 class RecordedScene(Scene):
-    """Frames (kPa, on ``grid``) held from each of ``times_s`` to the next; ``info`` says where they came from."""
+    """Frames (kPa, on ``grid``) held from each of ``times_s`` to the next; ``info`` says where they came from.
 
-    def __init__(self, frames_kpa: np.ndarray, times_s: np.ndarray, grid: MatGrid, info: dict):
+    The last frame is held for one median frame step, or until ``duration_s`` when given.
+    """
+
+    def __init__(self, frames_kpa: np.ndarray, times_s: np.ndarray, grid: MatGrid, info: dict, *,
+                 duration_s: float | None = None, faults: tuple[ElectrodeFault, ...] = ()):
         self.frames, self.times_s, self.grid, self.info = frames_kpa, np.asarray(times_s, float), grid, info
         step = float(np.median(np.diff(self.times_s))) if len(self.times_s) > 1 else 1.0
-        self.duration_s = float(self.times_s[-1] + step)
+        self.duration_s = float(self.times_s[-1] + step if duration_s is None else duration_s)
+        self.faults = tuple(sorted(faults, key=lambda f: f.at_s))
 
     def _index(self, t_s: float) -> int:
         return max(0, int(np.searchsorted(self.times_s, t_s, side="right")) - 1)

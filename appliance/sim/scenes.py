@@ -18,10 +18,32 @@ a turn and falls to zero as the patient leaves. Scenarios are TOML files::
     kind = "lie-down"
     posture = "supine"
 
+``[scene] sites = ["heel-left", "heel-right"]`` keeps only those sites' patches,
+at their whole-body pressures (the rest of the body lies on another surface).
+Electrode faults play on any scene, sorted by time::
+
+    [[fault]]
+    at_s = 3600
+    electrode = 5            # 1-based
+    kind = "disconnect"      # or "reconnect"
+
+Instead of events, a file may hold recorded segments played one after another,
+each from the start of its recording, its last frame held ``hold_s`` after it
+ends; the scene lasts the segments' total (``[scene] duration_s`` may lengthen
+it). ``dir`` is taken relative to the scenario file's folder::
+
+    [[recording]]
+    source = "pmatdata"
+    dir = "../shared/data/pmatdata"
+    subject = 1
+    posture = 1              # experiment I posture file, 1 to 17
+    hold_s = 600
+
 Unknown keys and kinds, negative or overlapping times and positions off the mat
-are refused with the event's number and field. A change box is conservative: it
-holds every cell that moved by more than ``CHANGE_TOLERANCE_KPA`` at any time
-between the two instants, even when the field came back.
+are refused with the event's (fault's, segment's) number and field. A change box
+is conservative: it holds every cell that moved by more than
+``CHANGE_TOLERANCE_KPA`` at any time between the two instants, even when the
+field came back.
 
 >>> scene = load_scene("supine-still")
 >>> scene.changes(600.0, 1200.0), scene.pressure_at(600.0).pressure_kpa.shape
@@ -39,8 +61,8 @@ from pathlib import Path
 import numpy as np
 
 from appliance.core.toml_files import read_toml
-from appliance.errors import ConfigError, ModelInputInvalid
-from appliance.sim.body import BED_GRID, POSTURES, SURFACES, MatGrid, Placement, Subject, body_field
+from appliance.errors import ConfigError, DataFileInvalid, ModelInputInvalid
+from appliance.sim.body import BED_GRID, POSTURES, SURFACES, MatGrid, Placement, Subject, body_field, check_sites
 from appliance.sim.field import PressureField
 
 CHANGE_TOLERANCE_KPA = 0.01
@@ -52,14 +74,30 @@ EVENT_FIELDS = {"lie-down": _PLACE, "return": _PLACE, "turn": {"posture", "trans
                 "shift": {"dx_mm", "dy_mm", "rotation_deg", "transition_s"}, "leave": {"transition_s"},
                 "still": {"duration_s"}}
 SCENE_FIELDS = {"description", "width_mm", "height_mm", "pitch_mm", "weight_kg", "height_cm", "surface",
-                "duration_s"}
+                "duration_s", "sites"}
+RECORDED_SCENE_FIELDS = {"description", "width_mm", "height_mm", "pitch_mm", "duration_s"}
+FAULT_FIELDS = {"at_s", "electrode", "kind"}
+FAULT_KINDS = {"disconnect": False, "reconnect": True}
+RECORDING_FIELDS = {"source", "dir", "subject", "posture", "hold_s"}
+PMAT_POSTURES = range(1, 18)
+
+
+@dataclass(frozen=True)
+class ElectrodeFault:
+    """From ``at_s`` on, ``electrode`` (1-based) has contact (``connected``) or has lost it."""
+
+    at_s: float
+    electrode: int
+    connected: bool
 
 
 class Scene:
-    """A timeline of pressure fields on ``grid`` lasting ``duration_s``."""
+    """A timeline of pressure fields on ``grid`` lasting ``duration_s``, with the electrode faults a
+    simulated front end plays alongside."""
 
     grid: MatGrid
     duration_s: float
+    faults: tuple[ElectrodeFault, ...] = ()
 
     def pressure_at(self, t_s: float) -> PressureField:
         raise NotImplementedError
@@ -104,11 +142,14 @@ class Step:
 
 
 class BodyScene(Scene):
-    """A subject on the mat through a list of non-overlapping steps; the bed is empty before the first."""
+    """A subject on the mat through a list of non-overlapping steps; the bed is empty before the first.
+    With ``sites``, only those sites load the mat."""
 
     def __init__(self, subject: Subject, steps: list[Step], grid: MatGrid = BED_GRID,
-                 surface: str = "standard-foam", duration_s: float | None = None):
+                 surface: str = "standard-foam", duration_s: float | None = None,
+                 sites: frozenset[str] | None = None, faults: tuple[ElectrodeFault, ...] = ()):
         self.subject, self.steps, self.grid, self.surface = subject, list(steps), grid, surface
+        self.sites, self.faults = check_sites(sites), tuple(sorted(faults, key=lambda f: f.at_s))
         end = max((s.end_s for s in self.steps), default=0.0)
         self.duration_s = float(end if duration_s is None else duration_s)
         if self.duration_s <= 0 or self.duration_s < end:
@@ -118,7 +159,7 @@ class BodyScene(Scene):
     def _field(self, placement: Placement | None) -> np.ndarray:
         if placement is None:
             return np.zeros(self.grid.shape)
-        return body_field(self.subject, placement, self.grid, self.surface).pressure_kpa
+        return body_field(self.subject, placement, self.grid, self.surface, self.sites).pressure_kpa
 
     def pressure_at(self, t_s: float) -> PressureField:
         self._check_times(t_s)
@@ -146,25 +187,33 @@ def builtin_scenes() -> tuple[str, ...]:
     return tuple(sorted(f.name[:-5] for f in folder.iterdir() if f.name.endswith(".toml")))
 
 
-def load_scene(path) -> BodyScene:
+def load_scene(path) -> Scene:
     """The scene in TOML file ``path``, or the built-in scenario of that name."""
     if str(path) in builtin_scenes():
-        text = resources.files("appliance.sim").joinpath(f"scenarios/{path}.toml").read_text(encoding="utf-8")
-        data, where = tomllib.loads(text), f"built-in scenario {path}"
+        file = resources.files("appliance.sim").joinpath(f"scenarios/{path}.toml")
+        data, where = tomllib.loads(file.read_text(encoding="utf-8")), f"built-in scenario {path}"
+        folder = Path(str(file)).parent
     else:
         data, where = read_toml(Path(path), "scenario file", ConfigError), f"scenario file {path}"
+        folder = Path(path).parent
     try:
-        return scene_from_mapping(data)
-    except ConfigError as exc:
-        raise ConfigError(f"{where}: {exc}") from None
+        return scene_from_mapping(data, folder)
+    except (ConfigError, DataFileInvalid) as exc:
+        raise type(exc)(f"{where}: {exc}") from None
 
 
-def scene_from_mapping(data: dict) -> BodyScene:
-    """Build a scene from parsed TOML; every bad key, kind, time or position is named."""
-    _only(data, {"scene", "event"}, "the scenario")
+def scene_from_mapping(data: dict, folder: Path = Path(".")) -> Scene:
+    """Build a scene from parsed TOML, recording paths taken from ``folder``; every bad key, kind,
+    time or position is named."""
+    _only(data, {"scene", "event", "recording", "fault"}, "the scenario")
     head = data.get("scene", {})
     if not isinstance(head, dict):
         raise ConfigError("[scene] must be a table")
+    faults = _faults(data.get("fault", []))
+    if "recording" in data:
+        if "event" in data:
+            raise ConfigError("a scenario holds either [[event]]s or [[recording]]s, not both")
+        return _recorded_scene(head, data["recording"], faults, folder)
     _only(head, SCENE_FIELDS, "[scene]")
     surface = head.get("surface", "standard-foam")
     if not isinstance(head.get("description", ""), str):
@@ -172,9 +221,9 @@ def scene_from_mapping(data: dict) -> BodyScene:
     if not isinstance(surface, str) or surface not in SURFACES:
         raise ConfigError(f"[scene] surface must be one of {', '.join(SURFACES)}, got {surface!r}")
     try:
-        grid = MatGrid(*(_number(head, k, "[scene]", d) for k, d in
-                         (("width_mm", 900.0), ("height_mm", 1900.0), ("pitch_mm", 10.0))))
+        grid = _grid(head)
         subject = Subject(_number(head, "weight_kg", "[scene]", 75.0), _number(head, "height_cm", "[scene]", 175.0))
+        sites = _sites(head)
     except ModelInputInvalid as exc:
         raise ConfigError(f"[scene]: {exc}") from None
     events = data.get("event", [])
@@ -187,7 +236,93 @@ def scene_from_mapping(data: dict) -> BodyScene:
         raise ConfigError(f"[scene] duration_s = {duration:g} ends before the last event, at {end:g} s")
     if duration <= 0:
         raise ConfigError("the scene has no length: give [scene] duration_s or a still event")
-    return BodyScene(subject, steps, grid, surface, duration)
+    _check_fault_times(faults, duration)
+    return BodyScene(subject, steps, grid, surface, duration, sites, faults)
+
+
+def _grid(head: dict) -> MatGrid:
+    return MatGrid(*(_number(head, k, "[scene]", d) for k, d in
+                     (("width_mm", 900.0), ("height_mm", 1900.0), ("pitch_mm", 10.0))))
+
+
+def _sites(head: dict) -> frozenset[str] | None:
+    if "sites" not in head:
+        return None
+    sites = head["sites"]
+    if not isinstance(sites, list) or not all(isinstance(site, str) for site in sites):
+        raise ConfigError(f"[scene] sites must be a list of site names, got {sites!r}")
+    return check_sites(sites)
+
+
+def _faults(entries) -> tuple[ElectrodeFault, ...]:
+    if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+        raise ConfigError("[[fault]] entries must be tables")
+    faults = []
+    for n, entry in enumerate(entries, start=1):
+        where = f"fault {n}"
+        _only(entry, FAULT_FIELDS, where)
+        at = _number(entry, "at_s", where, None)
+        if at < 0:
+            raise ConfigError(f"{where}: at_s must not be negative, got {at:g}")
+        electrode = entry.get("electrode")
+        if isinstance(electrode, bool) or not isinstance(electrode, int) or electrode < 1:
+            raise ConfigError(f"{where}: electrode must be an electrode number (an integer from 1), "
+                              f"got {electrode!r}")
+        kind = entry.get("kind")
+        if kind not in FAULT_KINDS:
+            raise ConfigError(f"{where}: kind must be one of {', '.join(FAULT_KINDS)}, got {kind!r}")
+        faults.append(ElectrodeFault(at, electrode, FAULT_KINDS[kind]))
+    return tuple(sorted(faults, key=lambda f: f.at_s))
+
+
+def _check_fault_times(faults: tuple[ElectrodeFault, ...], duration_s: float) -> None:
+    late = [f for f in faults if f.at_s > duration_s]
+    if late:
+        raise ConfigError(f"a fault at {late[0].at_s:g} s comes after the scene's end, at {duration_s:g} s")
+
+
+def _recorded_scene(head: dict, segments, faults: tuple[ElectrodeFault, ...], folder: Path) -> Scene:
+    """PmatData recordings played one after another on the [scene] grid."""
+    from appliance.sim.recordings import RecordedScene, pmat_scene    # recordings builds on this module
+
+    _only(head, RECORDED_SCENE_FIELDS, "[scene]")
+    try:
+        grid = _grid(head)
+    except ModelInputInvalid as exc:
+        raise ConfigError(f"[scene]: {exc}") from None
+    if not isinstance(segments, list) or not segments or not all(isinstance(e, dict) for e in segments):
+        raise ConfigError("[[recording]] entries must be tables, at least one")
+    frames, times, infos, start = [], [], [], 0.0
+    for n, segment in enumerate(segments, start=1):
+        where = f"recording {n}"
+        _only(segment, RECORDING_FIELDS, where)
+        if segment.get("source") != "pmatdata":
+            raise ConfigError(f"{where}: source must be 'pmatdata', got {segment.get('source')!r}")
+        if not isinstance(segment.get("dir"), str):
+            raise ConfigError(f"{where}: dir must be the path of the PmatData folder, got {segment.get('dir')!r}")
+        data_dir = folder / segment["dir"]
+        if not data_dir.is_dir():
+            raise ConfigError(f"{where}: dir {str(data_dir)!r} is not a folder (the PmatData data set)")
+        subject, posture = (_integer(segment, key, where) for key in ("subject", "posture"))
+        if posture not in PMAT_POSTURES:
+            raise ConfigError(f"{where}: posture must be 1 to 17, got {posture}")
+        hold = _number(segment, "hold_s", where, None)
+        if hold < 0:
+            raise ConfigError(f"{where}: hold_s must not be negative, got {hold:g}")
+        try:
+            recording = pmat_scene(data_dir, subject, posture, grid)
+        except DataFileInvalid as exc:
+            raise DataFileInvalid(f"{where}: {exc}") from None
+        frames.append(recording.frames)
+        times.append(recording.times_s + start)
+        infos.append({"start_s": start, **recording.info})
+        start += recording.duration_s + hold
+    duration = _positive(head, "duration_s", "[scene]") if "duration_s" in head else start
+    if duration < start:
+        raise ConfigError(f"[scene] duration_s = {duration:g} ends before the recordings, at {start:g} s")
+    _check_fault_times(faults, duration)
+    return RecordedScene(np.concatenate(frames), np.concatenate(times), grid, {"segments": infos},
+                         duration_s=duration, faults=faults)
 
 
 def _still_end(event: dict) -> float:
@@ -267,6 +402,13 @@ def _number(table: dict, key: str, where: str, default: float | None) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise ConfigError(f"{where}: {key} must be a finite number, got {value!r}")
     return float(value)
+
+
+def _integer(table: dict, key: str, where: str) -> int:
+    value = table.get(key)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"{where}: {key} must be an integer, got {value!r}")
+    return value
 
 
 def _positive(table: dict, key: str, where: str) -> float:

@@ -1,0 +1,123 @@
+"""Build the monitor daemon a configuration describes: model, frame source, calibration, store, notifiers.
+
+The one place that knows how the parts fit, as an app factory does, so the
+``run`` and ``sim run`` commands and the tests start the same monitor.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+
+from appliance.service.config import MonitorConfig
+from appliance.service.daemon import MonitorDaemon
+from appliance.service.live import LiveChannel
+
+LIVE_FILE = "live.json"
+STORE_FILE = "appliance.db"
+DEAD_LETTER_FILE = "dead-letters.jsonl"
+
+
+def assemble(config: MonitorConfig, *, say: Callable[[str], None], on_event=None, on_map=None,
+             live: bool = True) -> MonitorDaemon:
+    """The daemon, started (reference taken or state resumed) and ready to ``run``."""
+    from appliance.core.layouts import get_layout
+    from appliance.core.model_cache import ModelSetup, cached_model, default_cache_dir
+    from appliance.core.protocols import default_protocol
+    from appliance.service.virtual_bed import default_data_dir
+    from appliance.store import Store
+
+    layout = get_layout(config.layout)
+    protocol = default_protocol(layout)
+    data_dir = Path(config.data_dir or default_data_dir())
+    data_dir.mkdir(parents=True, exist_ok=True)
+    config = dataclasses.replace(config, data_dir=data_dir)
+    model, _ = cached_model(ModelSetup(layout, protocol), config.cache_dir or default_cache_dir(),
+                            lambda step, share: say(f"building the reconstruction model: {step} ({share:.0%})"))
+    source = _source(config, layout, protocol)
+    closers = [source.close] if hasattr(source, "close") else []
+    try:
+        calibration = _calibration(config, source, model, config.cache_dir or default_cache_dir(), say)
+        store = Store.open(data_dir / STORE_FILE, history_interval_s=config.store.history_interval_s,
+                           history_days=config.store.history_days, event_days=config.store.event_days,
+                           max_bytes=int(config.store.max_mb * 1024 * 1024))
+        closers.append(store.close)
+        notifiers = _notifiers(config, data_dir / DEAD_LETTER_FILE)
+        closers += [n.close for n in notifiers]
+        daemon = MonitorDaemon(config, source, model, calibration, store, notifiers=notifiers,
+                               gpio=_gpio(config, source), live=LiveChannel(data_dir / LIVE_FILE) if live else None,
+                               on_event=on_event, on_map=on_map, say=say)
+        daemon.start()
+    except BaseException:
+        for close in reversed(closers):
+            close()
+        raise
+    return daemon
+
+
+def _source(config: MonitorConfig, layout, protocol):
+    if config.source == "virtual":
+        from appliance.service.virtual_bed import VirtualBedSource
+        from appliance.sim.scenes import load_scene
+
+        return VirtualBedSource(layout, load_scene(config.scenario), protocol, seed=config.seed,
+                                frame_interval_s=config.frame_interval_s, speed=config.speed)
+    from appliance.service.board_source import BoardSource
+
+    return BoardSource(config.board, layout, protocol, frame_interval_s=config.frame_interval_s, seed=config.seed)
+
+
+def _calibration(config: MonitorConfig, source, model, cache_dir: Path, say):
+    """The configured calibration; on the virtual bed, its own: made once and kept with the built models,
+    since like them it follows from the simulated mat alone."""
+    from appliance.core.pressure import load_pressure_calibration
+    from appliance.errors import ConfigError
+
+    if config.calibration is not None:
+        return load_pressure_calibration(config.calibration)
+    if config.source != "virtual":
+        raise ConfigError("[monitor] calibration is needed with a board: make one with `appliance calibrate "
+                          "pressure --source hardware`")
+    path = virtual_calibration_path(cache_dir, model)
+    calibration, made = source.calibration(
+        model, path, progress=lambda k, n, load: say(f"calibrating the virtual mat: load {k}/{n}") if k % 10 == 1
+        else None)
+    say(f"pressure calibration {'made and saved to' if made else 'loaded from'} {path}")
+    return calibration
+
+
+def virtual_calibration_path(cache_dir: Path, model) -> Path:
+    return Path(cache_dir) / f"virtual-pressure-{model.setup.layout.name}-{model.setup.options.algorithm}.json"
+
+
+def _notifiers(config: MonitorConfig, dead_letters: Path) -> list:
+    from appliance.alerts.notifiers import MqttNotifier, WebhookNotifier
+
+    notifiers = []
+    if config.mqtt is not None:
+        m = config.mqtt
+        notifiers.append(MqttNotifier(m.host, m.port, config.bed_id, client_id=f"appliance-{config.bed_id}",
+                                      topic_prefix=m.topic_prefix, keepalive_s=m.keepalive_s,
+                                      dead_letter_path=dead_letters))
+    if config.webhook is not None:
+        notifiers.append(WebhookNotifier(config.webhook.url, timeout_s=config.webhook.timeout_s,
+                                         dead_letter_path=dead_letters))
+    return notifiers
+
+
+def _gpio(config: MonitorConfig, source):
+    """The buzzer and LED on the board's lines, named by their roles in the board profile."""
+    if config.gpio is None:
+        return None
+    from appliance.alerts.notifiers import GpioNotifier
+    from appliance.errors import ConfigError
+
+    pins = source.front_end.profile.gpio
+    missing = [role for role in (config.gpio.buzzer, config.gpio.led) if role not in pins]
+    if missing:
+        raise ConfigError(f"[notify.gpio]: the board profile has no gpio role {missing[0]!r}; it has "
+                          f"{', '.join(sorted(pins))}")
+    buzzer, led = pins[config.gpio.buzzer], pins[config.gpio.led]
+    lines = source.board.gpio(GpioNotifier.request(buzzer, led), consumer="alarm signals")
+    return GpioNotifier(lines, buzzer=buzzer, led=led)

@@ -1,0 +1,68 @@
+"""The front end board as the monitor daemon's frame source: the scan engine, on the wall clock.
+
+``[board] backend = "linux"`` reads the real chips; ``"emulated"`` runs the
+register-level emulators on a still, empty mat of the layout (for trying a
+configuration without hardware). Frames are stamped with the wall clock, so
+the dose and turn clock carry on across a restart by real elapsed time.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from appliance.core.layouts import Layout
+from appliance.drivers.scan import TechnicalCondition
+
+
+@dataclass(frozen=True)
+class BoardFrame:
+    volts: np.ndarray
+    flags: np.ndarray
+    temperature_c: float | None
+    time_s: float
+    conditions: tuple[TechnicalCondition, ...]
+
+
+class BoardSource:
+    """A scan every ``frame_interval_s`` of wall time (or as fast as the scan goes, if that is slower)."""
+
+    def __init__(self, board_table: dict, layout: Layout, protocol, *, frame_interval_s: float, seed: int = 0):
+        from appliance.drivers import open_board
+        from appliance.drivers.emulated.sensor import ForwardSensor
+        from appliance.drivers.frontend import open_front_end
+        from appliance.drivers.scan import ScanEngine
+
+        self.board, profile = open_board(board_table, sensor=lambda: ForwardSensor.of_layout(layout), seed=seed)
+        self.front_end = open_front_end(self.board, profile)
+        self.engine = ScanEngine(self.front_end, protocol)
+        self.period_s = frame_interval_s
+        self._next_wall: float | None = None
+
+    def acquire(self) -> BoardFrame:
+        frame = self.engine.scan()
+        return BoardFrame(frame.volts, frame.flags, frame.temperature_c, time.time(), frame.conditions)
+
+    def now(self) -> float:
+        return time.time()
+
+    def wait_for_frame(self, stop: threading.Event) -> bool:
+        now = time.monotonic()
+        if self._next_wall is not None and self._next_wall > now and stop.wait(self._next_wall - now):
+            return False
+        self._next_wall = max(now, self._next_wall or now) + self.period_s
+        return True
+
+    def resume_after(self, time_s: float) -> None:
+        """Nothing to do: the wall clock went on while the monitor was down."""
+
+    def reference(self) -> BoardFrame:
+        """The next frame, taken as the empty mat's (the installer clears the mat before the first start)."""
+        return self.acquire()
+
+    def close(self) -> None:
+        self.front_end.close()
+        self.board.close()

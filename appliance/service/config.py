@@ -1,0 +1,306 @@
+"""The monitor's one configuration file, read and checked before anything starts.
+
+Every key has a default, so an empty file (or none) runs the virtual bed; a
+ward's file names only what differs. A wrong key, type or range is refused
+with the section and key named, so ward IT fixes a typo before the monitor
+runs, not after it silently ignored it::
+
+    [monitor]
+    layout = "grid-8x16"          # a built-in layout name or a layout .toml file
+    source = "virtual"            # virtual | emulated | hardware
+    frame_interval_s = 1.0
+    bed_id = "ward3-bed12"        # MQTT topics and the live view name the bed by this
+    data_dir = "/var/lib/appliance"
+    # calibration = "pressure.json"   (default: the virtual mat's own, made once)
+
+    [virtual]                     # source = "virtual": the simulated patient
+    scenario = "turn-schedule"
+    speed = 1.0                   # scene seconds per wall second; 0 = as fast as it goes
+    seed = 0
+
+    [board]                       # source = "emulated" or "hardware": as in drivers/profile.py
+
+    [alerts]
+    threshold_mmhg = 32
+    curve = "reswick-rogers"      # or linder-ganz, or curve_points = [[minutes, mmHg], ...]
+    alarm_dose = 1.0
+    recovery = "reset"            # or "decay"
+    turn_interval_min = 120
+    escalate_after_min = 15
+    escalation_channel = "ward-station"
+
+    [store]
+    history_interval_s = 60
+    history_days = 30
+    event_days = 365
+    max_mb = 512
+
+    [notify.mqtt]
+    host = "broker.ward"
+    port = 1883
+    topic_prefix = "appliance"
+
+    [notify.webhook]
+    url = "https://station.ward/alarms"
+
+    [notify.gpio]                 # the board's buzzer and LED (roles in [board]'s gpio table)
+    buzzer = "buzzer"
+    led = "status_led"
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from appliance.alerts.dose import BUILT_IN as BUILT_IN_CURVES
+from appliance.alerts.dose import RECOVERY_MODES, custom_curve
+from appliance.alerts.pipeline import AlertSettings
+from appliance.core.pressure import KPA_PER_MMHG
+from appliance.core.toml_files import read_toml
+from appliance.drivers.profile import board_profile
+from appliance.errors import ConfigError, CurveInvalid
+
+SOURCES = ("virtual", "emulated", "hardware")
+
+
+@dataclass(frozen=True)
+class StoreSettings:
+    history_interval_s: float = 60.0
+    history_days: float = 30.0
+    event_days: float = 365.0
+    max_mb: float = 512.0
+
+
+@dataclass(frozen=True)
+class MqttSettings:
+    host: str
+    port: int = 1883
+    topic_prefix: str = "appliance"
+    keepalive_s: int = 30
+
+
+@dataclass(frozen=True)
+class WebhookSettings:
+    url: str
+    timeout_s: float = 5.0
+
+
+@dataclass(frozen=True)
+class GpioSettings:
+    """Roles in the board profile's ``[gpio]`` table (not pins), so a board that moved a pin needs no change here."""
+
+    buzzer: str = "buzzer"
+    led: str = "status_led"
+
+
+@dataclass(frozen=True)
+class MonitorConfig:
+    """Everything the daemon is told; built by :func:`load_config` or :func:`config_from_mapping`."""
+
+    layout: str = "grid-8x16"
+    source: str = "virtual"
+    frame_interval_s: float = 1.0
+    bed_id: str = field(default_factory=socket.gethostname)
+    data_dir: Path | None = None
+    calibration: Path | None = None
+    cache_dir: Path | None = None
+    scenario: str = "turn-schedule"
+    speed: float = 1.0
+    seed: int = 0
+    board: dict = field(default_factory=dict)
+    alerts: AlertSettings = AlertSettings()
+    store: StoreSettings = StoreSettings()
+    mqtt: MqttSettings | None = None
+    webhook: WebhookSettings | None = None
+    gpio: GpioSettings | None = None
+
+
+def load_config(path) -> MonitorConfig:
+    """The configuration in TOML file ``path``; paths in it are taken relative to the file's folder."""
+    data = read_toml(path, "configuration file", ConfigError)
+    try:
+        return config_from_mapping(data, base=Path(path).resolve().parent)
+    except ConfigError as exc:
+        raise ConfigError(f"configuration file {path}: {exc}") from None
+
+
+def config_from_mapping(data: dict, base: Path | None = None) -> MonitorConfig:
+    """Build and check the configuration from parsed TOML; every bad section, key and value is named."""
+    _only(data, {"monitor", "virtual", "board", "alerts", "store", "notify"}, "the configuration")
+    monitor = _section(data, "monitor")
+    _only(monitor, {"layout", "source", "frame_interval_s", "bed_id", "data_dir", "calibration", "cache_dir"},
+          "[monitor]")
+    virtual = _section(data, "virtual")
+    _only(virtual, {"scenario", "speed", "seed"}, "[virtual]")
+    source = _choice(monitor, "source", SOURCES, "virtual", "[monitor]")
+    if virtual and source != "virtual":
+        raise ConfigError(f"[virtual] is only for source = \"virtual\", but [monitor] source = {source!r}")
+    notify = _section(data, "notify")
+    _only(notify, {"mqtt", "webhook", "gpio"}, "[notify]")
+    gpio = _gpio(_section(notify, "gpio", "notify.gpio")) if "gpio" in notify else None
+    if gpio is not None and source == "virtual":
+        raise ConfigError("[notify.gpio] needs a board: the virtual bed has no buzzer or LED lines")
+    board = _section(data, "board")
+    try:
+        board_profile(board)
+    except ConfigError as exc:
+        raise ConfigError(f"[board]: {exc}") from None
+    return MonitorConfig(
+        layout=_text(monitor, "layout", "grid-8x16", "[monitor]"),
+        source=source,
+        frame_interval_s=_number(monitor, "frame_interval_s", 1.0, "[monitor]", low=0.05, high=3600.0),
+        bed_id=_bed_id(monitor),
+        data_dir=_path(monitor, "data_dir", base),
+        calibration=_path(monitor, "calibration", base),
+        cache_dir=_path(monitor, "cache_dir", base),
+        scenario=_scenario(virtual, base),
+        speed=_number(virtual, "speed", 1.0, "[virtual]", low=0.0, high=1e6),
+        seed=int(_number(virtual, "seed", 0, "[virtual]", low=0, high=2**32 - 1, integer=True)),
+        board=board,
+        alerts=_alerts(_section(data, "alerts")),
+        store=_store(_section(data, "store")),
+        mqtt=_mqtt(_section(notify, "mqtt", "notify.mqtt")),
+        webhook=_webhook(_section(notify, "webhook", "notify.webhook")),
+        gpio=gpio,
+    )
+
+
+def _alerts(table: dict) -> AlertSettings:
+    where = "[alerts]"
+    _only(table, {"threshold_mmhg", "curve", "curve_points", "alarm_dose", "recovery", "turn_interval_min",
+                  "escalate_after_min", "escalation_channel"}, where)
+    if "curve" in table and "curve_points" in table:
+        raise ConfigError(f"{where}: give curve or curve_points, not both")
+    points = None
+    if "curve_points" in table:
+        try:
+            curve = custom_curve(table["curve_points"])
+        except (CurveInvalid, TypeError) as exc:
+            raise ConfigError(f"{where} curve_points: {exc}") from None
+        points = tuple((float(m), float(p)) for m, p in table["curve_points"])
+        name = curve.name
+    else:
+        name = _choice(table, "curve", tuple(BUILT_IN_CURVES), "reswick-rogers", where)
+    return AlertSettings(
+        threshold_kpa=_number(table, "threshold_mmhg", 32.0, where, low=10.0, high=200.0) * KPA_PER_MMHG,
+        curve=name, curve_points=points,
+        alarm_dose=_number(table, "alarm_dose", 1.0, where, low=0.05, high=5.0),
+        recovery=_choice(table, "recovery", RECOVERY_MODES, "reset", where),
+        turn_interval_s=60.0 * _number(table, "turn_interval_min", 120.0, where, low=15.0, high=720.0),
+        escalate_after_s=60.0 * _number(table, "escalate_after_min", 15.0, where, low=1.0, high=240.0),
+        escalation_channel=_text(table, "escalation_channel", "ward-station", where))
+
+
+def _store(table: dict) -> StoreSettings:
+    where = "[store]"
+    _only(table, {"history_interval_s", "history_days", "event_days", "max_mb"}, where)
+    return StoreSettings(_number(table, "history_interval_s", 60.0, where, low=0.0, high=86400.0),
+                         _number(table, "history_days", 30.0, where, low=0.01, high=3650.0),
+                         _number(table, "event_days", 365.0, where, low=1.0, high=36500.0),
+                         _number(table, "max_mb", 512.0, where, low=1.0, high=1e6))
+
+
+def _mqtt(table: dict) -> MqttSettings | None:
+    if not table:
+        return None
+    where = "[notify.mqtt]"
+    _only(table, {"host", "port", "topic_prefix", "keepalive_s"}, where)
+    if "host" not in table:
+        raise ConfigError(f"{where} is missing 'host'")
+    prefix = _text(table, "topic_prefix", "appliance", where)
+    if any(c in prefix for c in "#+") or prefix.startswith("/") or prefix.endswith("/"):
+        raise ConfigError(f"{where}: topic_prefix must not hold wildcards or start or end with '/', got {prefix!r}")
+    return MqttSettings(_text(table, "host", None, where),
+                        int(_number(table, "port", 1883, where, low=1, high=65535, integer=True)), prefix,
+                        int(_number(table, "keepalive_s", 30, where, low=5, high=3600, integer=True)))
+
+
+def _webhook(table: dict) -> WebhookSettings | None:
+    if not table:
+        return None
+    where = "[notify.webhook]"
+    _only(table, {"url", "timeout_s"}, where)
+    url = _text(table, "url", None, where)
+    if not url.startswith(("http://", "https://")):
+        raise ConfigError(f"{where}: url must start with http:// or https://, got {url!r}")
+    return WebhookSettings(url, _number(table, "timeout_s", 5.0, where, low=0.1, high=60.0))
+
+
+def _gpio(table: dict) -> GpioSettings:
+    where = "[notify.gpio]"
+    _only(table, {"buzzer", "led"}, where)
+    return GpioSettings(_text(table, "buzzer", "buzzer", where), _text(table, "led", "status_led", where))
+
+
+def _bed_id(monitor: dict) -> str:
+    bed = _text(monitor, "bed_id", socket.gethostname(), "[monitor]")
+    if not bed or any(c in bed for c in "#+/ ") or len(bed) > 64:
+        raise ConfigError(f"[monitor] bed_id must be 1-64 characters without spaces, '/', '#' or '+', got {bed!r}")
+    return bed
+
+
+def _scenario(virtual: dict, base: Path | None) -> str:
+    """A built-in scenario's name, or a scenario file's path made absolute against the config's folder."""
+    from appliance.sim.scenes import builtin_scenes
+
+    name = _text(virtual, "scenario", "turn-schedule", "[virtual]")
+    if name in builtin_scenes():
+        return name
+    path = Path(name) if base is None or Path(name).is_absolute() else base / name
+    if not path.is_file():
+        raise ConfigError(f"[virtual] scenario {name!r} is neither a built-in scenario ({', '.join(builtin_scenes())}) "
+                          f"nor a file")
+    return str(path)
+
+
+def _section(data: dict, name: str, label: str | None = None) -> dict:
+    table = data.get(name, {})
+    if not isinstance(table, dict):
+        raise ConfigError(f"[{label or name}] must be a table, got {table!r}")
+    return dict(table)
+
+
+def _only(table: dict, allowed: set, where: str) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key {unknown[0]!r}; allowed: {', '.join(sorted(allowed))}")
+
+
+def _text(table: dict, key: str, default: str | None, where: str) -> str:
+    if key not in table:
+        if default is None:
+            raise ConfigError(f"{where} is missing {key!r}")
+        return default
+    value = table[key]
+    if not isinstance(value, str) or not value.strip():
+        raise ConfigError(f"{where}: {key} must be non-empty text, got {value!r}")
+    return value
+
+
+def _choice(table: dict, key: str, allowed: tuple, default: str, where: str) -> str:
+    value = table.get(key, default)
+    if value not in allowed:
+        raise ConfigError(f"{where}: {key} must be one of {', '.join(allowed)}, got {value!r}")
+    return value
+
+
+def _number(table: dict, key: str, default: float, where: str, *, low: float, high: float,
+            integer: bool = False) -> float:
+    value = table.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(f"{where}: {key} must be a number, got {value!r}")
+    if integer and value != int(value):
+        raise ConfigError(f"{where}: {key} must be a whole number, got {value!r}")
+    if not low <= value <= high:
+        raise ConfigError(f"{where}: {key} must be from {low:g} to {high:g}, got {value:g}")
+    return float(value)
+
+
+def _path(table: dict, key: str, base: Path | None) -> Path | None:
+    if key not in table:
+        return None
+    path = Path(_text(table, key, None, "[monitor]"))
+    return path if base is None or path.is_absolute() else base / path

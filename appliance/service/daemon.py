@@ -1,0 +1,230 @@
+"""The monitor daemon: acquire -> pressure map -> alerts -> store -> notifiers and live view, frame by frame.
+
+One loop owns every stage, in the order the data flows, so a frame's alarm
+events are committed with the alert state they led to before anyone is told:
+after a crash or power cut the daemon resumes from the store (the alert state,
+the empty-mat reference, and on the virtual bed the scene time) and neither
+loses nor repeats an alarm. Nothing downstream can hold the loop up: notifiers
+and the live view take their work on their own threads.
+
+Frames that cannot be taken are technical conditions, not silence: the front
+end's error at once (``technical:front-end``), and after ``NO_DATA_FRAMES`` in a
+row ``technical:no-data``; during a gap clinical alarms stay as the last map
+left them. Commands from outside (acknowledge, pause audio) are queued and
+applied at the start of the next frame, on the loop's own thread.
+
+Under systemd (``Type=notify``) it reports ready once the first map is made,
+pings the watchdog every frame, and on SIGTERM finishes the frame, flushes the
+notifiers, closes the store and exits 0.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from appliance.alerts.events import Event, as_event
+from appliance.alerts.pipeline import AlertPipeline, FrameAlerts, technical_alarms
+from appliance.core.pressure import KPA_PER_MMHG
+from appliance.errors import ApplianceError, ConfigError, DataFileInvalid
+from appliance.service.config import MonitorConfig
+from appliance.service.live import LiveChannel, map_mmhg
+from appliance.service.monitor import Monitor
+from appliance.service.systemd import SystemdNotifier
+
+log = logging.getLogger(__name__)
+
+NO_DATA_FRAMES = 3
+"""Frames in a row without a map before ``technical:no-data`` is raised (within the 3 frames an
+electrode fault must be reported in)."""
+
+
+class MonitorDaemon:
+    """The monitor configured by ``config``, around a frame ``source`` (see :mod:`appliance.service.sources`).
+
+    ``on_event`` gets each :class:`Event` after it is committed; ``on_map``
+    each pressure map; ``say`` the daemon's progress lines.
+    """
+
+    def __init__(self, config: MonitorConfig, source, model, calibration, store, *, notifiers=(), gpio=None,
+                 live: LiveChannel | None = None, on_event: Callable[[Event], None] | None = None,
+                 on_map: Callable | None = None, say: Callable[[str], None] = log.info,
+                 systemd: SystemdNotifier | None = None):
+        self.config, self.source, self.model, self.store = config, source, model, store
+        self.notifiers, self.gpio, self.live = list(notifiers), gpio, live
+        self.on_event, self.on_map, self.say = on_event, on_map, say
+        self.systemd = systemd or SystemdNotifier()
+        self.monitor = Monitor(source.acquire, model, calibration)   # refuses a calibration for another mat
+        self.grid = model.reconstructor.grid
+        self.pipeline = AlertPipeline(self.grid, config.alerts)
+        self.stop_requested = threading.Event()
+        self.commands: queue.SimpleQueue = queue.SimpleQueue()
+        self.maps = self.faults = self.consecutive_faults = 0
+        self.last_fault: str | None = None
+        self.resumed_from_s: float | None = None
+        self._ready = False
+
+    # Start: resume or begin.
+
+    def start(self) -> None:
+        """Resume the reference and alert state from the store, or take a fresh reference and start clean."""
+        state, reference = self.store.load_state("alerts"), self.store.load_state("reference")
+        if state is not None and reference is not None and self._restore(state, reference):
+            return
+        frame = self.source.reference()
+        self.monitor.take_reference(frame)
+        self.store.save_state("reference", {"layout": self.model.setup.layout.name,
+                                            "volts": [None if not np.isfinite(v) else float(v) for v in frame.volts],
+                                            "temperature_c": frame.temperature_c}, 0.0)
+        self.say("took the empty-mat reference")
+
+    def _restore(self, state: dict, reference: dict) -> bool:
+        volts = np.array([np.nan if v is None else v for v in reference.get("volts", [])], dtype=float)
+        if reference.get("layout") != self.model.setup.layout.name or len(volts) != len(self.model.setup.protocol):
+            self.say("the saved reference is for another mat: starting afresh")
+            return False
+        try:
+            pipeline = AlertPipeline.from_state(self.grid, state, self.config.alerts)
+        except (DataFileInvalid, ConfigError, KeyError, TypeError, ValueError) as exc:
+            self.say(f"the saved alert state cannot be continued ({exc}): starting afresh")
+            return False
+        self.pipeline = pipeline
+        self.monitor.reference = volts
+        self.monitor.reference_temperature_c = reference.get("temperature_c")
+        if pipeline.last_time_s is not None:
+            self.resumed_from_s = pipeline.last_time_s
+            self.source.resume_after(pipeline.last_time_s)
+        active = len(pipeline.engine.alarms())
+        self.say(f"resumed from the store at {pipeline.last_time_s} s with {active} alarm(s) open")
+        return True
+
+    # The loop.
+
+    def run(self, frames: int | None = None) -> int:
+        """Frames until ``frames`` were taken (maps or faults), the source ends, or a stop is requested."""
+        done = 0
+        while (frames is None or done < frames) and not self.stop_requested.is_set():
+            if not self.source.wait_for_frame(self.stop_requested):
+                break
+            self.step()
+            done += 1
+        return done
+
+    def request_stop(self, *_signal) -> None:
+        """Finish the frame under way, then stop (the SIGTERM handler)."""
+        self.stop_requested.set()
+
+    def acknowledge(self, alarm_id: int, user: str) -> None:
+        """Acknowledge an alarm at the next frame (thread-safe: the web screen calls it)."""
+        self.commands.put(("acknowledge", alarm_id, user))
+
+    def pause_audio(self, user: str, duration_s: float) -> None:
+        self.commands.put(("pause-audio", user, duration_s))
+
+    def step(self) -> FrameAlerts:
+        """One frame through every stage."""
+        now = self.source.now()
+        events = self._apply_commands(now)
+        try:
+            pressure_map = self.monitor.next_map()
+        except (ApplianceError, OSError) as exc:
+            pressure_map = None
+            self.faults += 1
+            self.consecutive_faults += 1
+            self.last_fault = f"{type(exc).__name__}: {exc}"
+            self.say(f"FAULT ({self.consecutive_faults} in a row): {self.last_fault}")
+        technical = technical_alarms(self.monitor.conditions)          # during a gap, as the last frame left them
+        if pressure_map is None:
+            technical["technical:front-end"] = f"no frame from the front end: {self.last_fault}"
+            if self.consecutive_faults >= NO_DATA_FRAMES:
+                technical["technical:no-data"] = f"no pressure map for {self.consecutive_faults} frames"
+            alerts = self.pipeline.hold(now, technical)
+        else:
+            self.consecutive_faults = 0
+            self.maps += 1
+            now = pressure_map.time_s
+            alerts = self.pipeline.update(pressure_map, technical)
+        events += [as_event(e) for e in alerts.turn_events + alerts.alarm_events]
+        if pressure_map is not None:
+            self.store.record_map(now, np.nan_to_num(pressure_map.pressure_kpa))
+        self.store.commit_frame(now, events, {"alerts": self.pipeline.state()})
+        self._tell(events, now)
+        if pressure_map is not None and self.on_map is not None:
+            self.on_map(pressure_map)
+        if self.live is not None:
+            self.live.publish(self._snapshot(now, pressure_map, alerts))
+        if not self._ready and pressure_map is not None:
+            self._ready = True
+            self.systemd.ready(f"monitoring {self.config.bed_id}")
+        self.systemd.ping()
+        return alerts
+
+    def _apply_commands(self, now: float) -> list[Event]:
+        events = []
+        while True:
+            try:
+                command = self.commands.get_nowait()
+            except queue.Empty:
+                return events
+            try:
+                if command[0] == "acknowledge":
+                    done = self.pipeline.engine.acknowledge(now, command[1], command[2])
+                else:
+                    done = self.pipeline.engine.pause_audio(now, command[1], command[2])
+            except (ApplianceError, ValueError) as exc:
+                self.say(f"command {command[0]} refused: {exc}")
+                continue
+            events += [as_event(e) for e in done]
+
+    def _tell(self, events: list[Event], now: float) -> None:
+        for event in events:
+            for notifier in self.notifiers:
+                notifier.notify(event)
+            if self.on_event is not None:
+                self.on_event(event)
+        if self.gpio is not None:
+            self.gpio.show(self.pipeline.engine.audible(now), now)
+
+    def _snapshot(self, now: float, pressure_map, alerts: FrameAlerts) -> dict:
+        """What the live view shows: the map, regions with their dose, the turn clock, alarms and status."""
+        engine, turns = self.pipeline.engine, self.pipeline.turns
+        snapshot = {
+            "bed_id": self.config.bed_id, "time_s": now, "sequence": self.maps + self.faults,
+            "frame_interval_s": self.config.frame_interval_s,
+            "status": {"maps": self.maps, "faults": self.faults, "consecutive_faults": self.consecutive_faults,
+                       "last_fault": self.last_fault, "source": self.config.source},
+            "turn": {"last_turn_s": turns.last_turn_s, "due_in_s": turns.due_in_s(now), "bed_empty": turns.bed_empty,
+                     "interval_s": turns.interval_s},
+            "alarms": [{"alarm_id": a.alarm_id, "key": a.key, "category": a.category, "priority": a.priority,
+                        "state": a.state, "message": a.message, "raised_s": a.raised_s,
+                        "acknowledged_by": a.acknowledged_by,
+                        "audio_paused": a.audio_paused_until is not None and a.audio_paused_until > now}
+                       for a in engine.alarms()],
+            "audible": engine.audible(now),
+        }
+        if pressure_map is not None:
+            g = self.grid
+            snapshot["map"] = {"mmhg": map_mmhg(pressure_map.pressure_kpa), "pixel_mm": list(g.pixel_mm),
+                               "peak_kpa": pressure_map.peak_kpa, "usable_readings": pressure_map.usable_readings}
+            snapshot["regions"] = [{"id": r.id, "zone": r.zone, "peak_mmhg": r.peak_kpa / KPA_PER_MMHG, "area_cm2": r.area_cm2,
+                                    "x_mm": r.x_mm, "y_mm": r.y_mm, "since_s": r.first_seen_s,
+                                    "dose": alerts.region_doses.get(r.id)}
+                                   for r in self.pipeline.tracked]
+        return snapshot
+
+    def close(self) -> None:
+        """Tell systemd, deliver what the notifiers hold, write the last live view, close the store."""
+        self.systemd.stopping()
+        for notifier in self.notifiers:
+            notifier.close()
+        if self.gpio is not None:
+            self.gpio.close()
+        if self.live is not None:
+            self.live.close()
+        self.store.close()
+

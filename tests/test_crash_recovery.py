@@ -1,0 +1,73 @@
+"""The real monitor process killed with SIGKILL at random moments and started again on the same data:
+doses and the turn clock carry on, and no alarm is lost or repeated, against an uninterrupted night."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from appliance.store import Store
+
+MINUTE = 60.0
+NIGHT_S = 43200.0               # supine-unturned: 12 h, one map per simulated minute
+KILLS = 20
+
+
+def command(data_dir, model_cache, speed):
+    return [sys.executable, "-m", "appliance", "run", "--scenario", "supine-unturned", "--interval", str(MINUTE),
+            "--speed", str(speed), "--data-dir", str(data_dir), "--cache-dir", str(model_cache)]
+
+
+def night(data_dir):
+    """The store's events (kind, key, time) and the alert state it ends with."""
+    with Store.open(data_dir / "appliance.db") as store:
+        events = [(e["kind"], e["key"], e["time_s"]) for e in store.events_since(0.0)]
+        return events, store.load_state("alerts")
+
+
+def last_time(data_dir):
+    if not (data_dir / "appliance.db").exists():
+        return None
+    with Store.open(data_dir / "appliance.db") as store:
+        state = store.load_state("alerts")
+    return None if state is None else state["last_time_s"]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory, bed_monitoring, model_cache):
+    data = tmp_path_factory.mktemp("uninterrupted")
+    subprocess.run(command(data, model_cache, 0), check=True, capture_output=True, timeout=600)
+    return night(data)
+
+
+def test_sigkill_at_20_random_moments_loses_and_repeats_nothing(tmp_path, uninterrupted, model_cache):
+    rng = np.random.default_rng(2026)
+    data = tmp_path / "killed"
+    # 50 ms a frame, so each life monitors for a while before its kill and 20 lives cover the night.
+    args = command(data, model_cache, speed=MINUTE / 0.05)
+    progress = []
+    for _ in range(KILLS):
+        process = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(rng.uniform(1.5, 3.5))
+        os.kill(process.pid, signal.SIGKILL)
+        process.wait()
+        assert process.returncode == -signal.SIGKILL
+        progress.append(last_time(data))
+    subprocess.run(command(data, model_cache, 0), check=True, capture_output=True, timeout=600)
+    events, state = night(data)
+    expected, expected_state = uninterrupted
+
+    mid_night = [t for t in progress if t is not None and 0 < t < NIGHT_S]
+    assert len(set(mid_night)) >= 15, f"most kills must land while monitoring; store times {progress}"
+    assert [(kind, key) for kind, key, _ in events] == [(kind, key) for kind, key, _ in expected]
+    assert all(abs(t - t0) <= MINUTE for (_, _, t), (_, _, t0) in zip(events, expected))
+    assert state["last_time_s"] == expected_state["last_time_s"] == NIGHT_S
+    dose, dose0 = (np.array(s["dose"]["dose"], dtype=float) for s in (state, expected_state))
+    one_frame = dose0 * MINUTE / NIGHT_S                      # what a minute adds under constant pressure
+    assert np.all(np.abs(dose - dose0) <= one_frame + 1e-9)
+    turns, turns0 = state["turns"], expected_state["turns"]
+    assert abs(turns["last_turn_s"] - turns0["last_turn_s"]) <= MINUTE

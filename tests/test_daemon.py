@@ -1,0 +1,263 @@
+"""The monitor daemon: its configuration file, the loop's faults, systemd's notify protocol, the live view,
+and a clean stop on SIGTERM of the real process."""
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from appliance.calibration import calibration_loads, pressure_calibration
+from appliance.core.layouts import get_layout
+from appliance.core.model_cache import ModelSetup, cached_model
+from appliance.core.protocols import default_protocol
+from appliance.errors import ConfigError, TransferFailed
+from appliance.service.config import config_from_mapping, load_config
+from appliance.service.daemon import NO_DATA_FRAMES, MonitorDaemon
+from appliance.service.live import LiveChannel, read_live
+from appliance.service.systemd import SystemdNotifier
+from appliance.service.virtual_bed import VirtualBedSource
+from appliance.sim.loads import square_load_scene
+from appliance.store import Store
+
+GRID = get_layout("grid-4x4")
+INTERVAL = 600.0            # ten minutes a frame: 45 mmHg uses 5 % of the tolerance in a few frames
+
+
+# The configuration file.
+
+def test_no_configuration_runs_the_virtual_bed_with_the_literature_defaults():
+    config = config_from_mapping({})
+    assert (config.source, config.layout, config.scenario, config.frame_interval_s) == \
+        ("virtual", "grid-8x16", "turn-schedule", 1.0)
+    assert config.alerts.threshold_kpa == pytest.approx(32 * 0.133322, rel=1e-4)
+    assert (config.alerts.curve, config.alerts.turn_interval_s, config.alerts.escalate_after_s) == \
+        ("reswick-rogers", 7200.0, 900.0)
+    assert config.mqtt is None and config.webhook is None and config.gpio is None
+
+
+def test_a_ward_file_is_read_with_paths_relative_to_it(tmp_path):
+    (tmp_path / "night.toml").write_text('[scene]\nduration_s = 60\n[[event]]\nat_s = 0\nkind = "lie-down"\n')
+    path = tmp_path / "appliance.toml"
+    path.write_text('[monitor]\nbed_id = "ward3-bed12"\ndata_dir = "data"\nframe_interval_s = 2\n'
+                    '[virtual]\nscenario = "night.toml"\nspeed = 0\n'
+                    '[alerts]\nthreshold_mmhg = 40\ncurve_points = [[30, 200], [240, 60], [720, 40]]\n'
+                    'turn_interval_min = 180\nrecovery = "decay"\n'
+                    '[notify.mqtt]\nhost = "broker.ward"\n[notify.webhook]\nurl = "https://station/alarms"\n')
+    config = load_config(path)
+    assert config.bed_id == "ward3-bed12" and config.data_dir == tmp_path / "data"
+    assert config.scenario == str(tmp_path / "night.toml") and config.speed == 0
+    assert config.alerts.curve_points == ((30, 200), (240, 60), (720, 40)) and config.alerts.recovery == "decay"
+    assert config.alerts.turn_interval_s == 3 * 3600 and config.mqtt.port == 1883
+    assert config.webhook.url == "https://station/alarms"
+
+
+@pytest.mark.parametrize("text, message", [
+    ('[monitor]\nlayuot = "grid-4x4"\n', "[monitor]: unknown key 'layuot'"),
+    ('[alerts]\nthreshold_mmhg = 3\n', "[alerts]: threshold_mmhg must be from 10 to 200, got 3"),
+    ('[alerts]\nturn_interval_min = "2h"\n', "[alerts]: turn_interval_min must be a number, got '2h'"),
+    ('[alerts]\ncurve = "braden"\n', "[alerts]: curve must be one of reswick-rogers, linder-ganz, got 'braden'"),
+    ('[alerts]\ncurve_points = [[30, 200]]\n', "[alerts] curve_points: tolerance curve 'custom' needs at least 2"),
+    ('[monitor]\nsource = "serial"\n', "[monitor]: source must be one of virtual, emulated, hardware"),
+    ('[monitor]\nbed_id = "bed/7"\n', "[monitor] bed_id must be 1-64 characters without spaces"),
+    ('[notify.mqtt]\nport = 1883\n', "[notify.mqtt] is missing 'host'"),
+    ('[notify.mqtt]\nhost = "b"\ntopic_prefix = "ward/#"\n', "topic_prefix must not hold wildcards"),
+    ('[notify.webhook]\nurl = "ftp://x"\n', "url must start with http:// or https://"),
+    ('[notify.gpio]\n', "[notify.gpio] needs a board: the virtual bed has no buzzer"),
+    ('[board]\nprofile = "nonesuch"\n', "[board]:"),
+    ('[virtual]\nscenario = "no-such-night"\n', "neither a built-in scenario"),
+    ('[monitor]\nsource = "hardware"\n[virtual]\nspeed = 0\n', "[virtual] is only for source = \"virtual\""),
+    ('[monitor\n', "is not valid TOML"),
+])
+def test_a_bad_configuration_is_refused_naming_the_section_and_key(tmp_path, text, message):
+    path = tmp_path / "appliance.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as caught:
+        load_config(path)
+    assert message in str(caught.value) and str(path) in str(caught.value)
+
+
+def test_run_check_config_prints_the_configuration_and_refuses_a_bad_one(tmp_path, capsys):
+    from appliance.cli import main
+
+    good, bad = tmp_path / "good.toml", tmp_path / "bad.toml"
+    good.write_text('[monitor]\nbed_id = "bed-4"\n')
+    bad.write_text('[store]\nhistory_days = -1\n')
+    assert main(["run", "--config", str(good), "--check-config", "--layout", "grid-4x4"]) == 0
+    out = capsys.readouterr().out
+    assert "bed_id='bed-4'" in out and "layout='grid-4x4'" in out
+    assert main(["run", "--config", str(bad), "--check-config"]) != 0
+    assert "[store]: history_days must be from 0.01 to 3650, got -1" in capsys.readouterr().err
+
+
+# systemd's notify protocol, on a real datagram socket.
+
+@pytest.fixture
+def notify_socket(tmp_path):
+    path = tmp_path / "notify.sock"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(path))
+    sock.settimeout(20.0)
+    yield path, sock
+    sock.close()
+
+
+def test_readiness_status_watchdog_and_stopping_reach_the_socket(notify_socket):
+    path, sock = notify_socket
+    notifier = SystemdNotifier({"NOTIFY_SOCKET": str(path), "WATCHDOG_USEC": "2000000"})
+    assert notifier.watchdog_s == 2.0
+    notifier.ready("monitoring bed-1")
+    assert sock.recv(4096) == b"READY=1\nSTATUS=monitoring bed-1"
+    assert notifier.ping(now=100.0) and sock.recv(4096) == b"WATCHDOG=1"
+    assert not notifier.ping(now=100.5)                  # not again before half the interval
+    assert notifier.ping(now=101.0)
+    assert sock.recv(4096) == b"WATCHDOG=1"
+    notifier.stopping()
+    assert sock.recv(4096) == b"STOPPING=1"
+
+
+def test_outside_systemd_notify_does_nothing_and_a_watchdog_for_another_pid_is_ignored():
+    assert not SystemdNotifier({}).send("READY=1")
+    assert SystemdNotifier({"NOTIFY_SOCKET": "/x", "WATCHDOG_USEC": "5000000", "WATCHDOG_PID": "1"}).watchdog_s is None
+    assert SystemdNotifier({"NOTIFY_SOCKET": "@abstract"}).address == "\0abstract"
+
+
+# The live view.
+
+def test_the_live_view_is_always_a_whole_snapshot_and_publishing_never_waits(tmp_path):
+    live = LiveChannel(tmp_path / "live.json")
+    seen, stop = [], threading.Event()
+
+    def reader():
+        while not stop.is_set():
+            snapshot = read_live(tmp_path / "live.json")
+            if snapshot is not None:
+                seen.append(snapshot["sequence"])
+
+    thread = threading.Thread(target=reader)
+    thread.start()
+    big = [[1.5] * 34] * 16
+    costs = []
+    for n in range(300):
+        start = time.perf_counter()
+        live.publish({"sequence": n, "map": {"mmhg": big}})
+        costs.append(time.perf_counter() - start)
+        time.sleep(0.002)
+    live.close()
+    stop.set()
+    thread.join()
+    assert read_live(tmp_path / "live.json")["sequence"] == 299      # the newest one is always written
+    assert seen == sorted(seen) and len(seen) > 10                     # whole files, in order
+    assert live.written + live.skipped == 300
+    assert np.median(costs) < 1e-3
+
+
+# The loop on a small mat.
+
+@pytest.fixture(scope="module")
+def small_mat(tmp_path_factory):
+    protocol = default_protocol(GRID)
+    model, _ = cached_model(ModelSetup(GRID, protocol), tmp_path_factory.mktemp("models"))
+    source = VirtualBedSource(GRID, square_load_scene(100, 100, 30, 70, 40, 12.0), protocol, seed=4)
+    calibration = pressure_calibration(source.acquire, source.place, model,
+                                       calibration_loads(GRID, pressures_kpa=(2, 5, 10, 20)))
+    return model, calibration
+
+
+class FlakySource(VirtualBedSource):
+    """The virtual mat, failing on the frames numbered in ``failing`` (counted from 0)."""
+
+    def __init__(self, failing, **kwargs):
+        super().__init__(GRID, square_load_scene(100, 100, 30, 70, 40, 6.0), default_protocol(GRID),
+                         frame_interval_s=INTERVAL, **kwargs)
+        self.failing, self.calls = set(failing), -1
+
+    def acquire(self):
+        self.calls += 1
+        if self.calls in self.failing:
+            self.front_end.time_s += self.front_end.frame_interval_s
+            raise TransferFailed("I2C NACK from 0x48")
+        return super().acquire()
+
+
+def small_daemon(small_mat, tmp_path, source, **alerts):
+    model, calibration = small_mat
+    config = config_from_mapping({"monitor": {"layout": "grid-4x4", "frame_interval_s": INTERVAL},
+                                  "alerts": alerts})
+    events = []
+    daemon = MonitorDaemon(config, source, model, calibration, Store.open(tmp_path / "appliance.db"),
+                           live=LiveChannel(tmp_path / "live.json"), on_event=events.append, say=lambda text: None)
+    daemon.start()
+    return daemon, events
+
+
+def test_a_bus_fault_is_a_technical_alarm_at_once_and_no_data_after_three(small_mat, tmp_path):
+    source = FlakySource(failing={3, 4, 5, 6})
+    daemon, events = small_daemon(small_mat, tmp_path, source, alarm_dose=0.05)
+    assert daemon.run(10) == 10
+    daemon.close()
+    raised = {e.key: e.time_s for e in events if e.kind == "raised"}
+    ended = {e.key: e.time_s for e in events if e.kind == "ended"}
+    assert raised["technical:front-end"] == 3 * INTERVAL                      # the first frame that failed
+    assert raised["technical:no-data"] == (3 + NO_DATA_FRAMES - 1) * INTERVAL
+    assert ended["technical:front-end"] == ended["technical:no-data"] == 7 * INTERVAL   # the first map again
+    clinical = [k for k in raised if k.startswith("pressure:")]
+    assert clinical and all(k not in ended for k in clinical)      # no clinical alarm ends for want of data
+    assert (daemon.maps, daemon.faults) == (6, 4)
+    with Store.open(tmp_path / "appliance.db") as store:
+        assert [e["key"] for e in store.events_since(0) if e["kind"] == "raised"] == list(raised)
+    live = read_live(tmp_path / "live.json")
+    assert live["status"]["faults"] == 4 and live["alarms"] and live["regions"][0]["dose"] > 0
+
+
+def test_acknowledgement_is_applied_at_the_next_frame_and_recorded(small_mat, tmp_path):
+    daemon, events = small_daemon(small_mat, tmp_path, FlakySource(failing=()), alarm_dose=0.05)
+    daemon.run(8)
+    alarm = next(e for e in events if e.kind == "raised")
+    next_frame_s = daemon.source.now()
+    daemon.acknowledge(alarm.alarm_id, "nurse.jones")
+    daemon.acknowledge(999, "nurse.jones")                       # no such alarm: refused, the loop goes on
+    daemon.run(1)
+    daemon.close()
+    acked = [e for e in events if e.kind == "acknowledged"]
+    assert [(e.alarm_id, e.user, e.time_s) for e in acked] == [(alarm.alarm_id, "nurse.jones", next_frame_s)]
+
+
+# The real process: systemd readiness and a clean SIGTERM.
+
+def test_sigterm_stops_the_real_process_cleanly_after_telling_systemd(notify_socket, tmp_path, bed_monitoring,
+                                                                     model_cache):
+    path, sock = notify_socket
+    env = {**os.environ, "NOTIFY_SOCKET": str(path), "WATCHDOG_USEC": "10000000"}
+    process = subprocess.Popen([sys.executable, "-m", "appliance", "run", "--scenario", "supine-still",
+                                "--interval", "1", "--speed", "4", "--data-dir", str(tmp_path / "data"),
+                                "--cache-dir", str(model_cache)], env=env, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    try:
+        messages = []
+        while not any(m.startswith(b"READY=1") for m in messages):
+            messages.append(sock.recv(4096))
+        assert b"WATCHDOG=1" in [sock.recv(4096) for _ in range(2)]          # pinged as frames go by
+        process.send_signal(signal.SIGTERM)
+        out, err = process.communicate(timeout=30)
+    finally:
+        process.kill()
+    assert process.returncode == 0, err
+    tail = []
+    sock.settimeout(1.0)
+    try:
+        while True:
+            tail.append(sock.recv(4096))
+    except TimeoutError:
+        pass
+    assert b"STOPPING=1" in tail
+    assert "stopped after" in err
+    with Store.open(tmp_path / "data" / "appliance.db") as store:
+        assert store.load_state("alerts")["last_time_s"] > 0
+    assert json.loads((tmp_path / "data" / "live.json").read_text())["bed_id"]
