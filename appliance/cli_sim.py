@@ -122,6 +122,7 @@ def _run(args) -> int:
                 daemon.close()
     elapsed = time.perf_counter() - started
     summary = ", ".join(f"{n} {kind} {type_}" for (type_, kind), n in sorted(counts.items())) or "no events"
-    print(f"{args.scenario}: {done} frames ({done * args.interval / 3600:g} simulated h) in {elapsed:.1f} s "
+    simulated_h = max(done - 1, 0) * args.interval / 3600
+    print(f"{args.scenario}: {done} frames ({simulated_h:g} simulated h) in {elapsed:.1f} s "
           f"({done / max(elapsed, 1e-9):.0f} frames/s); {summary}; written to {args.out}", file=sys.stderr)
     return 0

@@ -261,3 +261,37 @@ def test_sigterm_stops_the_real_process_cleanly_after_telling_systemd(notify_soc
     with Store.open(tmp_path / "data" / "appliance.db") as store:
         assert store.load_state("alerts")["last_time_s"] > 0
     assert json.loads((tmp_path / "data" / "live.json").read_text())["bed_id"]
+
+
+def test_the_daemon_runs_the_scan_engine_on_a_board_with_wall_clock_times(small_mat, tmp_path):
+    """``source = "hardware"`` with the emulated board: the real scan path, frames on the wall clock."""
+    from appliance.core.pressure import save_pressure_calibration
+    from appliance.service.assemble import assemble
+
+    model, calibration = small_mat
+    save_pressure_calibration(tmp_path / "pressure.json", calibration)
+    config = config_from_mapping({"monitor": {"layout": "grid-4x4", "source": "hardware", "frame_interval_s": 0.05,
+                                              "calibration": str(tmp_path / "pressure.json"),
+                                              "data_dir": str(tmp_path / "data"),
+                                              "cache_dir": str(tmp_path / "models")},
+                                  "board": {"backend": "emulated"}})
+    maps = []
+    started = time.time()
+    daemon = assemble(config, say=lambda text: None, on_map=maps.append)
+    try:
+        assert daemon.run(2) == 2
+    finally:
+        daemon.close()
+    assert len(maps) == 2 and all(started <= m.time_s <= time.time() for m in maps)
+    assert not maps[-1].regions                            # the emulated mat is empty: nothing loaded
+    assert read_live(tmp_path / "data" / "live.json")["status"]["source"] == "hardware"
+
+
+def test_a_board_needs_a_calibration_of_its_own(tmp_path):
+    from appliance.service.assemble import assemble
+
+    config = config_from_mapping({"monitor": {"layout": "grid-4x4", "source": "hardware",
+                                              "data_dir": str(tmp_path), "cache_dir": str(tmp_path)},
+                                  "board": {"backend": "emulated"}})
+    with pytest.raises(ConfigError, match="calibration is needed with a board"):
+        assemble(config, say=lambda text: None)

@@ -84,7 +84,7 @@ def test_an_electrode_lost_mid_run_is_a_technical_alarm_and_monitoring_goes_on(t
     assert len(during) == 119                                  # a map every minute without the electrode
     before = [m for t, _, m in frames if 600 < t < 3600]
     assert all(m.usable_readings < before[0].usable_readings for m in during)
-    assert all(any(r.zone == "sacrum" for r in m.regions) or m.regions for m in during)   # still mapped
+    assert all(m.regions for m in during)                      # the patient is still mapped
     assert not raised(events, "pressure:")
 
 
@@ -121,5 +121,5 @@ def test_a_night_replayed_from_recorded_pressure_maps(tmp_path, bed_monitoring, 
     assert main(["sim", "run", "--scenario", str(scenario), "--hours", "2", "--out", str(out),
                  "--cache-dir", str(model_cache)]) == 0
     lines = [json.loads(line) for line in out.read_text().splitlines()]
-    assert [line["kind"] for line in lines if line["type"] == "turn"][:2] == ["repositioned", "repositioned"]
-    assert not [line for line in lines if (line["key"] or "").startswith("technical:")]
+    assert lines[0]["type"] == "turn" and lines[0]["kind"] == "repositioned" and lines[0]["time_s"] == 0.0
+    assert not [line for line in lines if (line["key"] or "").startswith(("technical:", "pressure:"))]

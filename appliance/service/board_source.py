@@ -16,6 +16,7 @@ import numpy as np
 
 from appliance.core.layouts import Layout
 from appliance.drivers.scan import TechnicalCondition
+from appliance.service.pace import Pace
 
 
 @dataclass(frozen=True)
@@ -39,8 +40,7 @@ class BoardSource:
         self.board, profile = open_board(board_table, sensor=lambda: ForwardSensor.of_layout(layout), seed=seed)
         self.front_end = open_front_end(self.board, profile)
         self.engine = ScanEngine(self.front_end, protocol)
-        self.period_s = frame_interval_s
-        self._next_wall: float | None = None
+        self.pace = Pace(frame_interval_s)
 
     def acquire(self) -> BoardFrame:
         frame = self.engine.scan()
@@ -50,11 +50,7 @@ class BoardSource:
         return time.time()
 
     def wait_for_frame(self, stop: threading.Event) -> bool:
-        now = time.monotonic()
-        if self._next_wall is not None and self._next_wall > now and stop.wait(self._next_wall - now):
-            return False
-        self._next_wall = max(now, self._next_wall or now) + self.period_s
-        return True
+        return self.pace.wait(stop)
 
     def resume_after(self, time_s: float) -> None:
         """Nothing to do: the wall clock went on while the monitor was down."""

@@ -23,7 +23,6 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-import time
 from collections.abc import Callable
 
 import numpy as np
@@ -45,7 +44,7 @@ electrode fault must be reported in)."""
 
 
 class MonitorDaemon:
-    """The monitor configured by ``config``, around a frame ``source`` (see :mod:`appliance.service.sources`).
+    """The monitor configured by ``config``, around a frame ``source`` (a VirtualBedSource or a BoardSource).
 
     ``on_event`` gets each :class:`Event` after it is committed; ``on_map``
     each pressure map; ``say`` the daemon's progress lines.
@@ -211,8 +210,8 @@ class MonitorDaemon:
             g = self.grid
             snapshot["map"] = {"mmhg": map_mmhg(pressure_map.pressure_kpa), "pixel_mm": list(g.pixel_mm),
                                "peak_kpa": pressure_map.peak_kpa, "usable_readings": pressure_map.usable_readings}
-            snapshot["regions"] = [{"id": r.id, "zone": r.zone, "peak_mmhg": r.peak_kpa / KPA_PER_MMHG, "area_cm2": r.area_cm2,
-                                    "x_mm": r.x_mm, "y_mm": r.y_mm, "since_s": r.first_seen_s,
+            snapshot["regions"] = [{"id": r.id, "zone": r.zone, "peak_mmhg": r.peak_kpa / KPA_PER_MMHG,
+                                    "area_cm2": r.area_cm2, "x_mm": r.x_mm, "y_mm": r.y_mm, "since_s": r.first_seen_s,
                                     "dose": alerts.region_doses.get(r.id)}
                                    for r in self.pipeline.tracked]
         return snapshot

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import os
 import threading
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -20,6 +19,7 @@ from appliance.core.layouts import Layout
 from appliance.core.model_cache import ReconstructionModel
 from appliance.core.pressure import PressureCalibration, load_pressure_calibration, save_pressure_calibration
 from appliance.errors import ConfigError
+from appliance.service.pace import Pace
 from appliance.sim.bed import VirtualBed
 from appliance.sim.frontend import VirtualFrontEnd
 from appliance.sim.loads import placer
@@ -49,8 +49,7 @@ class VirtualBedSource:
         self.bed = VirtualBed(layout, scene, **bed_options)
         self.front_end = VirtualFrontEnd(self.bed, protocol, seed=seed, frame_interval_s=frame_interval_s)
         self.place = placer(self.bed)
-        self.period_s = frame_interval_s / speed if speed > 0 else 0.0
-        self._next_wall: float | None = None
+        self.pace = Pace(frame_interval_s / speed if speed > 0 else 0.0)
 
     def acquire(self):
         return self.front_end.acquire()
@@ -61,13 +60,7 @@ class VirtualBedSource:
 
     def wait_for_frame(self, stop: threading.Event) -> bool:
         """Wait for the next frame's turn; False when the scene is over or ``stop`` was set meanwhile."""
-        if self.front_end.time_s > self.scene.duration_s:
-            return False
-        now = time.monotonic()
-        if self._next_wall is not None and self._next_wall > now and stop.wait(self._next_wall - now):
-            return False
-        self._next_wall = max(now, self._next_wall or now) + self.period_s
-        return True
+        return self.front_end.time_s <= self.scene.duration_s and self.pace.wait(stop)
 
     def resume_after(self, time_s: float) -> None:
         """Carry on with the frame after scene time ``time_s`` (the last one recorded before a restart)."""
