@@ -17,13 +17,19 @@ import numpy as np
 
 from appliance.core.iterative import affordable_iterate
 from appliance.core.model_cache import ReconstructionModel
-from appliance.core.pressure import (PressureCalibration, fit_pressure_curve, layout_fingerprint,
+from appliance.core.pressure import (PressureCalibration, ZoneCurve, fit_pressure_curve, layout_fingerprint,
                                      temperature_corrected)
 from appliance.errors import ConfigError
 
 KPA_PER_GRAM_PER_CM2 = 0.0980665    # 1 g on 1 cm2 (Table 6.3.1: 100 g on 4 cm2 is 2.45 kPa)
 THESIS_WEIGHTS_G = (200, 400, 600, 800, 1000)
 INSIDE_SHARE = 0.999                # a pixel counts as under a load only if it lies wholly under it
+
+BED_MIN_LENGTH_MM = 1500.0          # a mat this long is a bed: a body lies along it, heels at its foot end
+FOOT_END_MM = 350.0                 # the heels' band: on a 1900 mm bed a 175 cm patient's heels lie 100-200 mm
+                                    # from the end (sim/body.py), shorter or shifted patients up to ~300 mm
+HEEL_SIDE_MM = 50.0                 # a heel's contact on foam: ~20-25 cm2 at or above 32 mmHg (heel peak 55 mmHg)
+FOOT_END = "foot-end"
 
 
 @dataclass(frozen=True)
@@ -34,6 +40,7 @@ class Load:
     y_mm: float
     side_mm: float
     pressure_kpa: float
+    zone: str | None = None         # a zone's own curve is fitted to its loads (FOOT_END); None: the main curve
 
     def pixel_pressure(self, grid) -> np.ndarray:
         """The load's pressure on each pixel of ``grid`` (rows, cols), by the share of the pixel it covers."""
@@ -85,7 +92,31 @@ def calibration_loads(layout, positions: int = 2, pressures_kpa=CALIBRATION_PRES
         places = {(float(x), float(y)) for y in ys for x in xs} | {(width / 2, height / 2)}
         for x, y in sorted(places, key=lambda p: (p[1], p[0])):
             loads += [Load(x, y, side, float(p)) for p in pressures_kpa]
-    return loads
+    return loads + foot_end_loads(layout, pressures_kpa)
+
+
+def _long_axis(layout) -> tuple[float, float, bool]:
+    """(long side, short side, whether the long side runs along x) of the mat, mm."""
+    width, height = layout.sheet.size_mm
+    return (width, height, True) if width >= height else (height, width, False)
+
+
+def foot_end_loads(layout, pressures_kpa=CALIBRATION_PRESSURES_KPA) -> list[Load]:
+    """On a bed, heel-size weights across the foot end (where the heels lie), each at every pressure;
+    none on a smaller mat. Their own curve reads heels, which the main loads are three times too wide for."""
+    long, short, along_x = _long_axis(layout)
+    if long < BED_MIN_LENGTH_MM:
+        return []
+    places = [(a, c) for a in (long - 250.0, long - 120.0) for c in (short / 2 - 80.0, short / 2, short / 2 + 80.0)]
+    return [Load(a if along_x else c, c if along_x else a, HEEL_SIDE_MM, float(p), FOOT_END)
+            for a, c in places for p in pressures_kpa]
+
+
+def foot_end_mask(layout, grid) -> np.ndarray:
+    """Pixels (rows, cols) whose centre lies in the last ``FOOT_END_MM`` of a bed's long side."""
+    long, _, along_x = _long_axis(layout)
+    along = grid.centres_mm[:, 0 if along_x else 1]
+    return (along >= long - FOOT_END_MM).reshape(grid.shape)
 
 
 def grams_for(load: Load) -> float:
@@ -129,10 +160,19 @@ def pressure_calibration(acquire: Callable, place: Callable, model: Reconstructi
                 progress(k, len(loads), load)
     finally:
         place(None)
-    curve, flat = fit_with_flat_field(loads, images, truths, grid)
+    main = [k for k, load in enumerate(loads) if load.zone is None]
+    if not main:
+        raise ConfigError("a pressure calibration needs at least one load for the main curve")
+    curve, flat = fit_with_flat_field(*([items[k] for k in main] for items in (loads, images, truths)), grid)
+    foot = [k for k, load in enumerate(loads) if load.zone == FOOT_END]
+    zones = ()
+    if foot:
+        peaks = [np.nanmax(np.where(truths[k] > 0, -images[k], np.nan)) for k in foot]
+        zones = (ZoneCurve(FOOT_END, foot_end_mask(setup.layout, grid),
+                           fit_pressure_curve(np.array(peaks), np.array([loads[k].pressure_kpa for k in foot]))),)
     return PressureCalibration(setup.layout.name, layout_fingerprint(setup.layout), setup.options.algorithm,
                                grid.shape, curve, reference_temperature, flat_field=flat,
-                               notes={"loads": len(loads), "averages": averages, "iterate": iterate})
+                               notes={"loads": len(loads), "averages": averages, "iterate": iterate}, zones=zones)
 
 
 def fit_with_flat_field(loads, images, truths, grid):

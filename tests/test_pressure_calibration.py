@@ -6,8 +6,11 @@ import numpy as np
 import pytest
 
 from appliance.core.layouts import get_layout
-from appliance.core.pressure import (PressureCalibration, fit_pressure_curve, layout_fingerprint,
-                                     load_pressure_calibration, save_pressure_calibration, temperature_corrected)
+from appliance.calibration import FOOT_END, HEEL_SIDE_MM, foot_end_loads, foot_end_mask
+from appliance.core.pixels import pixel_grid
+from appliance.core.pressure import (PressureCalibration, PressureCurve, ZoneCurve, fit_pressure_curve,
+                                     layout_fingerprint, load_pressure_calibration, save_pressure_calibration,
+                                     temperature_corrected)
 from appliance.errors import ConfigError, DataFileInvalid
 
 
@@ -86,6 +89,10 @@ def test_a_calibration_never_fits_another_layout_or_reconstruction():
     (lambda d: d.update(format="other"), "is not a pressure calibration"),
     (lambda d: d["curve"].update(pressure_kpa=[0, 5, 4]), "must start at"),
     (lambda d: d.update(flat_field=[[1.0]]), "flat field shape"),
+    (lambda d: d.update(zones=[{"name": "foot-end", "mask": [[1]],
+                                "curve": {"change": [0, 1], "pressure_kpa": [0, 2]}}]), "zone's mask does not match"),
+    (lambda d: d.update(zones=[{"name": "foot-end", "mask": [[0] * 16] * 16,
+                                "curve": {"change": [0, 1], "pressure_kpa": [1, 2]}}]), "zone foot-end must start at"),
 ])
 def test_bad_calibration_files_are_refused_by_name(tmp_path, mutate, message):
     path = tmp_path / "cal.json"
@@ -98,3 +105,27 @@ def test_bad_calibration_files_are_refused_by_name(tmp_path, mutate, message):
     path.write_text("{not json")
     with pytest.raises(DataFileInvalid, match="not valid JSON"):
         load_pressure_calibration(path)
+
+
+def test_a_zone_curve_reads_its_own_pixels_and_survives_the_file(tmp_path):
+    mask = np.zeros((16, 16), dtype=bool)
+    mask[:, 12:] = True
+    zone = ZoneCurve(FOOT_END, mask, PressureCurve(np.array([0.0, 1.0]), np.array([0.0, 30.0])))
+    original = PressureCalibration(**{**calibration().__dict__, "zones": (zone,)})
+    image = -0.5 * np.ones((16, 16))
+    plain = calibration().pressure_kpa(image)
+    read = original.pressure_kpa(image)
+    assert np.allclose(read[:, 12:], 15.0) and np.array_equal(read[:, :12], plain[:, :12])
+    save_pressure_calibration(tmp_path / "cal.json", original)
+    back = load_pressure_calibration(tmp_path / "cal.json")
+    assert np.array_equal(back.pressure_kpa(image), read) and back.zones[0].name == FOOT_END
+
+
+def test_heel_size_loads_go_to_the_foot_end_of_a_bed_only():
+    bed = get_layout("grid-8x16")                      # 1900 mm along x
+    loads = foot_end_loads(bed, (5.0,))
+    assert len(loads) == 6 and all(l.zone == FOOT_END and l.side_mm == HEEL_SIDE_MM for l in loads)
+    assert all(1900 - 350 <= l.x_mm <= 1900 - HEEL_SIDE_MM / 2 for l in loads)
+    mask = foot_end_mask(bed, pixel_grid(bed))
+    assert mask[:, -1].all() and not mask[:, :25].any()
+    assert foot_end_loads(get_layout("grid-4x4")) == []

@@ -108,7 +108,8 @@ def test_calibration_loads_follow_the_thesis_weights_and_scale_with_the_mat():
     assert {l.pressure_kpa for l in loads} == {2.0, 3.5, 5.0, 7.5, 10.0, 14.0, 20.0}
     assert grams_for(Load(50, 50, 20, 2.45)) == pytest.approx(2.45 * 4 / KPA_PER_GRAM_PER_CM2)
     bed_loads = calibration_loads(get_layout("grid-8x16"))
-    assert min(l.side_mm for l in bed_loads) > 100                            # scaled to 120 mm electrodes
+    assert min(l.side_mm for l in bed_loads if l.zone is None) > 100          # scaled to 120 mm electrodes
+    assert {l.side_mm for l in bed_loads if l.zone == "foot-end"} == {50.0}     # and heel-size at the foot end
     for load in bed_loads:
         assert load.side_mm / 2 <= load.x_mm <= 1900 - load.side_mm / 2
         assert load.side_mm / 2 <= load.y_mm <= 900 - load.side_mm / 2

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 from appliance.alerts.alarms import AlarmCondition, AlarmEngine, AlarmEvent, Escalation
 from appliance.alerts.dose import DoseMap, custom_curve, tolerance_curve
-from appliance.alerts.regions import RegionTracker
+from appliance.alerts.regions import RegionTracker, zone_mask
 from appliance.alerts.turns import DEFAULT_INTERVAL_S, TurnClock, TurnEvent
 from appliance.core.pixels import PixelGrid
 from appliance.core.pressure_map import HIGH_PRESSURE_KPA, PressureMap
@@ -73,7 +73,8 @@ class AlertPipeline:
             self.curve = tolerance_curve(settings.curve, floor_kpa=settings.threshold_kpa)
         self.regions = RegionTracker(grid, threshold_kpa=settings.threshold_kpa)
         self.dose = DoseMap(grid.shape, self.curve, recovery=settings.recovery)
-        self.turns = TurnClock(interval_s=settings.turn_interval_s, at_risk_kpa=settings.threshold_kpa)
+        self.turns = TurnClock(interval_s=settings.turn_interval_s, at_risk_kpa=settings.threshold_kpa,
+                               ignore=zone_mask(grid, "heel"))
         self.engine = AlarmEngine()
         self.last_time_s: float | None = None
         self.clinical: dict[str, tuple[AlarmCondition, str | None]] = {}   # the last map's clinical conditions
@@ -95,7 +96,7 @@ class AlertPipeline:
                 condition = self._pressure_condition(region)
                 active[condition.key] = (condition, f"{doses[region.id]:.2f} of the tolerance used")
         due = self.turns.due_in_s(now)
-        if due is not None and due <= 0:
+        if due is not None and due <= 0 and self.turns.candidate_since is None:    # not while a turn settles
             condition = AlarmCondition("turn:due", "clinical", "low", False, "repositioning is due")
             active[condition.key] = (condition, f"{max(0.0, -due) / 60:.0f} min overdue")
         self.clinical = dict(active)
@@ -128,7 +129,7 @@ class AlertPipeline:
         pipeline.regions = RegionTracker.from_state(grid, state["regions"], threshold_kpa=settings.threshold_kpa)
         pipeline.dose = DoseMap.from_state(state["dose"], pipeline.curve)
         pipeline.turns = TurnClock.from_state(state["turns"], interval_s=settings.turn_interval_s,
-                                              at_risk_kpa=settings.threshold_kpa)
+                                              at_risk_kpa=settings.threshold_kpa, ignore=pipeline.turns.ignore)
         pipeline.engine = AlarmEngine.from_state(state["alarms"])
         pipeline.last_time_s = state["last_time_s"]
         pipeline.clinical = {c["key"]: (AlarmCondition.from_dict(c), detail) for c, detail in state.get("clinical", [])}

@@ -100,6 +100,12 @@ def anatomical_zone(x_mm: float, y_mm: float, mat_size_mm: tuple[float, float]) 
     return None
 
 
+def zone_mask(grid: PixelGrid, zone: str) -> np.ndarray:
+    """Pixels (rows, cols) whose centre lies in ``zone``; none on a mat too small for zones."""
+    size = (grid.width_mm, grid.height_mm)
+    return np.array([anatomical_zone(x, y, size) == zone for x, y in grid.centres_mm]).reshape(grid.shape)
+
+
 class RegionTracker:
     """Regions of each frame at or above ``threshold_kpa`` and at least ``min_area_cm2``, with ids
     stable across frames.

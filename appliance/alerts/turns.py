@@ -7,7 +7,9 @@ virtual bed a 30-degree turn relieves 40 to 50 % of it, while the restless
 scenario's shifts of 2 to 4 cm and a few degrees relieve none (measured on
 reconstructed grid-8x16 maps), so the default threshold is 25 %. The new posture
 must hold for ``settle_s`` before it counts, so a brief lift for a skin check does
-not restart the clock; the turn is dated from when the relief began.
+not restart the clock; the turn is dated from when the relief began. On a bed the
+heels' pixels are left out (``ignore``): a restless patient moves the feet by a
+few centimetres, which relieves a heel-size contact without turning anyone.
 
 Leaving the bed relieves everything and counts as the end of that posture; lying
 down again on an empty mat is a new posture, and the clock starts from it.
@@ -40,13 +42,14 @@ class TurnClock:
     """Feed it every pressure map in time order; it says when the patient was turned and when a turn is due."""
 
     def __init__(self, *, interval_s: float = DEFAULT_INTERVAL_S, at_risk_kpa: float = HIGH_PRESSURE_KPA,
-                 relieved_share: float = RELIEVED_SHARE, settle_s: float = SETTLE_S):
+                 relieved_share: float = RELIEVED_SHARE, settle_s: float = SETTLE_S, ignore: np.ndarray | None = None):
         if not (interval_s > 0 and settle_s >= 0 and 0 < relieved_share <= 1 and at_risk_kpa > 0):
             raise ConfigError(f"turn clock: interval {interval_s!r} s and at-risk pressure {at_risk_kpa!r} kPa must "
                               f"be positive, settle time {settle_s!r} s not negative, relieved share "
                               f"{relieved_share!r} in (0, 1]")
         self.interval_s, self.at_risk_kpa = interval_s, at_risk_kpa
         self.relieved_share, self.settle_s = relieved_share, settle_s
+        self.ignore = ignore         # pixels whose relief is no turn: a bed's heels, which a restless patient moves
         self.posture: np.ndarray | None = None      # the map of the posture held since the last turn
         self.last_turn_s: float | None = None
         self.candidate_since: float | None = None
@@ -59,6 +62,8 @@ class TurnClock:
             return 0.0
         before = np.nan_to_num(self.posture)
         at_risk = before >= self.at_risk_kpa
+        if self.ignore is not None:
+            at_risk &= ~self.ignore
         if not at_risk.any():
             return 0.0
         now = np.nan_to_num(pressure_kpa)

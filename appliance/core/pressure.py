@@ -114,8 +114,22 @@ def temperature_corrected(volts: np.ndarray, temperature_c: float | None, refere
 
 
 @dataclass(frozen=True)
+class ZoneCurve:
+    """A curve for the pixels of ``mask`` (rows, cols), fitted to loads the size of what lies there.
+
+    A reconstruction spreads a contact smaller than its resolution over several
+    pixels, so one curve cannot read both a pelvis and a heel: at a bed's foot end,
+    where only heels and feet lie, a curve from heel-size loads reads them.
+    """
+
+    name: str
+    mask: np.ndarray
+    curve: PressureCurve
+
+
+@dataclass(frozen=True)
 class PressureCalibration:
-    """A fitted calibration and what it is valid for."""
+    """A fitted calibration and what it is valid for; ``zones`` replace the main curve on their pixels."""
 
     layout_name: str
     layout_sha256: str
@@ -126,6 +140,7 @@ class PressureCalibration:
     temperature_coefficient_per_c: float = SALINE_COEFFICIENT_PER_C
     flat_field: np.ndarray | None = None
     notes: dict = field(default_factory=dict)
+    zones: tuple[ZoneCurve, ...] = ()
 
     def check_fits(self, layout: Layout, algorithm: str, pixels: tuple[int, int]) -> None:
         """Refuse to be applied to another mat or another reconstruction."""
@@ -140,7 +155,10 @@ class PressureCalibration:
     def pressure_kpa(self, image: np.ndarray) -> np.ndarray:
         if image.shape != tuple(self.pixels):
             raise ConfigError(f"image of shape {image.shape} given to a calibration for {self.pixels}")
-        return self.curve.pressure_kpa(image, self.flat_field)
+        pressure = self.curve.pressure_kpa(image, self.flat_field)
+        for zone in self.zones:
+            pressure = np.where(zone.mask, zone.curve.pressure_kpa(image), pressure)
+        return pressure
 
 
 def save_pressure_calibration(path: Path, calibration: PressureCalibration) -> None:
@@ -151,7 +169,10 @@ def save_pressure_calibration(path: Path, calibration: PressureCalibration) -> N
             "curve": {"change": c.curve.change.tolist(), "pressure_kpa": c.curve.pressure.tolist()},
             "reference_temperature_c": c.reference_temperature_c,
             "temperature_coefficient_per_c": c.temperature_coefficient_per_c,
-            "flat_field": None if c.flat_field is None else c.flat_field.tolist(), "notes": c.notes}
+            "flat_field": None if c.flat_field is None else c.flat_field.tolist(), "notes": c.notes,
+            "zones": [{"name": z.name, "mask": z.mask.astype(int).tolist(),
+                       "curve": {"change": z.curve.change.tolist(), "pressure_kpa": z.curve.pressure.tolist()}}
+                      for z in c.zones]}
     write_atomic(Path(path), json.dumps(data, indent=1) + "\n")
 
 
@@ -169,16 +190,24 @@ def load_pressure_calibration(path: Path) -> PressureCalibration:
         change = np.array(data["curve"]["change"], dtype=float)
         pressure = np.array(data["curve"]["pressure_kpa"], dtype=float)
         flat = data.get("flat_field")
+        zones = tuple(ZoneCurve(str(z["name"]), np.array(z["mask"], dtype=bool),
+                                PressureCurve(np.array(z["curve"]["change"], dtype=float),
+                                              np.array(z["curve"]["pressure_kpa"], dtype=float)))
+                      for z in data.get("zones", []))
         calibration = PressureCalibration(
             str(data["layout"]), str(data["layout_sha256"]), str(data["algorithm"]),
             tuple(int(v) for v in data["pixels"]), PressureCurve(change, pressure),
             float(data["reference_temperature_c"]), float(data["temperature_coefficient_per_c"]),
-            None if flat is None else np.array(flat, dtype=float), dict(data.get("notes", {})))
+            None if flat is None else np.array(flat, dtype=float), dict(data.get("notes", {})), zones)
     except (KeyError, TypeError, ValueError) as exc:
         raise DataFileInvalid(f"pressure calibration {path}: missing or malformed field ({exc})") from None
-    if len(change) < 2 or len(change) != len(pressure) or np.any(np.diff(change) <= 0) \
-            or np.any(np.diff(pressure) < 0) or change[0] != 0 or pressure[0] != 0:
-        raise DataFileInvalid(f"pressure calibration {path}: the curve must start at (0, 0) and rise")
+    for name, curve in [("curve", calibration.curve)] + [(f"zone {z.name}", z.curve) for z in calibration.zones]:
+        c, p = curve.change, curve.pressure
+        if len(c) < 2 or len(c) != len(p) or np.any(np.diff(c) <= 0) or np.any(np.diff(p) < 0) \
+                or c[0] != 0 or p[0] != 0:
+            raise DataFileInvalid(f"pressure calibration {path}: the {name} must start at (0, 0) and rise")
+    if any(z.mask.shape != calibration.pixels for z in calibration.zones):
+        raise DataFileInvalid(f"pressure calibration {path}: a zone's mask does not match the pixels")
     if calibration.flat_field is not None and calibration.flat_field.shape != calibration.pixels:
         raise DataFileInvalid(f"pressure calibration {path}: flat field shape does not match the pixels")
     return calibration

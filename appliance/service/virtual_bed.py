@@ -94,9 +94,10 @@ class VirtualBedSource:
             calibration = load_pressure_calibration(path)
             try:
                 calibration.check_fits(setup.layout, setup.options.algorithm, model.reconstructor.grid.shape)
-                return calibration, False
+                if calibration.notes.get("loads") == len(calibration_loads(setup.layout)):
+                    return calibration, False
             except ConfigError:
-                pass                    # the virtual mat's own file, for a mat since changed: make it again
+                pass                    # the virtual mat's own file, for a mat or a load set since changed: again
         calibration = pressure_calibration(self.acquire, self.place, model, calibration_loads(setup.layout),
                                            progress=progress)
         path.parent.mkdir(parents=True, exist_ok=True)
