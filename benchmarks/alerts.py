@@ -224,9 +224,10 @@ How to read it: the dose grows as the tolerance curve says for the pressure each
 delay follows the difference between the two peak columns. The Reswick-Rogers curve is steep between
 32 and 70 mmHg: a few mmHg too high or too low move the crossing by an hour or more. The Linder-Ganz
 sigmoid tolerates these pressures indefinitely once past its first hours, so neither the monitor nor the
-truth crosses it. The bed's pixels are 56 mm and its electrodes 112 mm apart, and the smallest calibration
-load is 135 mm wide: a contact much smaller than that (a heel, about 50 mm) is spread over several pixels
-and read far below its true peak, which is why heels alone are missed (see the README's known gaps).
+truth crosses it. The bed's pixels are 56 mm and its electrodes 112 mm apart: a heel (about 50 mm) is
+spread over several pixels. Read through the main curve (fitted to 135-225 mm loads) a 55 mmHg heel mapped
+at 15 mmHg and was never seen; the foot end now has its own curve from 50 mm loads, which reads the two
+heels, whose blurred images overlap, high: the monitor alarms early there.
 
 ## CPU and memory at 1 frame per second
 

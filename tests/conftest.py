@@ -119,3 +119,21 @@ def bed_monitoring(model_cache):
     source = VirtualBedSource(layout, load_scene("supine-still"), protocol)
     calibration, _ = source.calibration(model, virtual_calibration_path(model_cache, model))   # where `run` finds it
     return model, calibration
+
+
+@pytest.fixture(scope="session")
+def small_mat_calibration(model_cache):
+    """grid-4x4's model and a pressure calibration of its virtual mat with a reduced load set: (model, calibration)."""
+    from appliance.calibration import calibration_loads, pressure_calibration
+    from appliance.core.model_cache import ModelSetup, cached_model
+    from appliance.core.protocols import default_protocol
+    from appliance.service.virtual_bed import VirtualBedSource
+    from appliance.sim.loads import empty_mat
+
+    layout = get_layout("grid-4x4")
+    protocol = default_protocol(layout)
+    model, _ = cached_model(ModelSetup(layout, protocol), model_cache)
+    source = VirtualBedSource(layout, empty_mat(layout), protocol, seed=4)
+    calibration = pressure_calibration(source.acquire, source.place, model,
+                                       calibration_loads(layout, pressures_kpa=(2, 5, 10, 20)))
+    return model, calibration

@@ -13,9 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from appliance.calibration import calibration_loads, pressure_calibration
 from appliance.core.layouts import get_layout
-from appliance.core.model_cache import ModelSetup, cached_model
 from appliance.core.protocols import default_protocol
 from appliance.errors import ConfigError, TransferFailed
 from appliance.service.config import config_from_mapping, load_config
@@ -160,16 +158,6 @@ def test_the_live_view_is_always_a_whole_snapshot_and_publishing_never_waits(tmp
 
 # The loop on a small mat.
 
-@pytest.fixture(scope="module")
-def small_mat(tmp_path_factory):
-    protocol = default_protocol(GRID)
-    model, _ = cached_model(ModelSetup(GRID, protocol), tmp_path_factory.mktemp("models"))
-    source = VirtualBedSource(GRID, square_load_scene(100, 100, 30, 70, 40, 12.0), protocol, seed=4)
-    calibration = pressure_calibration(source.acquire, source.place, model,
-                                       calibration_loads(GRID, pressures_kpa=(2, 5, 10, 20)))
-    return model, calibration
-
-
 class FlakySource(VirtualBedSource):
     """The virtual mat, failing on the frames numbered in ``failing`` (counted from 0)."""
 
@@ -186,8 +174,8 @@ class FlakySource(VirtualBedSource):
         return super().acquire()
 
 
-def small_daemon(small_mat, tmp_path, source, **alerts):
-    model, calibration = small_mat
+def small_daemon(small_mat_calibration, tmp_path, source, **alerts):
+    model, calibration = small_mat_calibration
     config = config_from_mapping({"monitor": {"layout": "grid-4x4", "frame_interval_s": INTERVAL},
                                   "alerts": alerts})
     events = []
@@ -197,9 +185,9 @@ def small_daemon(small_mat, tmp_path, source, **alerts):
     return daemon, events
 
 
-def test_a_bus_fault_is_a_technical_alarm_at_once_and_no_data_after_three(small_mat, tmp_path):
+def test_a_bus_fault_is_a_technical_alarm_at_once_and_no_data_after_three(small_mat_calibration, tmp_path):
     source = FlakySource(failing={3, 4, 5, 6})
-    daemon, events = small_daemon(small_mat, tmp_path, source, alarm_dose=0.05)
+    daemon, events = small_daemon(small_mat_calibration, tmp_path, source, alarm_dose=0.05)
     assert daemon.run(10) == 10
     daemon.close()
     raised = {e.key: e.time_s for e in events if e.kind == "raised"}
@@ -216,8 +204,8 @@ def test_a_bus_fault_is_a_technical_alarm_at_once_and_no_data_after_three(small_
     assert live["status"]["faults"] == 4 and live["alarms"] and live["regions"][0]["dose"] > 0
 
 
-def test_acknowledgement_is_applied_at_the_next_frame_and_recorded(small_mat, tmp_path):
-    daemon, events = small_daemon(small_mat, tmp_path, FlakySource(failing=()), alarm_dose=0.05)
+def test_acknowledgement_is_applied_at_the_next_frame_and_recorded(small_mat_calibration, tmp_path):
+    daemon, events = small_daemon(small_mat_calibration, tmp_path, FlakySource(failing=()), alarm_dose=0.05)
     daemon.run(8)
     alarm = next(e for e in events if e.kind == "raised")
     next_frame_s = daemon.source.now()
@@ -263,12 +251,12 @@ def test_sigterm_stops_the_real_process_cleanly_after_telling_systemd(notify_soc
     assert json.loads((tmp_path / "data" / "live.json").read_text())["bed_id"]
 
 
-def test_the_daemon_runs_the_scan_engine_on_a_board_with_wall_clock_times(small_mat, tmp_path):
+def test_the_daemon_runs_the_scan_engine_on_a_board_with_wall_clock_times(small_mat_calibration, tmp_path):
     """``source = "hardware"`` with the emulated board: the real scan path, frames on the wall clock."""
     from appliance.core.pressure import save_pressure_calibration
     from appliance.service.assemble import assemble
 
-    model, calibration = small_mat
+    model, calibration = small_mat_calibration
     save_pressure_calibration(tmp_path / "pressure.json", calibration)
     config = config_from_mapping({"monitor": {"layout": "grid-4x4", "source": "hardware", "frame_interval_s": 0.05,
                                               "calibration": str(tmp_path / "pressure.json"),

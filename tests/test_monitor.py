@@ -5,7 +5,6 @@ import time
 import numpy as np
 import pytest
 
-from appliance.calibration import calibration_loads, pressure_calibration
 from appliance.cli import main
 from appliance.core.layouts import get_layout
 from appliance.core.model_cache import ModelSetup, cached_model
@@ -23,14 +22,10 @@ BED = get_layout("grid-8x16")
 
 
 @pytest.fixture(scope="module")
-def small_mat(tmp_path_factory):
-    """grid-4x4 with a 40 mm weight of 12 kPa on it, calibrated with a reduced load set."""
-    protocol = default_protocol(GRID)
-    model, _ = cached_model(ModelSetup(GRID, protocol), tmp_path_factory.mktemp("models"))
-    source = VirtualBedSource(GRID, square_load_scene(100, 100, 30, 70, 40, 12.0), protocol, seed=4)
-    calibration = pressure_calibration(source.acquire, source.place, model,
-                                       calibration_loads(GRID, pressures_kpa=(2, 5, 10, 20)))
-    source.start_scene()
+def small_mat(small_mat_calibration):
+    """grid-4x4 with a 40 mm weight of 12 kPa on it, and its calibration."""
+    model, calibration = small_mat_calibration
+    source = VirtualBedSource(GRID, square_load_scene(100, 100, 30, 70, 40, 12.0), default_protocol(GRID), seed=4)
     return model, source, calibration
 
 
