@@ -10,6 +10,7 @@ prompt to the operator. So the same procedure runs on both.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -172,7 +173,8 @@ def pressure_calibration(acquire: Callable, place: Callable, model: Reconstructi
                            fit_pressure_curve(np.array(peaks), np.array([loads[k].pressure_kpa for k in foot]))),)
     return PressureCalibration(setup.layout.name, layout_fingerprint(setup.layout), setup.options.algorithm,
                                grid.shape, curve, reference_temperature, flat_field=flat,
-                               notes={"loads": len(loads), "averages": averages, "iterate": iterate}, zones=zones)
+                               notes={"loads": len(loads), "averages": averages, "iterate": iterate,
+                                      "made_at": time.time()}, zones=zones)
 
 
 def fit_with_flat_field(loads, images, truths, grid):

@@ -283,3 +283,22 @@ def test_a_board_needs_a_calibration_of_its_own(tmp_path):
                                   "board": {"backend": "emulated"}})
     with pytest.raises(ConfigError, match="calibration is needed with a board"):
         assemble(config, say=lambda text: None)
+
+
+def test_a_stale_calibration_is_a_technical_alarm(small_mat_calibration, tmp_path):
+    """A year-old calibration, or a liquid far from the calibration's temperature, is equipment, not patient."""
+    import dataclasses
+
+    from appliance.service.monitor import stale_calibration
+
+    model, calibration = small_mat_calibration
+    old = dataclasses.replace(calibration, notes={**calibration.notes, "made_at": time.time() - 400 * 86400})
+    daemon, events = small_daemon((model, old), tmp_path, FlakySource(failing=()))
+    daemon.run(2)
+    daemon.close()
+    raised = [(e.key, e.category, e.time_s) for e in events if e.kind == "raised"]
+    assert ("technical:calibration", "technical", 0.0) in raised
+    assert "400 days ago" in next(e.message for e in events if e.key == "technical:calibration")
+    assert stale_calibration(calibration, calibration.reference_temperature_c + 2.0) is None
+    warm = stale_calibration(calibration, calibration.reference_temperature_c + 6.0)
+    assert warm is not None and "pressures are not trusted" in warm.message

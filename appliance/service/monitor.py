@@ -28,6 +28,27 @@ to them (a short, a failing gain stage, a load far beyond the mat's range) does 
 for a technical alarm. A lateral tilt on the bed saturates up to 6 of 6020 readings (0.1 %)."""
 
 
+CALIBRATION_MAX_AGE_DAYS = 365.0
+"""A mat's foam and liquid age; a calibration older than a year is due again (a yearly service)."""
+CALIBRATION_MAX_DELTA_C = 5.0
+"""The temperature correction is first order, measured to hold within 0.5 % over +-3 C (benchmarks/pressure.md);
+beyond 5 C from the calibration's temperature the map's pressures are not trusted."""
+
+
+def stale_calibration(calibration: PressureCalibration, temperature_c: float | None,
+                      now_s: float | None = None) -> TechnicalCondition | None:
+    """``calibration`` as a technical condition when it is too old or the liquid too far from its temperature."""
+    made = calibration.notes.get("made_at")
+    age_days = ((time.time() if now_s is None else now_s) - made) / 86400.0 if made is not None else None
+    if age_days is not None and age_days > CALIBRATION_MAX_AGE_DAYS:
+        return TechnicalCondition("calibration", f"made {age_days:.0f} days ago: the mat is due for calibration")
+    if temperature_c is not None and abs(temperature_c - calibration.reference_temperature_c) > CALIBRATION_MAX_DELTA_C:
+        return TechnicalCondition("calibration", f"the liquid is at {temperature_c:.1f} C, calibrated at "
+                                                 f"{calibration.reference_temperature_c:.1f} C: pressures are not "
+                                                 "trusted")
+    return None
+
+
 def alarm_worthy(frame) -> tuple[TechnicalCondition, ...]:
     """The frame's technical conditions that stop or degrade monitoring: every one but a few saturated
     readings, which become ``saturation`` only above ``SATURATION_ALARM_SHARE``."""
@@ -72,7 +93,8 @@ class Monitor:
         if self.reference is None:
             raise ConfigError("the monitor has no reference frame yet (take_reference first)")
         frame = self.acquire()
-        self.conditions = alarm_worthy(frame)
+        stale = stale_calibration(self.calibration, frame.temperature_c)
+        self.conditions = alarm_worthy(frame) + ((stale,) if stale is not None else ())
         volts = frame.volts
         if self.reference_temperature_c is not None:
             volts = temperature_corrected(volts, frame.temperature_c, self.reference_temperature_c)
