@@ -302,3 +302,36 @@ def test_a_stale_calibration_is_a_technical_alarm(small_mat_calibration, tmp_pat
     assert stale_calibration(calibration, calibration.reference_temperature_c + 2.0) is None
     warm = stale_calibration(calibration, calibration.reference_temperature_c + 6.0)
     assert warm is not None and "pressures are not trusted" in warm.message
+
+
+class Recorder:
+    """A notifier that keeps what it is given."""
+
+    def __init__(self):
+        self.events = []
+
+    def notify(self, event):
+        self.events.append(event)
+
+    def close(self):
+        pass
+
+
+def test_after_a_crash_the_last_frames_events_are_notified_again(small_mat_calibration, tmp_path):
+    model, calibration = small_mat_calibration
+    config = config_from_mapping({"monitor": {"layout": "grid-4x4", "frame_interval_s": INTERVAL},
+                                  "alerts": {"alarm_dose": 0.05}})
+    first = Recorder()
+    daemon = MonitorDaemon(config, FlakySource(failing=()), model, calibration, Store.open(tmp_path / "a.db"),
+                           notifiers=[first], say=lambda text: None)
+    daemon.start()
+    while not any(e.kind == "raised" and e.key.startswith("pressure:") for e in first.events):
+        before = len(first.events)
+        daemon.step()
+    last_frame = first.events[before:]                          # the crash comes now, before any close
+    again = Recorder()
+    restarted = MonitorDaemon(config, FlakySource(failing=()), model, calibration, Store.open(tmp_path / "a.db"),
+                              notifiers=[again], say=lambda text: None)
+    restarted.start()
+    assert again.events == last_frame and restarted.resumed_from_s == daemon.pipeline.last_time_s
+    restarted.close()

@@ -4,7 +4,9 @@ One loop owns every stage, in the order the data flows, so a frame's alarm
 events are committed with the alert state they led to before anyone is told:
 after a crash or power cut the daemon resumes from the store (the alert state,
 the empty-mat reference, and on the virtual bed the scene time) and neither
-loses nor repeats an alarm. Nothing downstream can hold the loop up: notifiers
+loses nor repeats an alarm. The last frame's events are kept with the state and
+notified again after a restart, so a crash between the commit and the hand-over
+to the notifiers loses no notification (delivery is at least once). Nothing downstream can hold the loop up: notifiers
 and the live view take their work on their own threads.
 
 Frames that cannot be taken are technical conditions, not silence: the front
@@ -100,7 +102,19 @@ class MonitorDaemon:
             self.source.resume_after(pipeline.last_time_s)
         active = len(pipeline.engine.alarms())
         self.say(f"resumed from the store at {pipeline.last_time_s} s with {active} alarm(s) open")
+        self._resend_last_frame()
         return True
+
+    def _resend_last_frame(self) -> None:
+        """Notify the last committed frame's events again: the crash may have come before they were handed
+        over. Receivers de-duplicate on (alarm_id, kind, time_s), so a repeat is harmless and a loss is not."""
+        outbox = self.store.load_state("outbox") or {"events": []}
+        for fields in outbox["events"]:
+            event = Event(**fields)
+            for notifier in self.notifiers:
+                notifier.notify(event)
+        if outbox["events"] and self.notifiers:
+            self.say(f"notified the last frame's {len(outbox['events'])} event(s) again")
 
     # The loop.
 
@@ -151,7 +165,8 @@ class MonitorDaemon:
         events += [as_event(e) for e in alerts.turn_events + alerts.alarm_events]
         if pressure_map is not None:
             self.store.record_map(now, np.nan_to_num(pressure_map.pressure_kpa))
-        self.store.commit_frame(now, events, {"alerts": self.pipeline.state()})
+        self.store.commit_frame(now, events, {"alerts": self.pipeline.state(),
+                                              "outbox": {"events": [e.to_dict() for e in events]}})
         self._tell(events, now)
         if pressure_map is not None and self.on_map is not None:
             self.on_map(pressure_map)
