@@ -1,0 +1,168 @@
+"""The web screen with Flask's test client: first start, login, roles, CSRF, rate limiting, the live view."""
+
+import json
+import re
+import time
+
+import pytest
+
+from appliance.service.live import LiveChannel
+from webui import create_app
+from webui.security import LoginLimiter
+from webui.users import AccountError, UserStore
+
+PASSWORD = "correct horse battery"
+
+
+@pytest.fixture
+def app(tmp_path):
+    return create_app(tmp_path, secure_cookies=False, TESTING=True, STREAM_MAX_S=1.0)
+
+
+def token(client, path="/login"):
+    page = client.get(path).get_data(as_text=True)
+    return re.search(r'name="csrf_token" value="([^"]+)"', page).group(1)
+
+
+def set_up(client, name="admin.ward3"):
+    return client.post("/setup", data={"name": name, "password": PASSWORD, "confirm": PASSWORD,
+                                       "csrf_token": token(client, "/setup")})
+
+
+def log_in(client, name, password=PASSWORD):
+    return client.post("/login", data={"name": name, "password": password, "csrf_token": token(client)})
+
+
+def test_a_fresh_screen_sends_everyone_to_set_up_the_first_admin(app):
+    client = app.test_client()
+    assert client.get("/").headers["Location"].endswith("/setup")
+    assert client.get("/login").headers["Location"].endswith("/setup")
+    assert set_up(client).headers["Location"].endswith("/")
+    assert client.get("/").status_code == 200                               # logged in as the admin
+    assert app.extensions["users"].get("admin.ward3").role == "admin"
+    assert client.get("/setup").headers["Location"].endswith("/login")      # gone once there is an account
+
+
+@pytest.mark.parametrize("name, password, confirm, message", [
+    ("admin", "short", "short", "at least 10 characters"),
+    ("Admin Ward", PASSWORD, PASSWORD, "a user name is 2-32 lower-case letters"),
+    ("admin", PASSWORD, PASSWORD + "x", "the two passwords differ"),
+    ("admin.password", "admin.password", "admin.password", "must not be the user name"),
+])
+def test_a_weak_first_account_is_refused_with_the_reason_and_nothing_is_made(app, name, password, confirm, message):
+    client = app.test_client()
+    answer = client.post("/setup", data={"name": name, "password": password, "confirm": confirm,
+                                         "csrf_token": token(client, "/setup")})
+    assert answer.status_code == 400 and message in answer.get_data(as_text=True)
+    assert app.extensions["users"].count() == 0
+
+
+def test_login_logout_and_the_audit_log(app):
+    set_up(app.test_client())
+    app.extensions["users"].create("nurse.jones", PASSWORD, "nurse", by="admin.ward3")
+    client = app.test_client()
+    assert log_in(client, "nurse.jones", "wrong password!").status_code == 401
+    assert log_in(client, "nurse.jones").headers["Location"].endswith("/")
+    assert client.get("/api/live").status_code == 200
+    assert client.post("/logout", data={"csrf_token": token(client, "/")}).status_code == 302
+    assert client.get("/api/live").status_code == 401
+    actions = [(e["user"], e["action"]) for e in app.extensions["users"].audit_log()]
+    assert actions[:4] == [("nurse.jones", "logged out"), ("nurse.jones", "logged in"),
+                           ("nurse.jones", "login failed"), ("admin.ward3", "account created")]
+
+
+def test_the_next_page_after_login_stays_on_this_site(app):
+    set_up(app.test_client())
+    client = app.test_client()
+    answer = client.post("/login?next=//evil.example/x", data={"name": "admin.ward3", "password": PASSWORD,
+                                                                "csrf_token": token(client)})
+    assert answer.headers["Location"] == "/"
+
+
+@pytest.mark.parametrize("path", ["/", "/api/live", "/api/live/stream"])
+def test_every_non_public_route_refuses_an_anonymous_request(app, path):
+    set_up(app.test_client())
+    answer = app.test_client().get(path)
+    assert answer.status_code in (302, 401)
+    assert answer.status_code == 401 or "/login" in answer.headers["Location"]
+
+
+@pytest.mark.parametrize("path, data", [("/logout", {}), ("/login", {"name": "admin.ward3", "password": PASSWORD}),
+                                        ("/setup", {"name": "x", "password": PASSWORD, "confirm": PASSWORD})])
+def test_every_state_changing_request_needs_the_csrf_token(app, path, data):
+    client = app.test_client()
+    if path != "/setup":
+        set_up(client)
+    count = app.extensions["users"].count()
+    answer = client.post(path, data=data)
+    assert answer.status_code == 400 and "CSRF" in answer.get_data(as_text=True)
+    answer = client.post(path, data={**data, "csrf_token": "forged"})
+    assert answer.status_code == 400
+    assert app.extensions["users"].count() == count
+
+
+def test_failed_logins_are_rate_limited_per_name(app):
+    set_up(app.test_client())
+    client = app.test_client()
+    codes = [log_in(client, "admin.ward3", f"wrong password {n}").status_code for n in range(6)]
+    assert codes == [401] * 5 + [429]
+    assert log_in(client, "admin.ward3").status_code == 429          # even the right password, for now
+
+
+def test_the_limiter_forgets_failures_after_its_window():
+    limiter = LoginLimiter(attempts=2, window_s=60.0)
+    limiter.failed("user:a", now=0.0)
+    limiter.failed("user:a", now=10.0)
+    assert limiter.blocked_for_s("user:a", now=20.0) == pytest.approx(40.0)
+    assert limiter.blocked_for_s("user:a", now=61.0) == 0.0
+
+
+def test_passwords_are_stored_as_argon2id_hashes_only(tmp_path):
+    users = UserStore(tmp_path / "webui.db")
+    users.create("eng.smith", PASSWORD, "engineer", by="admin")
+    raw = b"".join(p.read_bytes() for p in tmp_path.glob("webui.db*"))          # the file and its WAL
+    assert PASSWORD.encode() not in raw and b"$argon2id$" in raw
+    assert users.verify("eng.smith", PASSWORD).can("nurse") and not users.verify("eng.smith", PASSWORD).can("admin")
+    assert users.verify("nobody", PASSWORD) is None
+    with pytest.raises(AccountError, match="already exists"):
+        users.create("eng.smith", PASSWORD, "nurse", by="admin")
+    with pytest.raises(AccountError, match="role must be one of"):
+        users.create("eng.jones", PASSWORD, "surgeon", by="admin")
+
+
+def test_the_live_view_serves_the_monitors_snapshot_and_says_when_it_is_stale(app, tmp_path):
+    client = app.test_client()
+    set_up(client)
+    assert client.get("/api/live").get_json()["stale"] is True               # nothing written yet
+    live = LiveChannel(tmp_path / "live.json")
+    live.publish({"bed_id": "bed-4", "time_s": 60.0, "sequence": 1, "frame_interval_s": 1.0,
+                  "map": {"mmhg": [[0.0, 40.0]], "pixel_mm": [56, 56], "peak_kpa": 5.3}, "regions": [],
+                  "alarms": [], "status": {"faults": 0}, "turn": {"due_in_s": 7000.0}})
+    live.close()
+    snapshot = client.get("/api/live").get_json()
+    assert snapshot["bed_id"] == "bed-4" and snapshot["stale"] is False and snapshot["age_s"] < 3
+    data = json.loads((tmp_path / "live.json").read_text())
+    data["written_at"] = time.time() - 10
+    (tmp_path / "live.json").write_text(json.dumps(data))
+    assert client.get("/api/live").get_json()["stale"] is True
+
+
+def test_the_stream_sends_each_new_snapshot(app, tmp_path):
+    client = app.test_client()
+    set_up(client)
+    live = LiveChannel(tmp_path / "live.json")
+    live.publish({"bed_id": "bed-4", "time_s": 1.0, "sequence": 7, "frame_interval_s": 1.0})
+    live.close()
+    answer = client.get("/api/live/stream")
+    assert answer.mimetype == "text/event-stream"
+    events = [json.loads(line[6:]) for line in answer.get_data(as_text=True).splitlines() if line.startswith("data: ")]
+    assert [e["sequence"] for e in events] == [7]
+
+
+def test_session_cookies_are_httponly_strict_and_secure_by_default(tmp_path):
+    app = create_app(tmp_path)
+    client = app.test_client()
+    client.get("/setup")
+    cookie = client.get_cookie("session")
+    assert cookie.http_only and cookie.secure and cookie.same_site == "Strict"
+    assert (tmp_path / "webui.key").stat().st_mode & 0o777 == 0o600

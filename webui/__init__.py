@@ -1,0 +1,49 @@
+"""The nurse's screen: a Flask app beside the monitor daemon, reading its live view and store.
+
+``create_app(data_dir)`` is the app factory (the monitor's data directory: its
+``live.json``, and ``webui.db`` with the accounts and audit log). The session key
+is made once and kept in ``webui.key`` (mode 0600) so a restart does not log
+everyone out. Cookies are HttpOnly, SameSite=Strict and, unless ``secure_cookies``
+is turned off for plain-HTTP tests, Secure.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from datetime import timedelta
+from pathlib import Path
+
+from flask import Flask
+
+from webui import auth, live
+from webui.security import LoginLimiter, csrf_token, guard
+from webui.users import UserStore
+
+SESSION_HOURS = 12          # one shift
+
+
+def create_app(data_dir, *, secure_cookies: bool = True, **config) -> Flask:
+    data_dir = Path(data_dir)
+    data_dir.mkdir(parents=True, exist_ok=True)
+    app = Flask(__name__)
+    app.config.update(SECRET_KEY=_secret_key(data_dir / "webui.key"), LIVE_PATH=data_dir / "live.json",
+                      SESSION_COOKIE_HTTPONLY=True, SESSION_COOKIE_SAMESITE="Strict",
+                      SESSION_COOKIE_SECURE=secure_cookies,
+                      PERMANENT_SESSION_LIFETIME=timedelta(hours=SESSION_HOURS), **config)
+    app.extensions["users"] = UserStore(data_dir / "webui.db")
+    app.extensions["login_limiter"] = LoginLimiter()
+    app.before_request(guard)
+    app.jinja_env.globals["csrf_token"] = csrf_token
+    app.register_blueprint(auth.bp)
+    app.register_blueprint(live.bp)
+    return app
+
+
+def _secret_key(path: Path) -> bytes:
+    """The key in ``path``, made (32 random bytes, owner-only) the first time."""
+    if not path.exists():
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "wb") as f:
+            f.write(secrets.token_bytes(32))
+    return path.read_bytes()

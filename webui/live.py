@@ -1,0 +1,70 @@
+"""The live view: the monitor's newest frame as a page, as JSON, and as a server-sent event stream.
+
+The monitor writes ``live.json`` (``appliance.service.live``); this process only
+reads it, so any number of screens costs the monitor nothing. The stream checks
+the file five times a second and sends each new snapshot once; a comment line
+every 15 s keeps proxies from closing an idle stream. A snapshot older than
+``STALE_AFTER_FRAMES`` frames is marked stale, so a screen never shows an old map
+as if it were live.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+from flask import Blueprint, Response, current_app, jsonify, render_template
+
+from appliance.service.live import read_live
+
+bp = Blueprint("live", __name__)
+STALE_AFTER_FRAMES = 3
+POLL_S = 0.2
+HEARTBEAT_S = 15.0
+
+
+def snapshot() -> dict:
+    """The newest snapshot with ``stale`` and ``age_s`` added; ``{"stale": True}`` before the first one."""
+    data = read_live(current_app.config["LIVE_PATH"])
+    if data is None:
+        return {"stale": True, "age_s": None, "message": "the monitor has not written a frame yet"}
+    age = time.time() - data["written_at"]
+    data["age_s"] = age
+    data["stale"] = age > STALE_AFTER_FRAMES * max(float(data.get("frame_interval_s", 1.0)), 1.0)
+    return data
+
+
+@bp.route("/")
+def page():
+    return render_template("live.html")
+
+
+@bp.route("/api/live")
+def current():
+    return jsonify(snapshot())
+
+
+@bp.route("/api/live/stream")
+def stream():
+    path, max_s = current_app.config["LIVE_PATH"], current_app.config.get("STREAM_MAX_S")
+    app = current_app._get_current_object()
+
+    def events():
+        started = last_beat = time.monotonic()
+        last_mtime = None
+        while max_s is None or time.monotonic() - started < max_s:
+            try:
+                mtime = path.stat().st_mtime_ns
+            except FileNotFoundError:
+                mtime = None
+            if mtime is not None and mtime != last_mtime:
+                last_mtime = mtime
+                with app.app_context():
+                    yield f"data: {json.dumps(snapshot(), separators=(',', ':'))}\n\n"
+                last_beat = time.monotonic()
+            elif time.monotonic() - last_beat > HEARTBEAT_S:
+                yield ": keep-alive\n\n"
+                last_beat = time.monotonic()
+            time.sleep(POLL_S)
+
+    return Response(events(), mimetype="text/event-stream", headers={"Cache-Control": "no-store"})

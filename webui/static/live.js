@@ -1,0 +1,66 @@
+// The live view: draws each snapshot the server streams (map, regions, alarms, turn clock).
+"use strict";
+const FULL_SCALE = 100;   // mmHg at the darkest colour
+
+function colour(mmhg) {
+  if (mmhg === null) return "#bbbbbb";
+  const t = Math.max(0, Math.min(1, mmhg / FULL_SCALE));
+  const r = Math.round(255 - 200 * t), g = Math.round(255 - 230 * t), b = Math.round(255 - 120 * t);
+  return `rgb(${r},${g},${b})`;
+}
+
+function clock(seconds) {
+  if (seconds === null || seconds === undefined) return "-";
+  const sign = seconds < 0 ? "overdue " : "";
+  const s = Math.abs(Math.round(seconds));
+  return `${sign}${Math.floor(s / 3600)} h ${String(Math.floor(s % 3600 / 60)).padStart(2, "0")} min`;
+}
+
+function draw(snapshot) {
+  document.getElementById("stale").hidden = !snapshot.stale;
+  const status = document.getElementById("status");
+  if (!snapshot.map) { status.textContent = snapshot.message || "no map yet"; return; }
+  const rows = snapshot.map.mmhg, canvas = document.getElementById("map"), ctx = canvas.getContext("2d");
+  const w = canvas.width / rows[0].length, h = canvas.height / rows.length;
+  rows.forEach((row, i) => row.forEach((v, j) => { ctx.fillStyle = colour(v); ctx.fillRect(j * w, i * h, w + 1, h + 1); }));
+  const [pw, ph] = snapshot.map.pixel_mm;
+  ctx.strokeStyle = "#d62828"; ctx.lineWidth = 2;
+  const tbody = document.querySelector("#regions tbody");
+  tbody.innerHTML = "";
+  for (const r of snapshot.regions || []) {
+    ctx.beginPath();
+    ctx.arc(r.x_mm / pw * w, r.y_mm / ph * h, Math.max(w, Math.sqrt(r.area_cm2 * 100 / Math.PI) / pw * w), 0, 2 * Math.PI);
+    ctx.stroke();
+    const tr = document.createElement("tr");
+    const since = (snapshot.time_s - r.since_s) / 60;
+    for (const text of [r.zone || "region " + r.id, r.peak_mmhg.toFixed(0), since.toFixed(0) + " min",
+                        r.dose === null ? "-" : Math.round(100 * r.dose) + " %"]) {
+      const td = document.createElement("td"); td.textContent = text; tr.appendChild(td);
+    }
+    tbody.appendChild(tr);
+  }
+  document.getElementById("peak").textContent = (snapshot.map.peak_kpa / 0.133322).toFixed(0);
+  document.getElementById("turn").textContent = clock(snapshot.turn && snapshot.turn.due_in_s);
+  const alarms = document.getElementById("alarms");
+  alarms.innerHTML = "";
+  for (const a of snapshot.alarms || []) {
+    const div = document.createElement("div");
+    div.className = "alarm " + a.priority;
+    div.textContent = `${a.priority.toUpperCase()}: ${a.message}` + (a.acknowledged_by ? ` (acknowledged by ${a.acknowledged_by})` : "");
+    alarms.appendChild(div);
+  }
+  status.textContent = `bed ${snapshot.bed_id}, frame ${snapshot.sequence}, ${snapshot.status.faults} fault(s), ` +
+                       `${Math.round(snapshot.age_s)} s old`;
+}
+
+function scale() {
+  const c = document.getElementById("scale"), ctx = c.getContext("2d");
+  for (let x = 0; x < c.width; x++) { ctx.fillStyle = colour(x / c.width * FULL_SCALE); ctx.fillRect(x, 0, 1, c.height); }
+}
+
+scale();
+fetch("/api/live").then(r => r.json()).then(draw);
+const source = new EventSource("/api/live/stream");
+source.onmessage = event => draw(JSON.parse(event.data));
+source.onerror = () => { document.getElementById("status").textContent = "connection lost: retrying..."; };
+setInterval(() => fetch("/api/live").then(r => r.json()).then(s => { if (s.stale) draw(s); }), 5000);

@@ -1,0 +1,112 @@
+"""The web screen's accounts and audit log: one SQLite file beside the monitor's store.
+
+Passwords are hashed with Argon2id (argon2-cffi, the OWASP-recommended memory-hard
+hash); nothing else about a password is kept. Roles are ordered: a nurse sees and
+acknowledges, an engineer also calibrates and diagnoses, an admin also manages
+accounts. Every acknowledgement and settings change is appended to the audit log
+with who did it and when.
+"""
+
+from __future__ import annotations
+
+import re
+import sqlite3
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from argon2 import PasswordHasher
+from argon2.exceptions import InvalidHashError, VerificationError
+
+ROLES = ("nurse", "engineer", "admin")
+MIN_PASSWORD_LENGTH = 10
+_NAME = re.compile(r"^[a-z0-9][a-z0-9._-]{1,31}$")
+_SCHEMA = (
+    "CREATE TABLE IF NOT EXISTS users (name TEXT PRIMARY KEY, role TEXT NOT NULL, hash TEXT NOT NULL,"
+    " created_s REAL NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS audit (id INTEGER PRIMARY KEY, time_s REAL NOT NULL, user TEXT NOT NULL,"
+    " action TEXT NOT NULL, detail TEXT NOT NULL)",
+)
+
+
+class AccountError(ValueError):
+    """A user name, password or role that cannot be accepted; the message says why."""
+
+
+@dataclass(frozen=True)
+class User:
+    name: str
+    role: str
+
+    def can(self, role: str) -> bool:
+        """Whether this user has ``role``'s rights (roles are ordered nurse < engineer < admin)."""
+        return ROLES.index(self.role) >= ROLES.index(role)
+
+
+class UserStore:
+    """Accounts and the audit log in ``path``; one connection per call, so any thread may use it."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self.hasher = PasswordHasher()
+        with self._db() as db:
+            for statement in _SCHEMA:
+                db.execute(statement)
+
+    def _db(self) -> sqlite3.Connection:
+        db = sqlite3.connect(self.path, timeout=5.0)
+        db.execute("PRAGMA journal_mode=WAL")
+        return db
+
+    def count(self) -> int:
+        with self._db() as db:
+            return db.execute("SELECT count(*) FROM users").fetchone()[0]
+
+    def create(self, name: str, password: str, role: str, *, by: str) -> User:
+        """A new account; a bad name, a weak password or an unknown role is refused with the reason."""
+        if not _NAME.match(name or ""):
+            raise AccountError("a user name is 2-32 lower-case letters, digits, '.', '_' or '-', starting with a "
+                               "letter or digit")
+        if role not in ROLES:
+            raise AccountError(f"role must be one of {', '.join(ROLES)}")
+        if len(password or "") < MIN_PASSWORD_LENGTH:
+            raise AccountError(f"a password needs at least {MIN_PASSWORD_LENGTH} characters")
+        if password.lower() == name.lower():
+            raise AccountError("the password must not be the user name")
+        try:
+            with self._db() as db:
+                db.execute("INSERT INTO users (name, role, hash, created_s) VALUES (?, ?, ?, ?)",
+                           (name, role, self.hasher.hash(password), time.time()))
+        except sqlite3.IntegrityError:
+            raise AccountError(f"user {name!r} already exists") from None
+        self.audit(by, "account created", f"{name} ({role})")
+        return User(name, role)
+
+    def verify(self, name: str, password: str) -> User | None:
+        """The user if ``password`` is theirs, else None (an unknown name costs the same hashing time)."""
+        with self._db() as db:
+            row = db.execute("SELECT role, hash FROM users WHERE name = ?", (name,)).fetchone()
+        stored = row[1] if row else _DUMMY_HASH
+        try:
+            self.hasher.verify(stored, password or "")
+        except (VerificationError, InvalidHashError):
+            return None
+        return User(name, row[0]) if row else None
+
+    def get(self, name: str) -> User | None:
+        with self._db() as db:
+            row = db.execute("SELECT role FROM users WHERE name = ?", (name,)).fetchone()
+        return User(name, row[0]) if row else None
+
+    def audit(self, user: str, action: str, detail: str = "") -> None:
+        with self._db() as db:
+            db.execute("INSERT INTO audit (time_s, user, action, detail) VALUES (?, ?, ?, ?)",
+                       (time.time(), user, action, detail))
+
+    def audit_log(self, limit: int = 200) -> list[dict]:
+        with self._db() as db:
+            rows = db.execute("SELECT time_s, user, action, detail FROM audit ORDER BY id DESC LIMIT ?", (limit,))
+            return [dict(zip(("time_s", "user", "action", "detail"), row)) for row in rows]
+
+
+_DUMMY_HASH = PasswordHasher().hash("no such user: equal time for unknown names")
