@@ -209,12 +209,17 @@ def test_acknowledgement_is_applied_at_the_next_frame_and_recorded(small_mat_cal
     daemon.run(8)
     alarm = next(e for e in events if e.kind == "raised")
     next_frame_s = daemon.source.now()
-    daemon.acknowledge(alarm.alarm_id, "nurse.jones")
-    daemon.acknowledge(999, "nurse.jones")                       # no such alarm: refused, the loop goes on
-    daemon.run(1)
+    with Store.open(tmp_path / "appliance.db") as screen:        # the web screen: another connection, own process
+        good = screen.queue_command("acknowledge", {"alarm_id": alarm.alarm_id}, "nurse.jones")
+        bad = screen.queue_command("acknowledge", {"alarm_id": 999}, "nurse.jones")   # refused; the loop goes on
+    daemon.run(2)
     daemon.close()
     acked = [e for e in events if e.kind == "acknowledged"]
     assert [(e.alarm_id, e.user, e.time_s) for e in acked] == [(alarm.alarm_id, "nurse.jones", next_frame_s)]
+    with Store.open(tmp_path / "appliance.db") as store:
+        assert store.command(good)["state"] == "done" and store.command(bad)["state"] == "refused"
+        assert "alarm 999 is unknown" in store.command(bad)["result"]
+        assert [e["user"] for e in store.events_since(0) if e["kind"] == "acknowledged"] == ["nurse.jones"]
 
 
 # The real process: systemd readiness and a clean SIGTERM.

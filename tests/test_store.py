@@ -207,3 +207,25 @@ def test_writes_after_close_raise(tmp_path):
         store.record_map(1.0, np.ones((2, 2)))
     with pytest.raises(StoreClosed):
         store.record_events([alarm_event(1.0)])
+
+
+def test_a_version_1_file_gains_the_command_queue_and_keeps_its_data(tmp_path):
+    from appliance.store.database import MIGRATIONS
+
+    path = tmp_path / "old.db"
+    db = sqlite3.connect(path)
+    for statement in MIGRATIONS[1]:
+        db.execute(statement)
+    db.execute("INSERT INTO schema_version (version) VALUES (1)")
+    db.execute("INSERT INTO events (time_s, kind) VALUES (5.0, 'raised')")
+    db.commit()
+    db.close()
+    with Store.open(path) as store:
+        assert [e["kind"] for e in store.events_since(0)] == ["raised"]
+        first = store.queue_command("acknowledge", {"alarm_id": 3}, "nurse.jones")
+        second = store.queue_command("pause-audio", {"duration_s": 60}, "nurse.jones")
+        assert [c["id"] for c in store.pending_commands()] == [first, second]
+        store.commit_frame(10.0, [], {}, [(first, True, "1 event(s)")])
+        assert [c["id"] for c in store.pending_commands()] == [second]
+        assert store.command(first)["state"] == "done" and store.command(first)["args"] == {"alarm_id": 3}
+    assert raw(path, "SELECT version FROM schema_version") == [(SCHEMA_VERSION,)]

@@ -7,6 +7,7 @@ import time
 import pytest
 
 from appliance.service.live import LiveChannel
+from appliance.store import Store
 from webui import create_app
 from webui.security import LoginLimiter
 from webui.users import AccountError, UserStore
@@ -79,7 +80,7 @@ def test_the_next_page_after_login_stays_on_this_site(app):
     assert answer.headers["Location"] == "/"
 
 
-@pytest.mark.parametrize("path", ["/", "/api/live", "/api/live/stream"])
+@pytest.mark.parametrize("path", ["/", "/api/live", "/api/live/stream", "/alarms", "/api/commands/1"])
 def test_every_non_public_route_refuses_an_anonymous_request(app, path):
     set_up(app.test_client())
     answer = app.test_client().get(path)
@@ -87,8 +88,18 @@ def test_every_non_public_route_refuses_an_anonymous_request(app, path):
     assert answer.status_code == 401 or "/login" in answer.headers["Location"]
 
 
+@pytest.mark.parametrize("path", ["/alarms/1/acknowledge", "/alarms/pause-audio", "/logout"])
+def test_every_state_changing_route_refuses_an_anonymous_request(app, path):
+    set_up(app.test_client())
+    client = app.test_client()
+    answer = client.post(path, data={"csrf_token": token(client), "minutes": "1"})
+    assert answer.status_code in (302, 401)
+    assert answer.status_code == 401 or "/login" in answer.headers["Location"]
+
+
 @pytest.mark.parametrize("path, data", [("/logout", {}), ("/login", {"name": "admin.ward3", "password": PASSWORD}),
-                                        ("/setup", {"name": "x", "password": PASSWORD, "confirm": PASSWORD})])
+                                        ("/setup", {"name": "x", "password": PASSWORD, "confirm": PASSWORD}),
+                                        ("/alarms/1/acknowledge", {}), ("/alarms/pause-audio", {"minutes": "1"})])
 def test_every_state_changing_request_needs_the_csrf_token(app, path, data):
     client = app.test_client()
     if path != "/setup":
@@ -166,3 +177,40 @@ def test_session_cookies_are_httponly_strict_and_secure_by_default(tmp_path):
     cookie = client.get_cookie("session")
     assert cookie.http_only and cookie.secure and cookie.same_site == "Strict"
     assert (tmp_path / "webui.key").stat().st_mode & 0o777 == 0o600
+
+
+def test_a_nurse_acknowledges_an_alarm_of_the_running_monitor_and_sees_it_in_the_history(small_mat_calibration,
+                                                                                          tmp_path):
+    """The monitor daemon and the screen share a data directory, as on the appliance."""
+    from test_daemon import FlakySource, small_daemon
+
+    daemon, events = small_daemon(small_mat_calibration, tmp_path, FlakySource(failing=()), alarm_dose=0.05)
+    app = create_app(tmp_path, secure_cookies=False, TESTING=True)
+    set_up(app.test_client())
+    app.extensions["users"].create("nurse.jones", PASSWORD, "nurse", by="admin.ward3")
+    client = app.test_client()
+    log_in(client, "nurse.jones")
+    daemon.run(8)
+    daemon.live.close()
+    daemon.live = LiveChannel(tmp_path / "live.json")
+    alarm = next(e for e in events if e.kind == "raised" and e.key.startswith("pressure:"))
+    page = client.get("/alarms").get_data(as_text=True)
+    assert "Acknowledge" in page and "sustained pressure" in page
+    csrf = token(client, "/alarms")
+    refused = client.post("/alarms/999/acknowledge", data={"csrf_token": csrf}, follow_redirects=True)
+    assert "alarm 999 is not open: nothing was acknowledged" in refused.get_data(as_text=True)
+    bad_pause = client.post("/alarms/pause-audio", data={"csrf_token": csrf, "minutes": "10"}, follow_redirects=True)
+    assert "at most 2 minutes" in bad_pause.get_data(as_text=True)
+    with Store.open(tmp_path / "appliance.db") as store:
+        assert store.pending_commands() == []                                  # the refusals queued nothing
+    answer = client.post(f"/alarms/{alarm.alarm_id}/acknowledge", data={"csrf_token": csrf})
+    assert answer.status_code == 303
+    daemon.run(1)
+    daemon.close()
+    acked = [e for e in events if e.kind == "acknowledged"]
+    assert [(e.alarm_id, e.user) for e in acked] == [(alarm.alarm_id, "nurse.jones")]
+    history = client.get("/alarms").get_data(as_text=True)
+    assert "acknowledged" in history and "nurse.jones" in history
+    assert client.get("/api/commands/1").get_json()["state"] == "done"
+    assert ("nurse.jones", "acknowledged alarm") in [(e["user"], e["action"])
+                                                     for e in app.extensions["users"].audit_log()]

@@ -1,7 +1,8 @@
 """The nurse's screen: a Flask app beside the monitor daemon, reading its live view and store.
 
 ``create_app(data_dir)`` is the app factory (the monitor's data directory: its
-``live.json``, and ``webui.db`` with the accounts and audit log). The session key
+``live.json`` and ``appliance.db``, and ``webui.db`` with the accounts and audit
+log). The session key
 is made once and kept in ``webui.key`` (mode 0600) so a restart does not log
 everyone out. Cookies are HttpOnly, SameSite=Strict and, unless ``secure_cookies``
 is turned off for plain-HTTP tests, Secure.
@@ -16,7 +17,7 @@ from pathlib import Path
 
 from flask import Flask
 
-from webui import auth, live
+from webui import alarms, auth, live
 from webui.security import LoginLimiter, csrf_token, guard
 from webui.users import UserStore
 
@@ -28,6 +29,7 @@ def create_app(data_dir, *, secure_cookies: bool = True, **config) -> Flask:
     data_dir.mkdir(parents=True, exist_ok=True)
     app = Flask(__name__)
     app.config.update(SECRET_KEY=_secret_key(data_dir / "webui.key"), LIVE_PATH=data_dir / "live.json",
+                      STORE_PATH=data_dir / "appliance.db",
                       SESSION_COOKIE_HTTPONLY=True, SESSION_COOKIE_SAMESITE="Strict",
                       SESSION_COOKIE_SECURE=secure_cookies,
                       PERMANENT_SESSION_LIFETIME=timedelta(hours=SESSION_HOURS), **config)
@@ -37,6 +39,7 @@ def create_app(data_dir, *, secure_cookies: bool = True, **config) -> Flask:
     app.jinja_env.globals["csrf_token"] = csrf_token
     app.register_blueprint(auth.bp)
     app.register_blueprint(live.bp)
+    app.register_blueprint(alarms.bp)
     return app
 
 

@@ -12,8 +12,10 @@ and the live view take their work on their own threads.
 Frames that cannot be taken are technical conditions, not silence: the front
 end's error at once (``technical:front-end``), and after ``NO_DATA_FRAMES`` in a
 row ``technical:no-data``; during a gap clinical alarms stay as the last map
-left them. Commands from outside (acknowledge, pause audio) are queued and
-applied at the start of the next frame, on the loop's own thread.
+left them. Commands from outside (acknowledge, pause audio) are queued in the
+store by whoever asks (the web screen is another process), applied at the start
+of the next frame, and marked done in the commit of the events they caused, so
+each is applied exactly once even across a crash.
 
 Under systemd (``Type=notify``) it reports ready once the first map is made,
 pings the watchdog every frame, and on SIGTERM finishes the frame, flushes the
@@ -23,7 +25,6 @@ notifiers, closes the store and exits 0.
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 from collections.abc import Callable
 
@@ -64,7 +65,6 @@ class MonitorDaemon:
         self.grid = model.reconstructor.grid
         self.pipeline = AlertPipeline(self.grid, config.alerts)
         self.stop_requested = threading.Event()
-        self.commands: queue.SimpleQueue = queue.SimpleQueue()
         self.maps = self.faults = self.consecutive_faults = 0
         self.last_fault: str | None = None
         self.resumed_from_s: float | None = None
@@ -132,17 +132,18 @@ class MonitorDaemon:
         """Finish the frame under way, then stop (the SIGTERM handler)."""
         self.stop_requested.set()
 
-    def acknowledge(self, alarm_id: int, user: str) -> None:
-        """Acknowledge an alarm at the next frame (thread-safe: the web screen calls it)."""
-        self.commands.put(("acknowledge", alarm_id, user))
+    def acknowledge(self, alarm_id: int, user: str) -> int:
+        """Acknowledge an alarm at the next frame. From the loop's thread; another process (the web screen)
+        queues the same command through its own connection to the store."""
+        return self.store.queue_command("acknowledge", {"alarm_id": alarm_id}, user)
 
-    def pause_audio(self, user: str, duration_s: float) -> None:
-        self.commands.put(("pause-audio", user, duration_s))
+    def pause_audio(self, user: str, duration_s: float) -> int:
+        return self.store.queue_command("pause-audio", {"duration_s": duration_s}, user)
 
     def step(self) -> FrameAlerts:
         """One frame through every stage."""
         now = self.source.now()
-        events = self._apply_commands(now)
+        events, outcomes = self._apply_commands(now)
         try:
             pressure_map = self.monitor.next_map()
         except (ApplianceError, OSError) as exc:
@@ -166,7 +167,7 @@ class MonitorDaemon:
         if pressure_map is not None:
             self.store.record_map(now, np.nan_to_num(pressure_map.pressure_kpa))
         self.store.commit_frame(now, events, {"alerts": self.pipeline.state(),
-                                              "outbox": {"events": [e.to_dict() for e in events]}})
+                                              "outbox": {"events": [e.to_dict() for e in events]}}, outcomes)
         self._tell(events, now)
         if pressure_map is not None and self.on_map is not None:
             self.on_map(pressure_map)
@@ -178,22 +179,25 @@ class MonitorDaemon:
         self.systemd.ping()
         return alerts
 
-    def _apply_commands(self, now: float) -> list[Event]:
-        events = []
-        while True:
+    def _apply_commands(self, now: float) -> tuple[list[Event], list[tuple[int, bool, str]]]:
+        """The queued commands applied to the alarm engine: their events, and each one's outcome."""
+        events, outcomes = [], []
+        for command in self.store.pending_commands():
+            kind, args, user = command["kind"], command["args"], command["user"]
             try:
-                command = self.commands.get_nowait()
-            except queue.Empty:
-                return events
-            try:
-                if command[0] == "acknowledge":
-                    done = self.pipeline.engine.acknowledge(now, command[1], command[2])
+                if kind == "acknowledge":
+                    done = self.pipeline.engine.acknowledge(now, int(args["alarm_id"]), user)
+                elif kind == "pause-audio":
+                    done = self.pipeline.engine.pause_audio(now, user, float(args["duration_s"]))
                 else:
-                    done = self.pipeline.engine.pause_audio(now, command[1], command[2])
-            except (ApplianceError, ValueError) as exc:
-                self.say(f"command {command[0]} refused: {exc}")
+                    raise ValueError(f"unknown command {kind!r}")
+            except (ApplianceError, ValueError, KeyError, TypeError) as exc:
+                self.say(f"command {kind} by {user} refused: {exc}")
+                outcomes.append((command["id"], False, str(exc)))
                 continue
             events += [as_event(e) for e in done]
+            outcomes.append((command["id"], True, f"{len(done)} event(s)"))
+        return events, outcomes
 
     def _tell(self, events: list[Event], now: float) -> None:
         for event in events:

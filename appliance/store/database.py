@@ -21,6 +21,7 @@ import json
 import math
 import os
 import sqlite3
+import time
 from collections.abc import Iterable, Mapping
 from typing import Self
 
@@ -28,7 +29,7 @@ import numpy as np
 
 from appliance.errors import SchemaTooNew, StoreClosed, StoreCorrupt, StoreError
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 BUSY_TIMEOUT_S = 5.0
 DAY_S = 86400.0
 
@@ -47,6 +48,12 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
         ("CREATE TABLE pressure_history (id INTEGER PRIMARY KEY, time_s REAL NOT NULL, rows INTEGER NOT NULL,"
          " cols INTEGER NOT NULL, data BLOB NOT NULL, peak_kpa REAL NOT NULL)"),
         "CREATE INDEX pressure_history_time ON pressure_history (time_s)",
+    ),
+    (
+        ("CREATE TABLE commands (id INTEGER PRIMARY KEY, queued_at REAL NOT NULL, user TEXT NOT NULL,"
+         " kind TEXT NOT NULL, args TEXT NOT NULL, state TEXT NOT NULL DEFAULT 'pending', result TEXT,"
+         " done_s REAL)"),
+        "CREATE INDEX commands_pending ON commands (state)",
     ),
 )
 
@@ -153,12 +160,38 @@ class Store:
         with self._transaction("FULL") as db:
             _upsert_state(db, name, state, now_s)
 
-    def commit_frame(self, now_s: float, events: Iterable, states: Mapping[str, dict]) -> None:
-        """A frame's events and the states they led to, in one transaction: a crash keeps both or neither."""
+    def commit_frame(self, now_s: float, events: Iterable, states: Mapping[str, dict],
+                     commands_done: Iterable[tuple[int, bool, str]] = ()) -> None:
+        """A frame's events, the states they led to and the commands it applied (id, applied, result), in one
+        transaction: a crash keeps all or none, so a command is applied exactly once."""
         with self._transaction("FULL") as db:
             for name, state in states.items():
                 _upsert_state(db, name, state, now_s)
             _insert_events(db, events)
+            for command_id, applied, result in commands_done:
+                db.execute("UPDATE commands SET state = ?, result = ?, done_s = ? WHERE id = ?",
+                           ("done" if applied else "refused", result, now_s, command_id))
+
+    # Commands: what other processes (the web screen) ask the monitor to do.
+
+    def queue_command(self, kind: str, args: Mapping, user: str) -> int:
+        """Ask the monitor for ``kind`` (acknowledge, pause-audio) on behalf of ``user``; returns its id."""
+        with self._transaction("FULL") as db:
+            return db.execute("INSERT INTO commands (queued_at, user, kind, args) VALUES (?, ?, ?, ?)",
+                              (time.time(), user, kind, json.dumps(dict(args)))).lastrowid
+
+    def pending_commands(self) -> list[dict]:
+        """Commands not yet applied, oldest first."""
+        rows = self._conn().execute("SELECT id, user, kind, args FROM commands WHERE state = 'pending' ORDER BY id")
+        return [{"id": i, "user": user, "kind": kind, "args": json.loads(args)} for i, user, kind, args in rows]
+
+    def command(self, command_id: int) -> dict | None:
+        """One command with its state (pending, done, refused) and result."""
+        row = self._conn().execute("SELECT id, user, kind, args, state, result FROM commands WHERE id = ?",
+                                   (command_id,)).fetchone()
+        if row is None:
+            return None
+        return dict(zip(("id", "user", "kind", "args", "state", "result"), row[:3] + (json.loads(row[3]),) + row[4:]))
 
     def load_state(self, name: str) -> dict | None:
         """The last checkpoint saved under ``name``, or None if there is none."""

@@ -1,0 +1,84 @@
+"""Alarms: the open ones with acknowledge and audio pause, and the history of who did what and when.
+
+The screen does not touch the alarm engine: it queues a command in the monitor's
+store (``appliance.db``), which the monitor applies at its next frame and logs
+with the events it causes. A request for an alarm that is not open, or a pause
+outside what the standard allows, is refused with the reason and queues nothing;
+every request that is queued is also in the screen's audit log.
+"""
+
+from __future__ import annotations
+
+import time
+from datetime import datetime
+
+from flask import Blueprint, abort, current_app, flash, g, jsonify, redirect, render_template, request, url_for
+
+from appliance.alerts.alarms import DEFAULT_MAX_AUDIO_PAUSE_S
+from appliance.store import Store
+from webui.live import snapshot
+
+bp = Blueprint("alarms", __name__)
+HISTORY_S = 24 * 3600.0
+
+
+def store() -> Store:
+    return Store.open(current_app.config["STORE_PATH"])
+
+
+def clock(time_s: float, now_s: float | None = None) -> str:
+    """A monitor time as a person reads it: wall-clock times as dates, simulated ones as h:mm:ss."""
+    if time_s > 1e9:
+        return datetime.fromtimestamp(time_s).strftime("%Y-%m-%d %H:%M:%S")
+    t = int(round(time_s))
+    return f"{t // 3600}:{t % 3600 // 60:02d}:{t % 60:02d}"
+
+
+@bp.route("/alarms")
+def page():
+    live = snapshot()
+    with store() as s:
+        last = s.last_time() or 0.0
+        history = list(reversed(s.events_since(last - HISTORY_S)))
+    return render_template("alarms.html", alarms=live.get("alarms", []), stale=live["stale"], history=history,
+                           clock=clock, max_pause_min=DEFAULT_MAX_AUDIO_PAUSE_S / 60)
+
+
+@bp.route("/alarms/<int:alarm_id>/acknowledge", methods=["POST"])
+def acknowledge(alarm_id: int):
+    open_alarms = {a["alarm_id"]: a for a in snapshot().get("alarms", [])}
+    if alarm_id not in open_alarms:
+        flash(f"alarm {alarm_id} is not open: nothing was acknowledged", "error")
+        return redirect(url_for("alarms.page")), 303
+    with store() as s:
+        command = s.queue_command("acknowledge", {"alarm_id": alarm_id}, g.user.name)
+    current_app.extensions["users"].audit(g.user.name, "acknowledged alarm",
+                                          f"{alarm_id} {open_alarms[alarm_id]['key']} (command {command})")
+    flash(f"alarm {alarm_id} acknowledged; the monitor applies it at its next frame", "info")
+    return redirect(url_for("alarms.page")), 303
+
+
+@bp.route("/alarms/pause-audio", methods=["POST"])
+def pause_audio():
+    try:
+        minutes = float(request.form.get("minutes", ""))
+    except ValueError:
+        minutes = float("nan")
+    if not 0 < minutes <= DEFAULT_MAX_AUDIO_PAUSE_S / 60:
+        flash(f"an audio pause lasts more than 0 and at most {DEFAULT_MAX_AUDIO_PAUSE_S / 60:g} minutes "
+              f"(IEC 60601-1-8); got {request.form.get('minutes', '')!r}", "error")
+        return redirect(url_for("alarms.page")), 303
+    with store() as s:
+        command = s.queue_command("pause-audio", {"duration_s": minutes * 60}, g.user.name)
+    current_app.extensions["users"].audit(g.user.name, "paused alarm audio", f"{minutes:g} min (command {command})")
+    flash(f"alarm audio paused for {minutes:g} min", "info")
+    return redirect(url_for("alarms.page")), 303
+
+
+@bp.route("/api/commands/<int:command_id>")
+def command_state(command_id: int):
+    with store() as s:
+        command = s.command(command_id)
+    if command is None:
+        abort(404, description=f"no command {command_id}")
+    return jsonify({**command, "checked_at": time.time()})
