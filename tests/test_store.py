@@ -229,3 +229,29 @@ def test_a_version_1_file_gains_the_command_queue_and_keeps_its_data(tmp_path):
         assert [c["id"] for c in store.pending_commands()] == [second]
         assert store.command(first)["state"] == "done" and store.command(first)["args"] == {"alarm_id": 3}
     assert raw(path, "SELECT version FROM schema_version") == [(SCHEMA_VERSION,)]
+
+
+def test_regions_are_kept_with_their_map_and_pruned_with_it(tmp_path):
+    regions = [{"id": 4, "zone": "sacrum", "peak_mmhg": 61.5, "area_cm2": 120.0, "dose": 0.25},
+               {"id": 7, "zone": None, "peak_mmhg": 35.0, "area_cm2": 30.0, "dose": None}]
+    with Store.open(tmp_path / "s.db", history_interval_s=60.0, history_days=1.0) as store:
+        assert store.record_map(0.0, np.ones((2, 2)), regions)
+        assert not store.record_map(30.0, np.ones((2, 2)), regions)       # between kept maps: neither is kept
+        assert store.record_map(60.0, np.ones((2, 2)), regions[:1])
+        kept = store.regions_between(0.0, 60.0)
+        assert [(r["time_s"], r["region_id"], r["zone"], r["dose"]) for r in kept] == [
+            (0.0, 4, "sacrum", 0.25), (0.0, 7, None, None), (60.0, 4, "sacrum", 0.25)]
+        store.prune(DAY_S + 30.0)
+        assert [r["time_s"] for r in store.regions_between(0.0, DAY_S)] == [60.0]
+
+
+def test_a_long_command_reports_its_progress(tmp_path):
+    with Store.open(tmp_path / "s.db") as store:
+        command = store.queue_command("calibrate", {}, "eng.smith")
+        assert store.command(command)["progress"] is None
+        store.set_progress(command, 0.4, "load 12 of 30")
+        assert (store.command(command)["progress"], store.command(command)["progress_note"]) == (0.4, "load 12 of 30")
+        store.set_progress(command, 7.0)
+        assert store.command(command)["progress"] == 1.0
+        assert [c["id"] for c in store.commands_since(0.0, kinds=["calibrate"])] == [command]
+        assert store.commands_since(0.0, kinds=["acquire"]) == []

@@ -41,6 +41,9 @@ from appliance.service.systemd import SystemdNotifier
 
 log = logging.getLogger(__name__)
 
+CommandHandler = Callable[[float, dict, str, int], tuple[list[Event], str]]
+"""``handler(now, args, user, command_id) -> (events, result)``; raising refuses the command with the reason."""
+
 NO_DATA_FRAMES = 3
 """Frames in a row without a map before ``technical:no-data`` is raised (within the 3 frames an
 electrode fault must be reported in)."""
@@ -69,6 +72,23 @@ class MonitorDaemon:
         self.last_fault: str | None = None
         self.resumed_from_s: float | None = None
         self._ready = False
+        self.commands: dict[str, CommandHandler] = {"acknowledge": self._acknowledge,
+                                                     "pause-audio": self._pause_audio}
+
+    def add_commands(self, handlers: dict[str, CommandHandler]) -> None:
+        """More commands the queue may carry (settings, engineering), by kind."""
+        clash = handlers.keys() & self.commands.keys()
+        if clash:
+            raise ValueError(f"commands {sorted(clash)} are already handled")
+        self.commands.update(handlers)
+
+    def progress(self, command_id: int) -> Callable[[float, str], None]:
+        """A progress callback for a long command: records the share done for screens and keeps the systemd
+        watchdog fed, since the loop is busy but alive."""
+        def report(share: float, note: str = "") -> None:
+            self.store.set_progress(command_id, share, note)
+            self.systemd.ping()
+        return report
 
     # Start: resume or begin.
 
@@ -164,15 +184,16 @@ class MonitorDaemon:
             now = pressure_map.time_s
             alerts = self.pipeline.update(pressure_map, technical)
         events += [as_event(e) for e in alerts.turn_events + alerts.alarm_events]
+        snapshot = self._snapshot(now, pressure_map, alerts)
         if pressure_map is not None:
-            self.store.record_map(now, np.nan_to_num(pressure_map.pressure_kpa))
+            self.store.record_map(now, np.nan_to_num(pressure_map.pressure_kpa), snapshot["regions"])
         self.store.commit_frame(now, events, {"alerts": self.pipeline.state(),
                                               "outbox": {"events": [e.to_dict() for e in events]}}, outcomes)
         self._tell(events, now)
         if pressure_map is not None and self.on_map is not None:
             self.on_map(pressure_map)
         if self.live is not None:
-            self.live.publish(self._snapshot(now, pressure_map, alerts))
+            self.live.publish(snapshot)
         if not self._ready and pressure_map is not None:
             self._ready = True
             self.systemd.ready(f"monitoring {self.config.bed_id}")
@@ -180,24 +201,30 @@ class MonitorDaemon:
         return alerts
 
     def _apply_commands(self, now: float) -> tuple[list[Event], list[tuple[int, bool, str]]]:
-        """The queued commands applied to the alarm engine: their events, and each one's outcome."""
+        """The queued commands, each through its handler: their events, and each one's outcome."""
         events, outcomes = [], []
         for command in self.store.pending_commands():
             kind, args, user = command["kind"], command["args"], command["user"]
             try:
-                if kind == "acknowledge":
-                    done = self.pipeline.engine.acknowledge(now, int(args["alarm_id"]), user)
-                elif kind == "pause-audio":
-                    done = self.pipeline.engine.pause_audio(now, user, float(args["duration_s"]))
-                else:
+                handler = self.commands.get(kind)
+                if handler is None:
                     raise ValueError(f"unknown command {kind!r}")
-            except (ApplianceError, ValueError, KeyError, TypeError) as exc:
+                done, result = handler(now, args, user, command["id"])
+            except (ApplianceError, OSError, ValueError, KeyError, TypeError) as exc:
                 self.say(f"command {kind} by {user} refused: {exc}")
                 outcomes.append((command["id"], False, str(exc)))
                 continue
-            events += [as_event(e) for e in done]
-            outcomes.append((command["id"], True, f"{len(done)} event(s)"))
+            events += done
+            outcomes.append((command["id"], True, result))
         return events, outcomes
+
+    def _acknowledge(self, now: float, args: dict, user: str, _id: int) -> tuple[list[Event], str]:
+        done = [as_event(e) for e in self.pipeline.engine.acknowledge(now, int(args["alarm_id"]), user)]
+        return done, f"{len(done)} event(s)"
+
+    def _pause_audio(self, now: float, args: dict, user: str, _id: int) -> tuple[list[Event], str]:
+        done = [as_event(e) for e in self.pipeline.engine.pause_audio(now, user, float(args["duration_s"]))]
+        return done, f"{len(done)} event(s)"
 
     def _tell(self, events: list[Event], now: float) -> None:
         for event in events:

@@ -29,7 +29,7 @@ import numpy as np
 
 from appliance.errors import SchemaTooNew, StoreClosed, StoreCorrupt, StoreError
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 BUSY_TIMEOUT_S = 5.0
 DAY_S = 86400.0
 
@@ -54,6 +54,13 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
          " kind TEXT NOT NULL, args TEXT NOT NULL, state TEXT NOT NULL DEFAULT 'pending', result TEXT,"
          " done_s REAL)"),
         "CREATE INDEX commands_pending ON commands (state)",
+    ),
+    (
+        ("CREATE TABLE region_history (id INTEGER PRIMARY KEY, time_s REAL NOT NULL, region_id INTEGER NOT NULL,"
+         " zone TEXT, peak_mmhg REAL NOT NULL, area_cm2 REAL NOT NULL, dose REAL)"),
+        "CREATE INDEX region_history_time ON region_history (time_s)",
+        "ALTER TABLE commands ADD COLUMN progress REAL",
+        "ALTER TABLE commands ADD COLUMN progress_note TEXT",
     ),
 )
 
@@ -186,12 +193,25 @@ class Store:
         return [{"id": i, "user": user, "kind": kind, "args": json.loads(args)} for i, user, kind, args in rows]
 
     def command(self, command_id: int) -> dict | None:
-        """One command with its state (pending, done, refused) and result."""
-        row = self._conn().execute("SELECT id, user, kind, args, state, result FROM commands WHERE id = ?",
-                                   (command_id,)).fetchone()
+        """One command with its state (pending, done, refused), result and progress (0-1 while a long one runs)."""
+        row = self._conn().execute("SELECT id, user, kind, args, state, result, progress, progress_note"
+                                   " FROM commands WHERE id = ?", (command_id,)).fetchone()
         if row is None:
             return None
-        return dict(zip(("id", "user", "kind", "args", "state", "result"), row[:3] + (json.loads(row[3]),) + row[4:]))
+        return dict(zip(("id", "user", "kind", "args", "state", "result", "progress", "progress_note"),
+                        row[:3] + (json.loads(row[3]),) + row[4:]))
+
+    def commands_since(self, queued_after: float, kinds: Iterable[str] | None = None) -> list[dict]:
+        """Commands queued after wall time ``queued_after``, newest first (optionally only these kinds)."""
+        rows = self._conn().execute("SELECT id FROM commands WHERE queued_at > ? ORDER BY id DESC", (queued_after,))
+        wanted = None if kinds is None else set(kinds)
+        return [c for (i,) in rows.fetchall() if (c := self.command(i)) and (wanted is None or c["kind"] in wanted)]
+
+    def set_progress(self, command_id: int, share: float, note: str = "") -> None:
+        """How far a long command has got (0-1), for screens that show a progress bar; not fsynced."""
+        with self._transaction("NORMAL") as db:
+            db.execute("UPDATE commands SET progress = ?, progress_note = ? WHERE id = ?",
+                       (min(max(float(share), 0.0), 1.0), note, command_id))
 
     def load_state(self, name: str) -> dict | None:
         """The last checkpoint saved under ``name``, or None if there is none."""
@@ -211,11 +231,13 @@ class Store:
 
     # Pressure history: down-sampled, not fsynced per map.
 
-    def record_map(self, time_s: float, pressure_kpa) -> bool:
-        """Keep the map if ``history_interval_s`` has passed since the last kept one; returns whether it was kept.
+    def record_map(self, time_s: float, pressure_kpa, regions: Iterable[Mapping] = ()) -> bool:
+        """Keep the map, and the loaded regions it shows, if ``history_interval_s`` has passed since the last kept
+        one; returns whether it was kept.
 
-        A map earlier than the last kept one is not kept either, so a clock that
-        steps back cannot fill the history.
+        Each region is a mapping with ``id``, ``zone``, ``peak_mmhg``, ``area_cm2``
+        and ``dose`` (None before it has any). A map earlier than the last kept one
+        is not kept either, so a clock that steps back cannot fill the history.
         """
         self._conn()
         pressure = np.asarray(pressure_kpa, dtype=np.float64)
@@ -226,9 +248,13 @@ class Store:
         if self._last_map_s is not None and time_s - self._last_map_s < self.history_interval_s:
             return False
         data = pressure.astype("<f4").tobytes()
+        rows = [(float(time_s), int(r["id"]), r.get("zone"), float(r["peak_mmhg"]), float(r["area_cm2"]),
+                 None if r.get("dose") is None else float(r["dose"])) for r in regions]
         with self._transaction("NORMAL") as db:
             db.execute("INSERT INTO pressure_history (time_s, rows, cols, data, peak_kpa) VALUES (?, ?, ?, ?, ?)",
                        (float(time_s), *pressure.shape, data, float(pressure.max())))
+            db.executemany("INSERT INTO region_history (time_s, region_id, zone, peak_mmhg, area_cm2, dose)"
+                           " VALUES (?, ?, ?, ?, ?, ?)", rows)
         self._last_map_s = float(time_s)
         return True
 
@@ -237,6 +263,12 @@ class Store:
         rows = self._conn().execute("SELECT time_s, rows, cols, data FROM pressure_history"
                                     " WHERE time_s BETWEEN ? AND ? ORDER BY time_s", (t0, t1))
         return [(t, np.frombuffer(data, dtype="<f4").reshape(r, c).astype(np.float32)) for t, r, c, data in rows]
+
+    def regions_between(self, t0: float, t1: float) -> list[dict]:
+        """The regions kept with the maps of ``t0 <= time_s <= t1``, oldest first."""
+        rows = self._conn().execute("SELECT time_s, region_id, zone, peak_mmhg, area_cm2, dose FROM region_history"
+                                    " WHERE time_s BETWEEN ? AND ? ORDER BY time_s, region_id", (t0, t1))
+        return [dict(zip(("time_s", "region_id", "zone", "peak_mmhg", "area_cm2", "dose"), row)) for row in rows]
 
     def last_time(self) -> float | None:
         """The latest time anything was recorded (event, state or map), so a restarted clock can resume past it."""
@@ -261,6 +293,7 @@ class Store:
         with self._transaction("FULL") as db:
             deleted["history"] += db.execute("DELETE FROM pressure_history WHERE time_s < ?",
                                              (now_s - self.history_days * DAY_S,)).rowcount
+            db.execute("DELETE FROM region_history WHERE time_s < ?", (now_s - self.history_days * DAY_S,))
             deleted["events"] += db.execute("DELETE FROM events WHERE time_s < ?",
                                             (now_s - self.event_days * DAY_S,)).rowcount
         self._vacuum()
