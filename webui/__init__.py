@@ -15,13 +15,17 @@ import secrets
 from datetime import timedelta
 from pathlib import Path
 
-from flask import Flask
+from flask import Flask, current_app, g
 
 from webui import alarms, auth, live
 from webui.security import LoginLimiter, csrf_token, guard
 from webui.users import UserStore
 
 SESSION_HOURS = 12          # one shift
+BLUEPRINTS = (auth.bp, live.bp, alarms.bp)
+PAGES = (("live.page", "Live", "nurse"), ("alarms.page", "Alarms", "nurse"), ("history.page", "History", "nurse"),
+         ("settings.page", "Settings", "nurse"), ("engineering.page", "Engineering", "engineer"))
+"""The header's links, in order: each shown when its blueprint is registered and the user's role allows it."""
 
 
 def create_app(data_dir, *, secure_cookies: bool = True, **config) -> Flask:
@@ -36,11 +40,17 @@ def create_app(data_dir, *, secure_cookies: bool = True, **config) -> Flask:
     app.extensions["users"] = UserStore(data_dir / "webui.db")
     app.extensions["login_limiter"] = LoginLimiter()
     app.before_request(guard)
-    app.jinja_env.globals["csrf_token"] = csrf_token
-    app.register_blueprint(auth.bp)
-    app.register_blueprint(live.bp)
-    app.register_blueprint(alarms.bp)
+    app.jinja_env.globals.update(csrf_token=csrf_token, nav_links=nav_links)
+    for blueprint in BLUEPRINTS:
+        app.register_blueprint(blueprint)
     return app
+
+
+def nav_links() -> list[tuple[str, str]]:
+    """(endpoint, label) of the pages the logged-in user may open."""
+    user = g.get("user")
+    return [(endpoint, label) for endpoint, label, role in PAGES
+            if endpoint in current_app.view_functions and user is not None and user.can(role)]
 
 
 def _secret_key(path: Path) -> bytes:
