@@ -1,7 +1,6 @@
 """The web screen with Flask's test client: first start, login, roles, CSRF, rate limiting, the live view."""
 
 import json
-import re
 import time
 
 import pytest
@@ -11,27 +10,12 @@ from appliance.store import Store
 from webui import create_app
 from webui.security import LoginLimiter
 from webui.users import AccountError, UserStore
-
-PASSWORD = "correct horse battery"
+from webui_client import PASSWORD, log_in, set_up, token
 
 
 @pytest.fixture
 def app(tmp_path):
     return create_app(tmp_path, secure_cookies=False, TESTING=True, STREAM_MAX_S=1.0)
-
-
-def token(client, path="/login"):
-    page = client.get(path).get_data(as_text=True)
-    return re.search(r'name="csrf_token" value="([^"]+)"', page).group(1)
-
-
-def set_up(client, name="admin.ward3"):
-    return client.post("/setup", data={"name": name, "password": PASSWORD, "confirm": PASSWORD,
-                                       "csrf_token": token(client, "/setup")})
-
-
-def log_in(client, name, password=PASSWORD):
-    return client.post("/login", data={"name": name, "password": password, "csrf_token": token(client)})
 
 
 def test_a_fresh_screen_sends_everyone_to_set_up_the_first_admin(app):
