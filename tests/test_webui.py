@@ -1,9 +1,11 @@
 """The web screen with Flask's test client: first start, login, roles, CSRF, rate limiting, the live view."""
 
 import json
+import re
 import time
 
 import pytest
+from flask import url_for
 
 from appliance.service.live import LiveChannel
 from appliance.store import Store
@@ -64,36 +66,57 @@ def test_the_next_page_after_login_stays_on_this_site(app):
     assert answer.headers["Location"] == "/"
 
 
-@pytest.mark.parametrize("path", ["/", "/api/live", "/api/live/stream", "/alarms", "/api/commands/1"])
-def test_every_non_public_route_refuses_an_anonymous_request(app, path):
+PUBLIC = {"auth.login", "auth.setup", "static"}
+
+
+def every_route(app, method):
+    """(url, endpoint) for every route of every blueprint answering ``method``, with made-up path arguments."""
+    with app.test_request_context():
+        for rule in app.url_map.iter_rules():
+            if method in rule.methods:
+                args = {name: 1 if converter == "int" else "x"
+                        for converter, name in re.findall(r"<(?:(\w+):)?(\w+)>", rule.rule)}
+                yield url_for(rule.endpoint, **args), rule.endpoint
+
+
+def test_every_non_public_route_refuses_an_anonymous_request(app):
     set_up(app.test_client())
-    answer = app.test_client().get(path)
-    assert answer.status_code in (302, 401)
-    assert answer.status_code == 401 or "/login" in answer.headers["Location"]
+    checked = 0
+    for method in ("GET", "POST"):
+        for url, endpoint in every_route(app, method):
+            if endpoint in PUBLIC:
+                continue
+            client = app.test_client()
+            data = {"csrf_token": token(client)} if method == "POST" else None
+            answer = client.open(url, method=method, data=data)
+            assert answer.status_code in (302, 401), (method, url)
+            assert answer.status_code == 401 or "/login" in answer.headers["Location"], (method, url)
+            checked += 1
+    assert checked >= 10
 
 
-@pytest.mark.parametrize("path", ["/alarms/1/acknowledge", "/alarms/pause-audio", "/logout"])
-def test_every_state_changing_route_refuses_an_anonymous_request(app, path):
-    set_up(app.test_client())
-    client = app.test_client()
-    answer = client.post(path, data={"csrf_token": token(client), "minutes": "1"})
-    assert answer.status_code in (302, 401)
-    assert answer.status_code == 401 or "/login" in answer.headers["Location"]
+def test_every_state_changing_request_needs_the_csrf_token(app):
+    """Logged in as the admin (allowed everything), a POST without or with a forged token is refused and
+    changes nothing."""
+    admin = app.test_client()
+    set_up(admin)
+    checked = 0
+    for url, endpoint in every_route(app, "POST"):
+        if endpoint == "auth.setup":
+            continue
+        for data in ({}, {"csrf_token": "forged"}):
+            audit = len(app.extensions["users"].audit_log())
+            answer = admin.post(url, data=data)
+            assert answer.status_code == 400 and "CSRF" in answer.get_data(as_text=True), url
+            assert len(app.extensions["users"].audit_log()) == audit, url
+        checked += 1
+    assert checked >= 8
+    assert admin.get("/").status_code == 200                      # still logged in: the logout was refused too
 
 
-@pytest.mark.parametrize("path, data", [("/logout", {}), ("/login", {"name": "admin.ward3", "password": PASSWORD}),
-                                        ("/setup", {"name": "x", "password": PASSWORD, "confirm": PASSWORD}),
-                                        ("/alarms/1/acknowledge", {}), ("/alarms/pause-audio", {"minutes": "1"})])
-def test_every_state_changing_request_needs_the_csrf_token(app, path, data):
-    client = app.test_client()
-    if path != "/setup":
-        set_up(client)
-    count = app.extensions["users"].count()
-    answer = client.post(path, data=data)
-    assert answer.status_code == 400 and "CSRF" in answer.get_data(as_text=True)
-    answer = client.post(path, data={**data, "csrf_token": "forged"})
-    assert answer.status_code == 400
-    assert app.extensions["users"].count() == count
+def test_the_first_start_page_needs_the_csrf_token_too(app):
+    answer = app.test_client().post("/setup", data={"name": "x", "password": PASSWORD, "confirm": PASSWORD})
+    assert answer.status_code == 400 and app.extensions["users"].count() == 0
 
 
 def test_failed_logins_are_rate_limited_per_name(app):

@@ -67,12 +67,8 @@ class UserStore:
         if not _NAME.match(name or ""):
             raise AccountError("a user name is 2-32 lower-case letters, digits, '.', '_' or '-', starting with a "
                                "letter or digit")
-        if role not in ROLES:
-            raise AccountError(f"role must be one of {', '.join(ROLES)}")
-        if len(password or "") < MIN_PASSWORD_LENGTH:
-            raise AccountError(f"a password needs at least {MIN_PASSWORD_LENGTH} characters")
-        if password.lower() == name.lower():
-            raise AccountError("the password must not be the user name")
+        _check_role(role)
+        _check_password(name, password)
         try:
             with self._db() as db:
                 db.execute("INSERT INTO users (name, role, hash, created_s) VALUES (?, ?, ?, ?)",
@@ -93,6 +89,49 @@ class UserStore:
             return None
         return User(name, row[0]) if row else None
 
+    def users(self) -> list[User]:
+        with self._db() as db:
+            return [User(*row) for row in db.execute("SELECT name, role FROM users ORDER BY name")]
+
+    def set_password(self, name: str, password: str, *, by: str) -> None:
+        """A new password for ``name`` (by an admin, or the user after giving the old one)."""
+        self._existing(name)
+        _check_password(name, password)
+        with self._db() as db:
+            db.execute("UPDATE users SET hash = ? WHERE name = ?", (self.hasher.hash(password), name))
+        self.audit(by, "password changed", name)
+
+    def set_role(self, name: str, role: str, *, by: str) -> None:
+        """``name``'s role; the last admin cannot be demoted, so the accounts can always be managed."""
+        old = self._existing(name).role
+        _check_role(role)
+        if old == "admin" and role != "admin" and self._admins() == 1:
+            raise AccountError(f"{name} is the last admin: make another admin first")
+        with self._db() as db:
+            db.execute("UPDATE users SET role = ? WHERE name = ?", (role, name))
+        self.audit(by, "role changed", f"{name}: {old} -> {role}")
+
+    def remove(self, name: str, *, by: str) -> None:
+        """Delete ``name``'s account (its audit entries stay); not one's own, nor the last admin."""
+        user = self._existing(name)
+        if name == by:
+            raise AccountError("you cannot remove your own account")
+        if user.role == "admin" and self._admins() == 1:
+            raise AccountError(f"{name} is the last admin: make another admin first")
+        with self._db() as db:
+            db.execute("DELETE FROM users WHERE name = ?", (name,))
+        self.audit(by, "account removed", f"{name} ({user.role})")
+
+    def _existing(self, name: str) -> User:
+        user = self.get(name)
+        if user is None:
+            raise AccountError(f"there is no user {name!r}")
+        return user
+
+    def _admins(self) -> int:
+        with self._db() as db:
+            return db.execute("SELECT count(*) FROM users WHERE role = 'admin'").fetchone()[0]
+
     def get(self, name: str) -> User | None:
         with self._db() as db:
             row = db.execute("SELECT role FROM users WHERE name = ?", (name,)).fetchone()
@@ -107,6 +146,18 @@ class UserStore:
         with self._db() as db:
             rows = db.execute("SELECT time_s, user, action, detail FROM audit ORDER BY id DESC LIMIT ?", (limit,))
             return [dict(zip(("time_s", "user", "action", "detail"), row)) for row in rows]
+
+
+def _check_role(role: str) -> None:
+    if role not in ROLES:
+        raise AccountError(f"role must be one of {', '.join(ROLES)}")
+
+
+def _check_password(name: str, password: str) -> None:
+    if len(password or "") < MIN_PASSWORD_LENGTH:
+        raise AccountError(f"a password needs at least {MIN_PASSWORD_LENGTH} characters")
+    if password.lower() == name.lower():
+        raise AccountError("the password must not be the user name")
 
 
 _DUMMY_HASH = PasswordHasher().hash("no such user: equal time for unknown names")
