@@ -93,3 +93,22 @@ def test_a_technical_condition_is_an_alarm_of_its_own_kind(bed_monitoring):
     assert pipeline.engine.technical() and not pipeline.engine.clinical()
     ended = pipeline.update(PressureMap(1.0, empty, [], None, 0)).alarm_events
     assert [e.kind for e in ended] == ["ended"]
+
+
+@pytest.mark.parametrize("gap_h, counted_h", [(3.0, 3.0), (30 * 24.0, 12.0)])
+def test_a_gap_between_maps_counts_as_the_new_pressure_held_up_to_twelve_hours(bed_monitoring, gap_h, counted_h):
+    """A monitor restarted after hours off (or a clock that jumped) carries on: the new map's pressure counts
+    for the gap, as any frame's does, up to 12 h."""
+    from appliance.core.pressure import KPA_PER_MMHG
+    from appliance.core.pressure_map import PressureMap
+
+    model, _ = bed_monitoring
+    grid = model.reconstructor.grid
+    pipeline = AlertPipeline(grid, AlertSettings())
+    loaded = np.zeros(grid.shape)
+    loaded[3, 5] = 60 * KPA_PER_MMHG
+    pipeline.update(PressureMap(0.0, loaded, [], None, 0))
+    pipeline.update(PressureMap(gap_h * 3600, loaded, [], None, 0))
+    expected = counted_h * 3600 / pipeline.curve.tolerable_s(loaded)[3, 5]
+    assert pipeline.dose.dose[3, 5] == pytest.approx(expected, rel=1e-9)
+    assert pipeline.engine.clinical()                                  # the loaded site alarms at once

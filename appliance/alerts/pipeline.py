@@ -19,13 +19,17 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from appliance.alerts.alarms import AlarmCondition, AlarmEngine, AlarmEvent, Escalation
-from appliance.alerts.dose import DoseMap, custom_curve, tolerance_curve
+from appliance.alerts.dose import MAX_DT_S, DoseMap, custom_curve, tolerance_curve
 from appliance.alerts.regions import RegionTracker, zone_mask
 from appliance.alerts.turns import DEFAULT_INTERVAL_S, TurnClock, TurnEvent
 from appliance.core.pixels import PixelGrid
 from appliance.core.pressure_map import HIGH_PRESSURE_KPA, PressureMap
 
 ESCALATE_AFTER_S = 15 * 60.0
+MAX_COUNTED_GAP_S = 12 * 3600.0
+"""A gap between maps (the monitor off, or paused for maintenance) counts as the new map's pressure held since
+the last one, as every frame does, up to this long: by then any loaded tissue is long past its tolerance, and a
+clock that jumped by years must not stall the loop."""
 
 
 @dataclass(frozen=True)
@@ -85,7 +89,11 @@ class AlertPipeline:
         message while it holds."""
         now = pressure_map.time_s
         if self.last_time_s is not None and now > self.last_time_s:
-            self.dose.update(pressure_map.pressure_kpa, now - self.last_time_s)
+            gap = min(now - self.last_time_s, MAX_COUNTED_GAP_S)
+            while gap > 0:                          # a gap (a restart, a pause for maintenance) in steps
+                step = min(gap, MAX_DT_S)
+                self.dose.update(pressure_map.pressure_kpa, step)
+                gap -= step
         self.last_time_s = now
         tracked = self.tracked = self.regions.update(pressure_map)
         doses = {r.id: self.dose.fraction(r.mask) for r in tracked}
@@ -125,9 +133,18 @@ class AlertPipeline:
 
     @classmethod
     def from_state(cls, grid: PixelGrid, state: dict, settings: AlertSettings = AlertSettings()) -> "AlertPipeline":
+        """The pipeline :meth:`state` saved, continued under ``settings``.
+
+        Patient settings changed since (by a nurse, or in the configuration while
+        the monitor was down) apply from now on: the dose map takes the new
+        curve, recovery and relief level (the threshold), and each pixel's dose,
+        the share of its tolerance already used, carries over unchanged.
+        """
         pipeline = cls(grid, settings)
         pipeline.regions = RegionTracker.from_state(grid, state["regions"], threshold_kpa=settings.threshold_kpa)
-        pipeline.dose = DoseMap.from_state(state["dose"], pipeline.curve)
+        dose = {**state["dose"], "curve": pipeline.curve.name, "recovery": settings.recovery,
+                "relief_kpa": pipeline.dose.relief_kpa}
+        pipeline.dose = DoseMap.from_state(dose, pipeline.curve)
         pipeline.turns = TurnClock.from_state(state["turns"], interval_s=settings.turn_interval_s,
                                               at_risk_kpa=settings.threshold_kpa, ignore=pipeline.turns.ignore)
         pipeline.engine = AlarmEngine.from_state(state["alarms"])
