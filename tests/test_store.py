@@ -151,11 +151,12 @@ def test_prune_to_the_size_cap_drops_the_oldest_history_and_shrinks_the_file(tmp
     map_bytes = 64 * 64 * 4
     with Store.open(path, history_interval_s=60.0, max_bytes=600_000) as store:
         for i in range(100):
-            store.record_map(i * 60.0, np.full((64, 64), float(i)))
+            store.record_map(i * 60.0, np.full((64, 64), float(i)), [{"id": 1, "peak_mmhg": 40.0, "area_cm2": 9.0}])
         store.record_events([alarm_event(0.0)])
         assert store.size_bytes() > 100 * map_bytes
         deleted = store.prune(now_s=100 * 60.0)
         kept = [t for t, _ in store.history_between(0.0, 1e12)]
+        assert [r["time_s"] for r in store.regions_between(0.0, 1e12)] == kept     # regions go with their maps
         assert store.size_bytes() <= 600_000
     assert path.stat().st_size <= 600_000
     assert deleted["events"] == 0 and deleted["history"] == 100 - len(kept)

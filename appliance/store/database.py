@@ -307,6 +307,9 @@ class Store:
                     deleted[key] += db.execute(f"DELETE FROM {table} WHERE id IN"
                                                f" (SELECT id FROM {table} ORDER BY time_s, id LIMIT ?)",
                                                (n,)).rowcount
+                    if table == "pressure_history":         # the regions kept with the maps just deleted
+                        db.execute("DELETE FROM region_history WHERE time_s <"
+                                   " ifnull((SELECT min(time_s) FROM pressure_history), 1e308)")
                 self._vacuum()
         self._conn().execute("PRAGMA wal_checkpoint(TRUNCATE)")
         return deleted
