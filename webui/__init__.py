@@ -17,14 +17,15 @@ from pathlib import Path
 
 from flask import Flask, current_app, g
 
-from webui import alarms, auth, live
+from webui import accounts, alarms, auth, engineering, history, live, settings
 from webui.security import LoginLimiter, csrf_token, guard
 from webui.users import UserStore
 
 SESSION_HOURS = 12          # one shift
-BLUEPRINTS = (auth.bp, live.bp, alarms.bp)
+BLUEPRINTS = (auth.bp, accounts.bp, live.bp, alarms.bp, history.bp, settings.bp, engineering.bp)
 PAGES = (("live.page", "Live", "nurse"), ("alarms.page", "Alarms", "nurse"), ("history.page", "History", "nurse"),
-         ("settings.page", "Settings", "nurse"), ("engineering.page", "Engineering", "engineer"))
+         ("settings.page", "Settings", "nurse"), ("engineering.page", "Engineering", "engineer"),
+         ("accounts.page", "Accounts", "admin"))
 """The header's links, in order: each shown when its blueprint is registered and the user's role allows it."""
 
 

@@ -25,14 +25,16 @@ def assemble(config: MonitorConfig, *, say: Callable[[str], None], on_event=None
     from appliance.core.layouts import get_layout
     from appliance.core.model_cache import ModelSetup, cached_model, default_cache_dir
     from appliance.core.protocols import default_protocol
+    from appliance.service import settings
+    from appliance.service.engineering import engineering_commands
     from appliance.service.virtual_bed import default_data_dir
     from appliance.store import Store
 
-    layout = get_layout(config.layout)
-    protocol = default_protocol(layout)
     data_dir = Path(config.data_dir or default_data_dir())
     data_dir.mkdir(parents=True, exist_ok=True)
-    config = dataclasses.replace(config, data_dir=data_dir)
+    config = settings.load_overlaid(dataclasses.replace(config, data_dir=data_dir), data_dir)   # the screen's settings
+    layout = get_layout(config.layout)
+    protocol = default_protocol(layout)
     model, _ = cached_model(ModelSetup(layout, protocol), config.cache_dir or default_cache_dir(),
                             lambda step, share: say(f"building the reconstruction model: {step} ({share:.0%})"))
     source = _source(config, layout, protocol)
@@ -48,6 +50,8 @@ def assemble(config: MonitorConfig, *, say: Callable[[str], None], on_event=None
         daemon = MonitorDaemon(config, source, model, calibration, store, notifiers=notifiers,
                                gpio=_gpio(config, source), live=LiveChannel(data_dir / LIVE_FILE) if live else None,
                                on_event=on_event, on_map=on_map, say=say)
+        settings.attach(daemon)
+        daemon.add_commands(engineering_commands(daemon))
         daemon.start()
     except BaseException:
         for close in reversed(closers):

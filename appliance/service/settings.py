@@ -1,0 +1,216 @@
+"""Patient and bed settings set on the bedside screen, kept in ``settings.toml`` and applied to the running monitor.
+
+The ward's configuration file says how a bed is monitored by default; what a
+nurse sets for the patient in it (threshold, tolerance curve, alarm dose,
+recovery, turn and escalation times) and what an engineer sets for the bed (its
+id and mat layout) is kept apart, in the monitor's data directory, so the
+configuration file stays the ward's and a restart keeps the nurse's choice. The
+file holds the same tables and keys as the configuration it overrides::
+
+    [alerts]
+    threshold_mmhg = 40
+    turn_interval_min = 90
+
+    [monitor]
+    bed_id = "ward3-bed12"
+    layout = "grid-8x16"
+
+and is checked by the configuration's own parser, so a value refused in the
+configuration file is refused here with the same message. It is written only
+through :func:`write_settings` (a whole new file, fsynced, then renamed over the
+old one), so a power cut leaves the old file or the new one, never half of one.
+
+The screen is another process: it writes the file and queues an
+``apply-settings`` command (args: the file's tables), which the monitor applies
+at its next frame. Patient settings rebuild the alert pipeline from its state,
+so doses, the turn clock and open alarms carry over; a new bed id shows at once;
+a new layout needs another reconstruction model and applies when the monitor
+restarts. The monitor keeps the settings it runs with in its store (state
+``settings``) for the screen to show.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+from pathlib import Path
+
+from appliance.alerts.pipeline import AlertPipeline, AlertSettings
+from appliance.core.layouts import BUILTIN_NAMES
+from appliance.core.pressure import KPA_PER_MMHG
+from appliance.core.toml_files import read_toml
+from appliance.errors import ConfigError
+from appliance.service.config import MonitorConfig, config_from_mapping
+
+SETTINGS_FILE = "settings.toml"
+COMMAND = "apply-settings"
+STATE = "settings"
+ALERT_STATE = "alerts"
+"""The daemon's saved alert pipeline state in its store."""
+RESTART_NOTE = "applies when the monitor restarts"
+
+PATIENT_FIELDS = {"threshold_mmhg": "threshold_kpa", "curve": "curve", "alarm_dose": "alarm_dose",
+                  "recovery": "recovery", "turn_interval_min": "turn_interval_s",
+                  "escalate_after_min": "escalate_after_s"}
+"""Patient settings (keys of the configuration's ``[alerts]``) and the AlertSettings field each sets."""
+BED_KEYS = ("bed_id", "layout")
+"""Bed settings (keys of the configuration's ``[monitor]``)."""
+SECTIONS = {"alerts": tuple(PATIENT_FIELDS), "monitor": BED_KEYS}
+"""The settings file's tables and the keys each may hold."""
+
+
+def settings_path(data_dir) -> Path:
+    """The settings file in the monitor's data directory ``data_dir``."""
+    return Path(data_dir) / SETTINGS_FILE
+
+
+def check_settings(settings: dict) -> MonitorConfig:
+    """``settings`` (tables ``alerts`` and ``monitor`` as in the file) checked by the configuration's rules: the
+    configuration they describe on their own; a wrong table, key or value raises ConfigError naming it."""
+    unknown = sorted(set(settings) - set(SECTIONS))
+    if unknown:
+        raise ConfigError(f"unknown table [{unknown[0]}]; settings have {', '.join(f'[{s}]' for s in SECTIONS)}")
+    for section, keys in SECTIONS.items():
+        table = settings.get(section, {})
+        if not isinstance(table, dict):
+            raise ConfigError(f"[{section}] must be a table, got {table!r}")
+        extra = sorted(set(table) - set(keys))
+        if extra:
+            raise ConfigError(f"[{section}]: unknown key {extra[0]!r}; settings allowed: {', '.join(keys)}")
+    checked = config_from_mapping({section: dict(settings[section]) for section in SECTIONS if section in settings})
+    if "layout" in settings.get("monitor", {}) and checked.layout not in BUILTIN_NAMES:
+        raise ConfigError(f"[monitor]: layout must be one of {', '.join(BUILTIN_NAMES)}, got {checked.layout!r}")
+    return checked
+
+
+def overlay(config: MonitorConfig, settings: dict) -> MonitorConfig:
+    """``config`` with the keys ``settings`` holds replaced by their values (checked as in :func:`check_settings`)."""
+    checked = check_settings(settings)
+    patient = settings.get("alerts", {})
+    alerts = {PATIENT_FIELDS[key]: getattr(checked.alerts, PATIENT_FIELDS[key]) for key in patient}
+    if "curve" in patient:
+        alerts["curve_points"] = None                  # a built-in curve replaces the ward's own points
+    bed = {key: getattr(checked, key) for key in settings.get("monitor", {})}
+    return dataclasses.replace(config, alerts=dataclasses.replace(config.alerts, **alerts), **bed)
+
+
+def settings_values(config: MonitorConfig) -> dict:
+    """The patient and bed settings of ``config`` in the file's tables and units (mmHg, minutes)."""
+    a = config.alerts
+    return {"alerts": {"threshold_mmhg": round(a.threshold_kpa / KPA_PER_MMHG, 6), "curve": a.curve,
+                       "alarm_dose": a.alarm_dose, "recovery": a.recovery,
+                       "turn_interval_min": round(a.turn_interval_s / 60, 6),
+                       "escalate_after_min": round(a.escalate_after_s / 60, 6)},
+            "monitor": {"bed_id": config.bed_id, "layout": config.layout}}
+
+
+def same(a, b) -> bool:
+    """Whether two setting values are equal (numbers to within rounding)."""
+    numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (a, b))
+    return abs(a - b) <= 1e-9 * max(1.0, abs(a), abs(b)) if numbers else a == b
+
+
+def changes(old: dict, new: dict) -> list[tuple[str, object, object]]:
+    """(key, old value, new value) of each setting ``new`` (tables as in the file) holds with another value."""
+    return [(key, old.get(section, {}).get(key), value) for section, table in new.items()
+            for key, value in table.items() if not same(old.get(section, {}).get(key), value)]
+
+
+def describe(changed: list[tuple[str, object, object]]) -> str:
+    """``threshold_mmhg 32 -> 40, layout grid-8x16 -> grid-4x4``."""
+    return ", ".join(f"{key} {shown(old)} -> {shown(new)}" for key, old, new in changed)
+
+
+def read_settings(path) -> dict:
+    """The settings in file ``path``: {} when there is none; a file that is not valid TOML or holds a wrong
+    table, key or value raises ConfigError naming the file."""
+    path = Path(path)
+    if not path.exists():
+        return {}
+    settings = read_toml(path, "settings file", ConfigError)
+    try:
+        check_settings(settings)
+    except ConfigError as exc:
+        raise ConfigError(f"settings file {path}: {exc}") from None
+    return settings
+
+
+def write_settings(path, settings: dict) -> None:
+    """Replace file ``path`` with ``settings`` (checked first): written whole, fsynced, then renamed over."""
+    check_settings(settings)
+    path = Path(path)
+    lines = ["# Patient and bed settings made on the bedside screen; they override the configuration file.\n"]
+    for section in SECTIONS:
+        if settings.get(section):
+            lines.append(f"\n[{section}]\n")
+            lines += [f"{key} = {_toml_value(value)}\n" for key, value in settings[section].items()]
+    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write("".join(lines))
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+    directory = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(directory)                            # the rename itself survives a power cut
+    finally:
+        os.close(directory)
+
+
+def load_overlaid(config: MonitorConfig, data_dir) -> MonitorConfig:
+    """``config`` with the settings file in ``data_dir`` laid over it (as it is, when there is no file)."""
+    return overlay(config, read_settings(settings_path(data_dir)))
+
+
+def attach(daemon) -> None:
+    """Before ``daemon.start()``: let it take ``apply-settings`` commands, and record the settings it runs with
+    for the screen."""
+    daemon.add_commands({COMMAND: lambda now, args, user, command_id: apply_settings(daemon, now, args)})
+    publish(daemon, daemon.source.now())
+
+
+def publish(daemon, now: float) -> None:
+    """Save the settings ``daemon`` runs with in its store (state ``settings``), where the screen reads them."""
+    daemon.store.save_state(STATE, settings_values(daemon.config), now)
+
+
+def apply_settings(daemon, now: float, args: dict) -> tuple[list, str]:
+    """The ``apply-settings`` command: lay ``args`` (tables as in the settings file) over the running
+    configuration; patient settings take effect now, the pipeline rebuilt from its state so doses, turn
+    clock and open alarms carry over. A wrong value raises ConfigError, which refuses the command."""
+    wanted = overlay(daemon.config, args)
+    changed = changes(settings_values(daemon.config), settings_values(wanted))
+    if not changed:
+        return [], "nothing changed"
+    if wanted.alerts != daemon.config.alerts:
+        daemon.pipeline = AlertPipeline.from_state(daemon.grid, daemon.pipeline.state(), wanted.alerts)
+    daemon.config = dataclasses.replace(wanted, layout=daemon.config.layout)   # the running model's mat
+    publish(daemon, now)
+    applied = [c for c in changed if c[0] != "layout"]
+    later = [c for c in changed if c[0] == "layout"]
+    parts = [f"applied {describe(applied)}"] if applied else []
+    if later:
+        parts.append(f"{describe(later)} {RESTART_NOTE}")
+    if daemon.config.mqtt is not None and any(c[0] == "bed_id" for c in changed):
+        parts.append("MQTT topics take the new bed id when the monitor restarts")
+    return [], "; ".join(parts)
+
+
+def shown(value) -> str:
+    """A setting's value as a person reads it (32, not 32.0)."""
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _toml_value(value) -> str:
+    """A string, integer or float as TOML writes it."""
+    if isinstance(value, str):
+        escaped = "".join(f"\\u{ord(c):04x}" if c in '"\\' or ord(c) < 0x20 or ord(c) == 0x7f else c for c in value)
+        return f'"{escaped}"'
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"a setting is text or a number, got {value!r}")
+    return repr(value)

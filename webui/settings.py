@@ -1,0 +1,188 @@
+"""Settings: the patient's (nurse) and the bed's (engineer), shown with where each value comes from, and changed.
+
+A change is checked by the monitor configuration's own rules, written to the
+settings file in the data directory (``appliance.service.settings``), queued as
+an ``apply-settings`` command that the monitor applies at its next frame, and
+audited with each old and new value. A value that is not accepted is answered
+with HTTP 400 naming the field and what it may be, and nothing is written,
+queued or audited; a form sent back unchanged queues nothing. A new mat layout
+needs another reconstruction model, so it applies when the monitor restarts.
+"""
+
+from __future__ import annotations
+
+import time
+
+from flask import Blueprint, current_app, flash, g, jsonify, redirect, render_template, request, url_for
+
+from appliance.alerts.dose import BUILT_IN as BUILT_IN_CURVES
+from appliance.alerts.dose import RECOVERY_MODES
+from appliance.core.layouts import BUILTIN_NAMES
+from appliance.errors import ConfigError
+from appliance.service import settings as monitor_settings
+from appliance.service.config import config_from_mapping
+from webui.alarms import store
+from webui.security import requires
+
+bp = Blueprint("settings", __name__)
+HISTORY_S = 24 * 3600.0
+GROUPS = {"alerts": "patient", "monitor": "bed"}
+"""The settings file's tables by the form that changes them."""
+LABELS = {"threshold_mmhg": "Pressure threshold (mmHg)", "curve": "Tolerance curve",
+          "alarm_dose": "Alarm at dose (share of tolerance)", "recovery": "Dose recovery off load",
+          "turn_interval_min": "Turn interval (min)",
+          "escalate_after_min": "Escalate an unacknowledged alarm after (min)",
+          "bed_id": "Bed id", "layout": "Mat layout"}
+CHOICES = {"curve": tuple(BUILT_IN_CURVES), "recovery": tuple(RECOVERY_MODES), "layout": BUILTIN_NAMES}
+
+
+class SettingsRefused(Exception):
+    """A change that cannot be made; ``status`` is the HTTP status to answer with."""
+
+    def __init__(self, message: str, status: int = 400):
+        super().__init__(message)
+        self.status = status
+
+
+def settings_file():
+    """The settings file in the monitor's data directory, beside its store."""
+    return monitor_settings.settings_path(current_app.config["STORE_PATH"].parent)
+
+
+def current() -> dict:
+    """The settings as shown: each one's value and where it comes from (settings file, monitor, default), the
+    file's tables (``saved``), the layout the monitor runs, and the error of a settings file that cannot be read."""
+    try:
+        saved, file_error = monitor_settings.read_settings(settings_file()), None
+    except ConfigError as exc:
+        saved, file_error = {}, str(exc)
+    with store() as s:
+        running = s.load_state(monitor_settings.STATE)
+    defaults = monitor_settings.settings_values(config_from_mapping({}))
+    values = {}
+    for section, table in defaults.items():
+        values[section] = {}
+        for key, default in table.items():
+            if key in saved.get(section, {}):
+                values[section][key] = {"value": saved[section][key], "source": "settings file"}
+            elif running is not None:
+                values[section][key] = {"value": running[section][key], "source": "monitor"}
+            else:
+                values[section][key] = {"value": default, "source": "default"}
+    running_layout = running["monitor"]["layout"] if running is not None else None
+    return {"settings": values, "file": str(settings_file()), "file_error": file_error, "saved": saved,
+            "running_layout": running_layout,
+            "restart_pending": running_layout is not None and values["monitor"]["layout"]["value"] != running_layout}
+
+
+@bp.route("/settings")
+def page():
+    return _page()
+
+
+@bp.route("/api/settings")
+def api():
+    state = current()
+    return jsonify({key: state[key] for key in ("settings", "file", "file_error", "running_layout",
+                                                "restart_pending")})
+
+
+@bp.route("/settings/patient", methods=["POST"])
+def patient():
+    return _change("alerts")
+
+
+@bp.route("/settings/bed", methods=["POST"])
+@requires("engineer")
+def bed():
+    return _change("monitor")
+
+
+def _change(section: str):
+    """Check, write, queue and audit the changed fields of one form (or JSON body) of table ``section``."""
+    group = GROUPS[section]
+    try:
+        changed, command = _apply(section)
+    except SettingsRefused as exc:
+        message = f"{group} settings not changed: {exc}"
+        if request.is_json:
+            return jsonify({"error": message}), exc.status
+        return _page(error=message, status=exc.status)
+    if not changed:
+        message = f"nothing changed in the {group} settings"
+    else:
+        later = " (the layout applies when the monitor restarts)" if any(c[0] == "layout" for c in changed) else ""
+        message = (f"{group} settings changed: {monitor_settings.describe(changed)}; the monitor applies them at its "
+                   f"next frame{later}")
+    if request.is_json:
+        return jsonify({"message": message, "command": command,
+                        "changed": [{"key": k, "old": old, "new": new} for k, old, new in changed]})
+    flash(message, "info")
+    return redirect(url_for("settings.page")), 303
+
+
+def _apply(section: str) -> tuple[list, int | None]:
+    """The changes made and the queued command's id (None when nothing changed)."""
+    state = current()
+    if state["file_error"]:
+        raise SettingsRefused(f"{state['file_error']}: an engineer must fix or remove it first", 409)
+    values = {key: entry["value"] for key, entry in state["settings"][section].items()}
+    submitted = _submitted(section, values)
+    changed = [(key, values[key], value) for key, value in submitted.items()
+               if not monitor_settings.same(values[key], value)]
+    if not changed:
+        return [], None
+    saved = {**state["saved"], section: {**state["saved"].get(section, {}), **{k: new for k, _, new in changed}}}
+    try:
+        monitor_settings.write_settings(settings_file(), saved)
+    except ConfigError as exc:
+        raise SettingsRefused(str(exc)) from None
+    with store() as s:
+        command = s.queue_command(monitor_settings.COMMAND, {section: saved[section]}, g.user.name)
+    current_app.extensions["users"].audit(g.user.name, "changed settings",
+                                          f"{monitor_settings.describe(changed)} (command {command})")
+    return changed, command
+
+
+def _submitted(section: str, values: dict) -> dict:
+    """The fields sent for table ``section``: a form's text as numbers where the setting is a number."""
+    data = request.get_json(silent=True) if request.is_json else request.form.to_dict()
+    if not isinstance(data, dict):
+        raise SettingsRefused("send the settings as a form or a JSON object")
+    data.pop("csrf_token", None)
+    allowed = monitor_settings.SECTIONS[section]
+    unknown = sorted(set(data) - set(allowed))
+    if unknown:
+        raise SettingsRefused(f"unknown field {unknown[0]!r}; {GROUPS[section]} settings are {', '.join(allowed)}")
+    return {key: _as_number(value) if isinstance(values[key], (int, float)) else value for key, value in data.items()}
+
+
+def _as_number(value):
+    """A form's text as an int or float when it reads as one; anything else as it came, for the check to name."""
+    if not isinstance(value, str):
+        return value
+    for kind in (int, float):
+        try:
+            return kind(value)
+        except ValueError:
+            continue
+    return value
+
+
+def _page(error: str | None = None, status: int = 200):
+    state = current()
+    with store() as s:
+        history = s.commands_since(time.time() - HISTORY_S, [monitor_settings.COMMAND])
+    return render_template("settings.html", state=state, error=error, labels=LABELS, choices=_choices(state),
+                           history=history, restart_note=monitor_settings.RESTART_NOTE,
+                           shown=monitor_settings.shown), status
+
+
+def _choices(state: dict) -> dict:
+    """Each choice field's options, the current value first when it is none of them (a ward's own curve)."""
+    options = {}
+    for table in state["settings"].values():
+        for key in table.keys() & CHOICES.keys():
+            value = table[key]["value"]
+            options[key] = CHOICES[key] if value in CHOICES[key] else (value, *CHOICES[key])
+    return options
