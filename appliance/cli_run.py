@@ -44,6 +44,9 @@ def add_parsers(sub) -> None:
                    help="pressure calibration to use (refused unless made for this layout and reconstruction)")
     p.add_argument("--seed", type=int, default=None, help="seed of the simulated noise")
     p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
+    p.add_argument("--screen", metavar="[HOST:]PORT", default=None,
+                   help="also serve the nurse's screen (python -m webui) on this port, stopped with the monitor "
+                        "(under systemd the screen has its own unit instead)")
     p.set_defaults(run=_run)
 
 
@@ -83,23 +86,48 @@ def _run(args) -> int:
         print(config)
         return 0
     say = _printer()
-    where = (f"a virtual bed ({config.layout}, scenario {config.scenario}); no hardware, no server"
+    screen = _start_screen(args.screen, config, say) if args.screen else None
+    where = (f"a virtual bed ({config.layout}, scenario {config.scenario}); no hardware"
              if config.source == "virtual" else f"the front end board ({config.layout})")
     say(f"appliance: monitoring {where}; bed {config.bed_id}")
-    daemon = assemble(config, say=say, on_event=lambda e: print(f"  {_event_line(e)}", flush=True),
-                      on_map=lambda m: _show(m, daemon.grid, daemon.config.data_dir, len(daemon.model.setup.protocol)))
-    signal.signal(signal.SIGTERM, daemon.request_stop)
-    started = time.perf_counter()
     try:
-        done = daemon.run(args.frames)
-    except KeyboardInterrupt:
-        done = None
+        daemon = assemble(config, say=say, on_event=lambda e: print(f"  {_event_line(e)}", flush=True),
+                          on_map=lambda m: _show(m, daemon.grid, daemon.config.data_dir,
+                                                 len(daemon.model.setup.protocol)))
+        signal.signal(signal.SIGTERM, daemon.request_stop)
+        started = time.perf_counter()
+        try:
+            done = daemon.run(args.frames)
+        except KeyboardInterrupt:
+            done = None
+        finally:
+            daemon.close()
     finally:
-        daemon.close()
+        if screen is not None:
+            screen.terminate()
+            screen.wait(timeout=10)
     elapsed = time.perf_counter() - started
     say(f"stopped{'' if done is None else f' after {done} frames'} in {elapsed:.1f} s; data in "
         f"{daemon.config.data_dir}")
     return 0
+
+
+def _start_screen(where: str, config, say):
+    """``python -m webui`` on the monitor's data directory, as a child process."""
+    import subprocess
+    import sys
+
+    from appliance.errors import ConfigError
+    from appliance.service.virtual_bed import default_data_dir
+
+    host, _, port = where.rpartition(":")
+    if not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise ConfigError(f"--screen takes [HOST:]PORT with a port from 1 to 65535, got {where!r}")
+    data_dir = config.data_dir or default_data_dir()
+    screen = subprocess.Popen([sys.executable, "-m", "webui", "--data-dir", str(data_dir), "--host",
+                               host or "127.0.0.1", "--port", port])
+    say(f"the nurse's screen: http://{host or '127.0.0.1'}:{port}/ (the first visit sets up the admin account)")
+    return screen
 
 
 def _show(pressure_map, grid, data_dir: Path, n_readings: int) -> None:

@@ -9,6 +9,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.request
 
 import numpy as np
 import pytest
@@ -22,6 +23,7 @@ from appliance.service.live import LiveChannel, read_live
 from appliance.service.systemd import SystemdNotifier
 from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.loads import square_load_scene
+from appliance.cli import main
 from appliance.store import Store
 
 GRID = get_layout("grid-4x4")
@@ -82,8 +84,6 @@ def test_a_bad_configuration_is_refused_naming_the_section_and_key(tmp_path, tex
 
 
 def test_run_check_config_prints_the_configuration_and_refuses_a_bad_one(tmp_path, capsys):
-    from appliance.cli import main
-
     good, bad = tmp_path / "good.toml", tmp_path / "bad.toml"
     good.write_text('[monitor]\nbed_id = "bed-4"\n')
     bad.write_text('[store]\nhistory_days = -1\n')
@@ -226,22 +226,30 @@ def test_acknowledgement_is_applied_at_the_next_frame_and_recorded(small_mat_cal
 
 def test_sigterm_stops_the_real_process_cleanly_after_telling_systemd(notify_socket, tmp_path, bed_monitoring,
                                                                      model_cache):
+    """With ``--screen``, the nurse's screen is served while the monitor runs and stops with it."""
     path, sock = notify_socket
     env = {**os.environ, "NOTIFY_SOCKET": str(path), "WATCHDOG_USEC": "10000000"}
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        screen = f"http://127.0.0.1:{s.getsockname()[1]}/setup"
+        port = str(s.getsockname()[1])
     process = subprocess.Popen([sys.executable, "-m", "appliance", "run", "--scenario", "supine-still",
                                 "--interval", "1", "--speed", "4", "--data-dir", str(tmp_path / "data"),
-                                "--cache-dir", str(model_cache)], env=env, stdout=subprocess.PIPE,
+                                "--cache-dir", str(model_cache), "--screen", port], env=env, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
     try:
         messages = []
         while not any(m.startswith(b"READY=1") for m in messages):
             messages.append(sock.recv(4096))
         assert b"WATCHDOG=1" in [sock.recv(4096) for _ in range(2)]          # pinged as frames go by
+        assert "First start: the administrator" in _page(screen, within_s=20)
         process.send_signal(signal.SIGTERM)
         out, err = process.communicate(timeout=30)
     finally:
         process.kill()
     assert process.returncode == 0, err
+    with pytest.raises(OSError):
+        urllib.request.urlopen(screen, timeout=2)
     tail = []
     sock.settimeout(1.0)
     try:
@@ -254,6 +262,25 @@ def test_sigterm_stops_the_real_process_cleanly_after_telling_systemd(notify_soc
     with Store.open(tmp_path / "data" / "appliance.db") as store:
         assert store.load_state("alerts")["last_time_s"] > 0
     assert json.loads((tmp_path / "data" / "live.json").read_text())["bed_id"]
+
+
+def _page(url: str, within_s: float) -> str:
+    """The page at ``url`` once the server answers (within ``within_s``)."""
+    deadline = time.monotonic() + within_s
+    while True:
+        try:
+            with urllib.request.urlopen(url, timeout=2) as answer:
+                return answer.read().decode()
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)
+
+
+def test_a_bad_screen_address_is_refused_before_anything_starts(tmp_path, capsys):
+    assert main(["run", "--screen", "localhost:http", "--data-dir", str(tmp_path)]) != 0
+    assert "--screen takes [HOST:]PORT with a port from 1 to 65535, got 'localhost:http'" in capsys.readouterr().err
+    assert not (tmp_path / "appliance.db").exists()
 
 
 def test_the_daemon_runs_the_scan_engine_on_a_board_with_wall_clock_times(small_mat_calibration, tmp_path):

@@ -175,6 +175,7 @@ def test_the_stream_sends_each_new_snapshot(app, tmp_path):
     assert answer.mimetype == "text/event-stream"
     events = [json.loads(line[6:]) for line in answer.get_data(as_text=True).splitlines() if line.startswith("data: ")]
     assert [e["sequence"] for e in events] == [7]
+    assert answer.get_data(as_text=True).startswith("retry: 1000")      # browsers reconnect at once when it ends
 
 
 def test_session_cookies_are_httponly_strict_and_secure_by_default(tmp_path):

@@ -21,6 +21,10 @@ bp = Blueprint("live", __name__)
 STALE_AFTER_FRAMES = 3
 POLL_S = 0.2
 HEARTBEAT_S = 15.0
+STREAM_MAX_S = 600.0
+"""A stream ends after this long and the browser reconnects at once (``retry``), so a client that vanished
+without closing its connection holds a server thread for at most this long."""
+RECONNECT_MS = 1000
 
 
 def snapshot() -> dict:
@@ -30,7 +34,8 @@ def snapshot() -> dict:
         return {"stale": True, "age_s": None, "message": "the monitor has not written a frame yet"}
     age = time.time() - data["written_at"]
     data["age_s"] = age
-    data["stale"] = age > STALE_AFTER_FRAMES * max(float(data.get("frame_interval_s", 1.0)), 1.0)
+    period = data.get("wall_interval_s") or data.get("frame_interval_s", 1.0)     # wall seconds between frames
+    data["stale"] = age > STALE_AFTER_FRAMES * max(float(period), 1.0)
     return data
 
 
@@ -46,13 +51,14 @@ def current():
 
 @bp.route("/api/live/stream")
 def stream():
-    path, max_s = current_app.config["LIVE_PATH"], current_app.config.get("STREAM_MAX_S")
+    path, max_s = current_app.config["LIVE_PATH"], current_app.config.get("STREAM_MAX_S", STREAM_MAX_S)
     app = current_app._get_current_object()
 
     def events():
         started = last_beat = time.monotonic()
         last_mtime = None
-        while max_s is None or time.monotonic() - started < max_s:
+        yield f"retry: {RECONNECT_MS}\n\n"
+        while time.monotonic() - started < max_s:
             try:
                 mtime = path.stat().st_mtime_ns
             except FileNotFoundError:

@@ -240,7 +240,7 @@ class MonitorDaemon:
         engine, turns = self.pipeline.engine, self.pipeline.turns
         snapshot = {
             "bed_id": self.config.bed_id, "time_s": now, "sequence": self.maps + self.faults,
-            "frame_interval_s": self.config.frame_interval_s,
+            "frame_interval_s": self.config.frame_interval_s, "wall_interval_s": self.source.pace.period_s,
             "status": {"maps": self.maps, "faults": self.faults, "consecutive_faults": self.consecutive_faults,
                        "last_fault": self.last_fault, "source": self.config.source},
             "turn": {"last_turn_s": turns.last_turn_s, "due_in_s": turns.due_in_s(now), "bed_empty": turns.bed_empty,
