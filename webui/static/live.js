@@ -1,11 +1,18 @@
 // The live view: draws each snapshot the server streams (map, regions, alarms, turn clock).
 "use strict";
-const FULL_SCALE = 100;   // mmHg at the darkest colour
+// The scale pressure-mapping nurses know: white where nothing presses, blue to green below the alarm threshold,
+// yellow at it, through orange to dark red at 100 mmHg and above.
+const STOPS = [[0, [255, 255, 255]], [10, [158, 202, 225]], [25, [49, 163, 84]], [32, [255, 217, 47]],
+               [60, [244, 109, 67]], [100, [165, 0, 38]]];
+const FULL_SCALE = STOPS[STOPS.length - 1][0];
 
 function colour(mmhg) {
   if (mmhg === null) return "#bbbbbb";
-  const t = Math.max(0, Math.min(1, mmhg / FULL_SCALE));
-  const r = Math.round(255 - 200 * t), g = Math.round(255 - 230 * t), b = Math.round(255 - 120 * t);
+  const v = Math.max(0, Math.min(FULL_SCALE, mmhg));
+  let k = 1;
+  while (STOPS[k][0] < v) k++;
+  const [v0, c0] = STOPS[k - 1], [v1, c1] = STOPS[k], t = (v - v0) / (v1 - v0);
+  const [r, g, b] = c0.map((c, i) => Math.round(c + t * (c1[i] - c)));
   return `rgb(${r},${g},${b})`;
 }
 
@@ -21,10 +28,12 @@ function draw(snapshot) {
   const status = document.getElementById("status");
   if (!snapshot.map) { status.textContent = snapshot.message || "no map yet"; return; }
   const rows = snapshot.map.mmhg, canvas = document.getElementById("map"), ctx = canvas.getContext("2d");
+  const [pw, ph] = snapshot.map.pixel_mm;
+  const height = Math.round(canvas.width * rows.length * ph / (rows[0].length * pw));   // the mat's own shape
+  if (canvas.height !== height) canvas.height = height;
   const w = canvas.width / rows[0].length, h = canvas.height / rows.length;
   rows.forEach((row, i) => row.forEach((v, j) => { ctx.fillStyle = colour(v); ctx.fillRect(j * w, i * h, w + 1, h + 1); }));
-  const [pw, ph] = snapshot.map.pixel_mm;
-  ctx.strokeStyle = "#d62828"; ctx.lineWidth = 2;
+  ctx.strokeStyle = "#111"; ctx.lineWidth = 2; ctx.setLineDash([6, 4]);
   const tbody = document.querySelector("#regions tbody");
   tbody.innerHTML = "";
   for (const r of snapshot.regions || []) {
