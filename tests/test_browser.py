@@ -1,0 +1,270 @@
+"""The screen in a real browser: headless Chromium driven by Selenium, against the web UI and the monitor, each
+its own process on a shared data directory, as on the appliance.
+
+The monitor runs the virtual bed one simulated minute per wall second: the
+patient lies supine, the sacral alarm rises after 20 minutes (an alarm dose of
+0.05 keeps the test short) and the patient is turned to the left at 50 minutes.
+A nurse account is made through the admin's pages, and the nurse logs in,
+watches the map, acknowledges the alarm, finds it in the history and sees the
+map change with the turn. Screenshots at the bedside screen's 800 x 480 and a
+station's 1920 x 1080 are written to ``docs/screenshots`` (or ``$SCREENSHOT_DIR``).
+"""
+
+import os
+import shutil
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import textwrap
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from webui.live import STALE_AFTER_FRAMES
+from webui_client import PASSWORD
+
+CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
+SCREENSHOTS = Path(os.environ.get("SCREENSHOT_DIR") or Path(__file__).resolve().parents[1] / "docs" / "screenshots")
+TURN_AT_S = 3000
+SCENE = f"""
+[scene]
+description = "supine, turned to the left at {TURN_AT_S // 60} min"
+weight_kg = 75
+height_cm = 175
+duration_s = 14400
+
+[[event]]
+at_s = 0
+kind = "lie-down"
+posture = "supine"
+
+[[event]]
+at_s = {TURN_AT_S}
+kind = "turn"
+posture = "left-30"
+transition_s = 20
+"""
+
+pytestmark = pytest.mark.slow
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(condition, timeout_s: float, what: str, poll_s: float = 0.2):
+    """``condition()``'s first truthy value within ``timeout_s``, else a failure naming ``what``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(poll_s)
+    pytest.fail(f"timed out after {timeout_s:.0f} s waiting for {what}")
+
+
+@pytest.fixture(scope="module")
+def appliance(tmp_path_factory, bed_monitoring, model_cache):
+    """The monitor (`appliance run`) and the screen (`python -m webui`, waitress) on one data directory; the
+    screen's address."""
+    folder = tmp_path_factory.mktemp("appliance")
+    (folder / "scene.toml").write_text(SCENE)
+    (folder / "monitor.toml").write_text(textwrap.dedent(f"""
+        [monitor]
+        layout = "grid-8x16"
+        frame_interval_s = 60
+        bed_id = "ward3-bed12"
+        data_dir = "data"
+        cache_dir = "{model_cache}"
+
+        [virtual]
+        scenario = "scene.toml"
+        speed = 60
+
+        [alerts]
+        alarm_dose = 0.05
+        """))
+    port = free_port()
+    logs = [open(folder / name, "w") for name in ("monitor.log", "screen.log")]
+    monitor = subprocess.Popen([sys.executable, "-m", "appliance", "run", "--config", str(folder / "monitor.toml")],
+                               stdout=logs[0], stderr=subprocess.STDOUT)
+    screen = subprocess.Popen([sys.executable, "-m", "webui", "--data-dir", str(folder / "data"), "--port", str(port),
+                               "--plain-http"], stdout=logs[1], stderr=subprocess.STDOUT)
+    try:
+        wait_for(lambda: (folder / "data" / "live.json").exists(), 120, "the monitor's first frame")
+        wait_for(lambda: _answers(f"http://127.0.0.1:{port}/login"), 30, "the screen to listen")
+        yield f"http://127.0.0.1:{port}", folder, monitor
+    finally:
+        for process in (screen, monitor):
+            process.terminate()
+        for process in (screen, monitor):
+            process.wait(timeout=30)
+        for log in logs:
+            log.close()
+
+
+def _answers(url: str) -> bool:
+    try:
+        with urllib.request.urlopen(url, timeout=2):
+            return True
+    except OSError:
+        return False
+
+
+@pytest.fixture(scope="module")
+def browser():
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    if not (CHROMIUM and CHROMEDRIVER):
+        pytest.fail("the browser tests need Debian's chromium and chromium-driver (`.ci/run` installs them)")
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM
+    for argument in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1920,1080"):
+        options.add_argument(argument)
+    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+    driver.implicitly_wait(0)
+    yield driver
+    driver.quit()
+
+
+def viewport(driver, width: int, height: int) -> None:
+    driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride",
+                           {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False})
+
+
+def screenshot(driver, name: str, width: int, height: int) -> Path:
+    viewport(driver, width, height)
+    time.sleep(0.5)                                     # one redraw at the new size
+    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+    path = SCREENSHOTS / f"{name}-{width}x{height}.png"
+    path.write_bytes(driver.get_screenshot_as_png())
+    return path
+
+
+def png_size(path: Path) -> tuple[int, int]:
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n", f"{path} is not a PNG"
+    return struct.unpack(">II", data[16:24])
+
+
+def fill(driver, form_css: str, **fields) -> None:
+    from selenium.webdriver.common.by import By
+
+    form = driver.find_element(By.CSS_SELECTOR, form_css)
+    for name, value in fields.items():
+        element = form.find_element(By.NAME, name)
+        if element.tag_name == "select":
+            from selenium.webdriver.support.ui import Select
+            Select(element).select_by_visible_text(value)
+        else:
+            element.clear()
+            element.send_keys(value)
+    submit_and_wait(driver, form.find_element(By.CSS_SELECTOR, "button[type=submit]"))
+
+
+def submit_and_wait(driver, button) -> None:
+    """Click ``button`` and wait for the page it leads to (the old page's elements go stale)."""
+    from selenium.webdriver.support.expected_conditions import staleness_of
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    button.click()
+    WebDriverWait(driver, 10).until(staleness_of(button))
+
+
+def text(driver, css: str) -> str:
+    from selenium.webdriver.common.by import By
+
+    return " ".join(e.text for e in driver.find_elements(By.CSS_SELECTOR, css))
+
+
+MAP_PIXELS = "const c = document.getElementById('map'); return Array.from(c.getContext('2d')" \
+             ".getImageData(0, 0, c.width, c.height).data.filter((v, i) => i % 4 === 0));"
+
+
+def changed_share(before: list[int], after: list[int], levels: int = 24) -> float:
+    """The share of the map's pixels whose red channel moved by more than ``levels``."""
+    return sum(abs(a - b) > levels for a, b in zip(before, after)) / len(before)
+
+
+def live_time_s(driver) -> float:
+    return driver.execute_script("return fetch('/api/live').then(r => r.json()).then(s => s.time_s || 0);")
+
+
+def test_a_nurse_acknowledges_the_alarm_finds_it_in_the_history_and_sees_the_patient_turn(appliance, browser):
+    from selenium.webdriver.common.by import By
+
+    base, _, _ = appliance
+    driver = browser
+    viewport(driver, 1920, 1080)
+    driver.get(base + "/")
+    assert driver.current_url.endswith("/setup")                           # no default account: set one up
+    fill(driver, "form", name="admin.ward3", password=PASSWORD, confirm=PASSWORD)
+    driver.get(base + "/accounts")
+    fill(driver, "#new-account", name="nurse.jones", role="nurse", password=PASSWORD, confirm=PASSWORD)
+    assert "account nurse.jones (nurse) created" in text(driver, ".flash")
+    submit_and_wait(driver, driver.find_element(By.CSS_SELECTOR, "header form button"))      # log out
+    assert "/login" in driver.current_url
+    fill(driver, "form", name="nurse.jones", password=PASSWORD)
+    assert "nurse.jones (nurse)" in text(driver, "header")
+    assert "Accounts" not in text(driver, "header nav")                      # not for a nurse
+
+    wait_for(lambda: "frame" in text(driver, "#status"), 30, "the live map")
+    supine = driver.execute_script(MAP_PIXELS)
+    wait_for(lambda: "sacrum" in text(driver, "#alarms"), 60, "the sacral alarm on the live view")
+    assert live_time_s(driver) < TURN_AT_S - 600, "the test machine is too slow: the turn would come first"
+    screenshot(driver, "live", 800, 480)
+    supine_regions = text(driver, "#regions")
+    assert "sacrum" in supine_regions
+    still_supine = driver.execute_script(MAP_PIXELS)
+
+    viewport(driver, 1920, 1080)
+    driver.get(base + "/alarms")
+    alarm = next(a for a in driver.find_elements(By.CSS_SELECTOR, ".alarm") if "sacrum" in a.text)
+    submit_and_wait(driver, alarm.find_element(By.CSS_SELECTOR, "button"))
+    assert "acknowledged; the monitor applies it at its next frame" in text(driver, ".flash")
+
+    def acknowledged_in_history():
+        driver.get(base + "/alarms")
+        rows = [r.text for r in driver.find_elements(By.CSS_SELECTOR, "table tbody tr")]
+        return [r for r in rows if "acknowledged" in r and "nurse.jones" in r and "sacrum" in r]
+    assert wait_for(acknowledged_in_history, 10, "the acknowledgement in the history", poll_s=1.0)
+    assert "acknowledged by nurse.jones" in text(driver, ".alarm")
+
+    driver.get(base + "/")
+    wait_for(lambda: live_time_s(driver) > TURN_AT_S + 120, 90, "the patient's turn")
+    time.sleep(1.5)                                                          # the next streamed frame is drawn
+    turned = driver.execute_script(MAP_PIXELS)
+    noise, turn = changed_share(supine, still_supine), changed_share(supine, turned)
+    assert noise < 0.01 and turn > 0.03, (noise, turn)          # measured: 0 while supine, 5 % after the turn
+    assert text(driver, "#regions") != supine_regions
+    screenshot(driver, "live-turned", 1920, 1080)
+
+    for name, size in (("live-800x480.png", (800, 480)), ("live-turned-1920x1080.png", (1920, 1080))):
+        assert png_size(SCREENSHOTS / name) == size
+
+
+def test_a_monitor_that_stops_writing_is_shown_as_stale_and_recovers(appliance, browser):
+    """The monitor frozen (SIGSTOP) for longer than three frames: the page says its data is old; resumed, the
+    banner goes."""
+    from selenium.webdriver.common.by import By
+
+    base, _, monitor = appliance
+    browser.get(base + "/")
+    wait_for(lambda: "frame" in text(browser, "#status"), 30, "the live map")
+    banner = browser.find_element(By.ID, "stale")
+    assert not banner.is_displayed()
+    monitor.send_signal(signal.SIGSTOP)
+    try:
+        frozen_at = time.monotonic()
+        wait_for(banner.is_displayed, 15, "the stale banner")
+        assert time.monotonic() - frozen_at >= STALE_AFTER_FRAMES * 1.0 - 0.5     # not before three frames
+    finally:
+        monitor.send_signal(signal.SIGCONT)
+    wait_for(lambda: not banner.is_displayed(), 15, "the banner to go once frames come again")
