@@ -50,6 +50,7 @@ def add_parsers(sub) -> None:
     p.set_defaults(run=_run)
 
 
+SCREEN_NICE = 10
 OVERRIDES = {"layout": "layout", "scenario": "scenario", "interval": "frame_interval_s", "speed": "speed",
              "data_dir": "data_dir", "calibration": "calibration", "seed": "seed", "cache_dir": "cache_dir"}
 
@@ -113,7 +114,9 @@ def _run(args) -> int:
 
 
 def _start_screen(where: str, config, say):
-    """``python -m webui`` on the monitor's data directory, as a child process."""
+    """``python -m webui`` on the monitor's data directory, as a child process below the monitor's priority, so
+    many open screens never take the monitor's CPU."""
+    import os
     import subprocess
     import sys
 
@@ -125,7 +128,7 @@ def _start_screen(where: str, config, say):
         raise ConfigError(f"--screen takes [HOST:]PORT with a port from 1 to 65535, got {where!r}")
     data_dir = config.data_dir or default_data_dir()
     screen = subprocess.Popen([sys.executable, "-m", "webui", "--data-dir", str(data_dir), "--host",
-                               host or "127.0.0.1", "--port", port])
+                               host or "127.0.0.1", "--port", port], preexec_fn=lambda: os.nice(SCREEN_NICE))
     say(f"the nurse's screen: http://{host or '127.0.0.1'}:{port}/ (the first visit sets up the admin account)")
     return screen
 

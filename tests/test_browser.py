@@ -236,6 +236,11 @@ def test_a_nurse_acknowledges_the_alarm_finds_it_in_the_history_and_sees_the_pat
         return [r for r in rows if "acknowledged" in r and "nurse.jones" in r and "sacrum" in r]
     assert wait_for(acknowledged_in_history, 10, "the acknowledgement in the history", poll_s=1.0)
     assert "acknowledged by nurse.jones" in text(driver, ".alarm")
+    driver.get(base + "/history?hours=1")
+    charts = driver.find_elements(By.CSS_SELECTOR, "svg.chart")
+    assert any("sacrum" in c.get_attribute("aria-label") for c in charts)
+    screenshot(driver, "history", 1920, 1080)
+    viewport(driver, 1920, 1080)
 
     driver.get(base + "/")
     wait_for(lambda: live_time_s(driver) > TURN_AT_S + 120, 90, "the patient's turn")

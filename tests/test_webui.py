@@ -7,7 +7,7 @@ import time
 import pytest
 from flask import url_for
 
-from appliance.service.live import LiveChannel
+from appliance.service.live import LiveChannel, read_live
 from appliance.store import Store
 from webui import create_app
 from webui.security import LoginLimiter
@@ -176,6 +176,20 @@ def test_the_stream_sends_each_new_snapshot(app, tmp_path):
     events = [json.loads(line[6:]) for line in answer.get_data(as_text=True).splitlines() if line.startswith("data: ")]
     assert [e["sequence"] for e in events] == [7]
     assert answer.get_data(as_text=True).startswith("retry: 1000")      # browsers reconnect at once when it ends
+
+
+def test_every_stream_shares_one_read_of_each_snapshot(app, tmp_path, monkeypatch):
+    import webui.live
+
+    reads = []
+    monkeypatch.setattr(webui.live, "read_live", lambda path: reads.append(path) or read_live(path))
+    client = app.test_client()
+    set_up(client)
+    live = LiveChannel(tmp_path / "live.json")
+    live.publish({"bed_id": "bed-4", "time_s": 1.0, "sequence": 7, "frame_interval_s": 1.0})
+    live.close()
+    bodies = [client.get("/api/live/stream").get_data(as_text=True) for _ in range(3)]
+    assert len(reads) == 1 and bodies[0] == bodies[1] == bodies[2] and '"sequence":7' in bodies[0]
 
 
 def test_session_cookies_are_httponly_strict_and_secure_by_default(tmp_path):

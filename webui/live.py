@@ -11,6 +11,7 @@ as if it were live.
 from __future__ import annotations
 
 import json
+import threading
 import time
 
 from flask import Blueprint, Response, current_app, jsonify, render_template
@@ -53,6 +54,7 @@ def current():
 def stream():
     path, max_s = current_app.config["LIVE_PATH"], current_app.config.get("STREAM_MAX_S", STREAM_MAX_S)
     app = current_app._get_current_object()
+    shared = app.extensions.setdefault("live_events", LiveEvents())
 
     def events():
         started = last_beat = time.monotonic()
@@ -66,7 +68,7 @@ def stream():
             if mtime is not None and mtime != last_mtime:
                 last_mtime = mtime
                 with app.app_context():
-                    yield f"data: {json.dumps(snapshot(), separators=(',', ':'))}\n\n"
+                    yield shared.event(mtime)
                 last_beat = time.monotonic()
             elif time.monotonic() - last_beat > HEARTBEAT_S:
                 yield ": keep-alive\n\n"
@@ -74,3 +76,20 @@ def stream():
             time.sleep(POLL_S)
 
     return Response(events(), mimetype="text/event-stream", headers={"Cache-Control": "no-store"})
+
+
+class LiveEvents:
+    """The event for each version of ``live.json``, read and encoded once for every open stream: twenty
+    screens cost the server one read per frame, not twenty."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._mtime: int | None = None
+        self._event = ""
+
+    def event(self, mtime: int) -> str:
+        with self._lock:
+            if mtime != self._mtime:
+                self._mtime = mtime
+                self._event = f"data: {json.dumps(snapshot(), separators=(',', ':'))}\n\n"
+            return self._event

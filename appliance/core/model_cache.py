@@ -158,12 +158,17 @@ def build_model(setup: ModelSetup, progress=None) -> ReconstructionModel:
     return model
 
 
+def model_path(setup: ModelSetup, cache_dir: Path) -> Path:
+    """Where ``cache_dir`` keeps the model of ``setup``."""
+    return Path(cache_dir) / f"model-{setup.key()}.npz"
+
+
 def cached_model(setup: ModelSetup, cache_dir: Path, progress=None) -> tuple[ReconstructionModel, bool]:
     """The model of ``setup`` from ``cache_dir`` if it is there, else built and saved.
 
     Returns the model and whether it was loaded. An unreadable cache file is rebuilt.
     """
-    path = Path(cache_dir) / f"model-{setup.key()}.npz"
+    path = model_path(setup, cache_dir)
     if path.exists():
         try:
             return load_model(path, setup), True

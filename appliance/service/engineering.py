@@ -32,10 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-from appliance.alerts.dose import MAX_DT_S
 from appliance.calibration import calibration_loads, pressure_calibration
 from appliance.core.frames import frame_to_csv
-from appliance.core.model_cache import build_model, default_cache_dir, save_model
+from appliance.core.model_cache import build_model, default_cache_dir, model_path, save_model
 from appliance.core.pressure import KPA_PER_MMHG, load_pressure_calibration, save_pressure_calibration
 from appliance.core.render import write_png
 from appliance.drivers.recording import series_paths
@@ -51,9 +50,9 @@ ENGINEERING_DIR = "engineering"
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 IMAGE_FULL_SCALE_MMHG = 100.0       # the darkest colour, as on the live view
 IMAGE_SIDE_PX = 320                 # a saved map is enlarged to about this many pixels on its longer side
-MAX_PAUSE_S = MAX_DT_S / 2
-"""The longest a task may hold monitoring up, on the monitor's clock: the next map's dose step spans the
-pause, and the dose takes steps of at most ``MAX_DT_S``; half leaves room for scans slower than planned."""
+MAX_PAUSE_S = 30 * 60.0
+"""The longest a series may hold monitoring up, on the monitor's clock: nobody watches the patient meanwhile
+(the next map's dose counts the pause as its pressure held)."""
 
 
 # Arguments.
@@ -425,7 +424,7 @@ class EngineeringTasks:
         setup = self.daemon.model.setup
         started = time.perf_counter()
         model = build_model(setup, lambda step, share: report(share, f"building the model: {step}"))
-        save_model(model, self.cache_dir / f"model-{setup.key()}.npz")     # cached_model's file for this setup
+        save_model(model, model_path(setup, self.cache_dir))
         self._replace_monitor(model, self.daemon.monitor.calibration)
         return {"layout": setup.layout.name, "pixels": list(model.reconstructor.grid.shape),
                 "readings": len(setup.protocol), "seconds": round(time.perf_counter() - started, 2)}
