@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import io
 import json
 import os
-import tempfile
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -41,6 +41,7 @@ from appliance.core.reconstruct import (
     LinearModel, ReconstructionOptions, Reconstructor, build_reconstructor, linear_model, without_readings,
 )
 from appliance.errors import ReconstructionError
+from appliance.files import write_atomic
 
 FORMAT_VERSION = 1
 
@@ -194,16 +195,9 @@ def save_model(model: ReconstructionModel, path: Path) -> None:
         arrays["sensitivity"] = r.sensitivity
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    try:
-        with os.fdopen(handle, "wb") as out:
-            np.savez(out, **arrays)
-            out.flush()
-            os.fsync(out.fileno())
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    write_atomic(path, buffer.getvalue())
 
 
 def load_model(path: Path, setup: ModelSetup) -> ReconstructionModel:

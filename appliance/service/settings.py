@@ -32,15 +32,14 @@ restarts. The monitor keeps the settings it runs with in its store (state
 from __future__ import annotations
 
 import dataclasses
-import os
-import tempfile
 from pathlib import Path
 
-from appliance.alerts.pipeline import AlertPipeline, AlertSettings
+from appliance.alerts.pipeline import AlertPipeline
 from appliance.core.layouts import BUILTIN_NAMES
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.core.toml_files import read_toml
 from appliance.errors import ConfigError
+from appliance.files import write_atomic
 from appliance.service.config import MonitorConfig, config_from_mapping
 
 SETTINGS_FILE = "settings.toml"
@@ -145,21 +144,7 @@ def write_settings(path, settings: dict) -> None:
         if settings.get(section):
             lines.append(f"\n[{section}]\n")
             lines += [f"{key} = {_toml_value(value)}\n" for key, value in settings[section].items()]
-    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write("".join(lines))
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-    directory = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(directory)                            # the rename itself survives a power cut
-    finally:
-        os.close(directory)
+    write_atomic(path, "".join(lines))
 
 
 def load_overlaid(config: MonitorConfig, data_dir) -> MonitorConfig:
