@@ -1,0 +1,119 @@
+"""The systemd units, service account and folders in ``systemd/``: checked by systemd's own tools.
+
+The units name the appliance's install prefix, ``/opt/appliance`` (a virtual
+environment on the image); here they are checked against this environment's
+prefix, which has the same ``bin/appliance`` and ``bin/python``.
+"""
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import pytest
+
+from appliance.cli_run import SCREEN_NICE
+from appliance.service.daemon import NO_DATA_FRAMES
+
+UNITS = Path(__file__).resolve().parents[1] / "systemd"
+PREFIX = "/opt/appliance/"
+SERVICES = sorted(UNITS.glob("*.service"))
+
+
+def tool(name: str) -> str:
+    path = shutil.which(name)
+    if path is None:
+        pytest.fail(f"{name} is needed (Debian's systemd package)")
+    return path
+
+
+def verify(unit_texts: dict[str, str], folder: Path) -> subprocess.CompletedProcess:
+    """``systemd-analyze verify`` on the units, with the install prefix made this environment's."""
+    paths = []
+    for name, text in unit_texts.items():
+        path = folder / name
+        path.write_text(text.replace(PREFIX, sys.prefix.rstrip("/") + "/"))
+        paths.append(str(path))
+    return subprocess.run([tool("systemd-analyze"), "verify", *paths], capture_output=True, text=True)
+
+
+def directives(path: Path) -> dict[str, list[str]]:
+    """``Key`` -> every value it is given, across sections (DeviceAllow and the like repeat)."""
+    found = defaultdict(list)
+    for line in path.read_text().splitlines():
+        if match := re.match(r"^(\w+)=(.*)$", line):
+            found[match.group(1)].append(match.group(2))
+    return found
+
+
+def test_every_unit_verifies_without_a_warning(tmp_path):
+    assert {p.name for p in SERVICES} == {"appliance-monitor.service", "appliance-screen.service"}
+    result = verify({p.name: p.read_text() for p in SERVICES}, tmp_path)
+    assert result.returncode == 0 and result.stdout + result.stderr == "", result.stdout + result.stderr
+
+
+@pytest.mark.parametrize("change, complaint", [
+    (("Restart=always", "Restart=always\nRestrat=always"), "Unknown key 'Restrat'"),
+    (("Type=notify", "Type=notfy"), "Failed to parse service type"),
+    (("ExecStart=/opt/appliance/bin/appliance", "ExecStart=/opt/appliance/bin/no-such-program"), "not executable"),
+])
+def test_a_broken_unit_is_caught(tmp_path, change, complaint):
+    text = (UNITS / "appliance-monitor.service").read_text().replace(*change)
+    result = verify({"appliance-monitor.service": text}, tmp_path)
+    assert complaint in result.stdout + result.stderr
+
+
+def test_the_monitor_is_watched_restarted_and_confined_to_its_devices():
+    unit = directives(UNITS / "appliance-monitor.service")
+    assert unit["Type"] == ["notify"] and unit["Restart"] == ["always"]
+    # The daemon pings every frame; the watchdog must outlast the frames a no-data alarm waits for.
+    assert int(unit["WatchdogSec"][0]) > 2 * NO_DATA_FRAMES
+    assert int(unit["StartLimitBurst"][0]) > 0 and int(unit["StartLimitIntervalSec"][0]) > 0
+    assert unit["User"] == ["appliance"] and unit["SupplementaryGroups"][0].split() == ["gpio", "spi", "i2c"]
+    assert unit["DevicePolicy"] == ["closed"]
+    assert {d.split()[0] for d in unit["DeviceAllow"]} == {"char-gpiochip", "/dev/spidev0.0", "/dev/spidev0.1",
+                                                          "/dev/i2c-1"}
+    for key, value in (("ProtectSystem", "strict"), ("PrivateTmp", "yes"), ("NoNewPrivileges", "yes"),
+                       ("ProtectHome", "yes"), ("StateDirectory", "appliance")):
+        assert unit[key] == [value], key
+    assert unit["CapabilityBoundingSet"] == [""]
+    environment = dict(pair.split("=", 1) for pair in unit["Environment"][0].split())
+    assert environment["APPLIANCE_DATA_DIR"] == "/var/lib/appliance"
+
+
+def test_the_screen_runs_below_the_monitor_with_no_devices_on_its_data():
+    unit = directives(UNITS / "appliance-screen.service")
+    assert unit["Nice"] == [str(SCREEN_NICE)]                       # as `appliance run --screen` starts it
+    assert unit["PrivateDevices"] == ["yes"] and "DeviceAllow" not in unit
+    assert "--data-dir /var/lib/appliance" in unit["ExecStart"][0]
+    assert unit["ProtectSystem"] == ["strict"] and unit["NoNewPrivileges"] == ["yes"]
+
+
+def test_the_account_and_folders_are_made_by_sysusers_and_tmpfiles(tmp_path):
+    root = tmp_path / "root"
+    (root / "etc").mkdir(parents=True)
+    subprocess.run([tool("systemd-sysusers"), f"--root={root}", str(UNITS / "appliance.sysusers")],
+                   check=True, capture_output=True)
+    passwd = {line.split(":")[0]: line.split(":") for line in (root / "etc/passwd").read_text().splitlines()}
+    groups = {line.split(":")[0]: line.split(":") for line in (root / "etc/group").read_text().splitlines()}
+    assert passwd["appliance"][5:] == ["/var/lib/appliance", "/usr/sbin/nologin"]
+    for group in ("gpio", "spi", "i2c"):
+        assert groups[group][3].split(",") == ["appliance"], group
+    subprocess.run([tool("systemd-tmpfiles"), f"--root={root}", "--create", str(UNITS / "appliance.tmpfiles")],
+                   check=True, capture_output=True)
+    for folder in ("var/lib/appliance", "var/cache/appliance"):
+        status = (root / folder).stat()
+        assert oct(status.st_mode & 0o777) == "0o750", folder
+        if os.geteuid() == 0:                                      # only root can give files away
+            assert status.st_uid == int(passwd["appliance"][2]), folder
+
+
+def test_the_udev_rules_give_each_front_end_device_to_its_group():
+    rules = [line for line in (UNITS / "90-appliance.rules").read_text().splitlines()
+             if line and not line.startswith("#")]
+    groups = {re.search(r'GROUP="(\w+)"', line).group(1): line for line in rules}
+    assert set(groups) == {"gpio", "spi", "i2c"}
+    assert all('MODE="0660"' in line for line in rules)
