@@ -315,3 +315,54 @@ def test_a_command_restating_the_settings_changes_nothing(small_mat_calibration,
     daemon.close()
     assert (events, result) == ([], "nothing changed")
     assert daemon.pipeline is pipeline and daemon.config is config
+
+
+# Save and load as a file.
+
+def upload(client, content: bytes, name="settings.toml"):
+    import io
+
+    return client.post("/settings/file", data={"csrf_token": token(client, "/settings"),
+                                               "file": (io.BytesIO(content), name)},
+                       content_type="multipart/form-data", follow_redirects=True)
+
+
+def test_an_engineer_saves_the_settings_and_loads_them_back_changed(app, tmp_path):
+    engineer = client_as(app, "engineer")
+    saved = engineer.get("/settings/file")
+    assert saved.status_code == 200 and "attachment" in saved.headers["Content-Disposition"]
+    text = saved.get_data(as_text=True)
+    (tmp_path / "kept.toml").write_text(text)
+    assert settings.read_settings(tmp_path / "kept.toml")["alerts"]["turn_interval_min"] == 120   # a whole file
+    answer = upload(engineer, text.replace("turn_interval_min = 120", "turn_interval_min = 60").encode())
+    assert "settings loaded: turn_interval_min 120 -> 60" in answer.get_data(as_text=True).replace("&gt;", ">")
+    assert settings.read_settings(tmp_path / "settings.toml") == {"alerts": {"turn_interval_min": 60}}
+    [command] = commands(tmp_path)
+    assert command["args"] == {"alerts": {"turn_interval_min": 60}}
+    assert audits(app)[0][:2] == ("engineer.test", "loaded settings")
+    again = upload(engineer, text.replace("turn_interval_min = 120", "turn_interval_min = 60").encode())
+    assert "nothing changed" in again.get_data(as_text=True) and len(commands(tmp_path)) == 1
+
+
+@pytest.mark.parametrize("content, message", [
+    (b"[alerts]\nthreshold_mmhg = 5\n", "threshold_mmhg must be from 10 to 200, got 5"),
+    (b"[alerts]\nbogus = 1\n", "bogus"),
+    (b"[alerts\n", "settings file"),
+    (b"", None),
+])
+def test_a_bad_settings_file_is_refused_and_nothing_changes(app, tmp_path, content, message):
+    engineer = client_as(app, "engineer")
+    before = audits(app)
+    answer = upload(engineer, content) if content else engineer.post(
+        "/settings/file", data={"csrf_token": token(engineer, "/settings")})
+    text = answer.get_data(as_text=True)
+    assert answer.status_code == 400 and "settings not loaded" in text
+    assert message is None or message in text
+    assert commands(tmp_path) == [] and audits(app) == before and not (tmp_path / "settings.toml").exists()
+
+
+def test_a_nurse_may_neither_save_nor_load_the_settings_file(app, tmp_path):
+    nurse = client_as(app, "nurse")
+    assert nurse.get("/settings/file").status_code == 403
+    assert upload(nurse, b"[alerts]\nturn_interval_min = 60\n").status_code == 403
+    assert commands(tmp_path) == []

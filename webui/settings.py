@@ -11,9 +11,11 @@ needs another reconstruction model, so it applies when the monitor restarts.
 
 from __future__ import annotations
 
+import tempfile
 import time
+from pathlib import Path
 
-from flask import Blueprint, current_app, flash, g, jsonify, redirect, render_template, request, url_for
+from flask import Blueprint, Response, current_app, flash, g, jsonify, redirect, render_template, request, url_for
 
 from appliance.alerts.dose import BUILT_IN as BUILT_IN_CURVES
 from appliance.alerts.dose import RECOVERY_MODES
@@ -26,6 +28,7 @@ from webui.security import requires
 
 bp = Blueprint("settings", __name__)
 HISTORY_S = 24 * 3600.0
+MAX_FILE_BYTES = 64 * 1024
 GROUPS = {"alerts": "patient", "monitor": "bed"}
 """The settings file's tables by the form that changes them."""
 LABELS = {"threshold_mmhg": "Pressure threshold (mmHg)", "curve": "Tolerance curve",
@@ -96,6 +99,70 @@ def patient():
 @requires("engineer")
 def bed():
     return _change("monitor")
+
+
+@bp.route("/settings/file")
+@requires("engineer")
+def save_file():
+    """Every setting as the monitor runs with it, as a settings file to keep or to load on another bed."""
+    state = current()
+    values = {section: {key: entry["value"] for key, entry in table.items()}
+              for section, table in state["settings"].items()}
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
+    bed = values["monitor"]["bed_id"]
+    return Response(monitor_settings.settings_text(values), mimetype="application/toml",
+                    headers={"Content-Disposition": f'attachment; filename="settings-{bed}-{stamp}.toml"'})
+
+
+@bp.route("/settings/file", methods=["POST"])
+@requires("engineer")
+def load_file():
+    """A settings file (as saved above) checked, then taken like a form: what differs is written, queued for
+    the monitor and audited."""
+    try:
+        changed, command = _load(request.files.get("file"))
+    except SettingsRefused as exc:
+        return _page(error=f"settings not loaded: {exc}", status=exc.status)
+    if not changed:
+        flash("the file holds the settings already in use: nothing changed", "info")
+    else:
+        flash(f"settings loaded: {monitor_settings.describe(changed)}; the monitor applies them at its next frame",
+              "info")
+    return redirect(url_for("settings.page")), 303
+
+
+def _load(sent) -> tuple[list, int | None]:
+    if sent is None or not sent.filename:
+        raise SettingsRefused("choose a settings file (.toml) to load")
+    content = sent.stream.read(MAX_FILE_BYTES + 1)
+    if len(content) > MAX_FILE_BYTES:
+        raise SettingsRefused(f"file: {sent.filename} is over the {MAX_FILE_BYTES // 1024} KiB a settings file may be")
+    with tempfile.TemporaryDirectory() as scratch:
+        path = Path(scratch) / "settings.toml"
+        path.write_bytes(content)
+        try:
+            loaded = monitor_settings.read_settings(path)
+        except ConfigError as exc:
+            raise SettingsRefused(str(exc).replace(str(path), sent.filename)) from None
+    state = current()
+    if state["file_error"]:
+        raise SettingsRefused(f"{state['file_error']}: an engineer must fix or remove it first", 409)
+    changed, tables = [], {}
+    for section, table in loaded.items():
+        for key, value in table.items():
+            old = state["settings"][section][key]["value"]
+            if not monitor_settings.same(old, value):
+                changed.append((key, old, value))
+                tables.setdefault(section, {})[key] = value
+    if not changed:
+        return [], None
+    saved = {section: {**state["saved"].get(section, {}), **tables.get(section, {})} for section in GROUPS}
+    monitor_settings.write_settings(settings_file(), {k: v for k, v in saved.items() if v})
+    with store() as s:
+        command = s.queue_command(monitor_settings.COMMAND, {k: v for k, v in saved.items() if v}, g.user.name)
+    current_app.extensions["users"].audit(g.user.name, "loaded settings",
+                                          f"{sent.filename}: {monitor_settings.describe(changed)} (command {command})")
+    return changed, command
 
 
 def _change(section: str):

@@ -137,14 +137,18 @@ def read_settings(path) -> dict:
 
 def write_settings(path, settings: dict) -> None:
     """Replace file ``path`` with ``settings`` (checked first): written whole, fsynced, then renamed over."""
+    write_atomic(Path(path), settings_text(settings))
+
+
+def settings_text(settings: dict) -> str:
+    """``settings`` (checked first) as a settings file's TOML."""
     check_settings(settings)
-    path = Path(path)
     lines = ["# Patient and bed settings made on the bedside screen; they override the configuration file.\n"]
     for section in SECTIONS:
         if settings.get(section):
             lines.append(f"\n[{section}]\n")
             lines += [f"{key} = {_toml_value(value)}\n" for key, value in settings[section].items()]
-    write_atomic(path, "".join(lines))
+    return "".join(lines)
 
 
 def load_overlaid(config: MonitorConfig, data_dir) -> MonitorConfig:
