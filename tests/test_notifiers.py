@@ -1,21 +1,15 @@
-"""Notifiers against a real Mosquitto broker, a local HTTP server and emulated GPIO lines.
-
-No skip when Mosquitto is missing: CI installs it (.ci/run), and a notifier
-test that silently does not run would hide a broken alarm path.
-"""
+"""Notifiers against a real Mosquitto broker (tests/mqtt_broker.py), a local HTTP server and emulated GPIO lines."""
 
 import json
-import os
 import queue
-import shutil
 import socket
-import subprocess
 import threading
 import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import paho.mqtt.client as mqtt
 import pytest
+from mqtt_broker import Broker, wait_until
 
 from appliance.alerts.alarms import AlarmEvent
 from appliance.alerts.events import Event, as_event
@@ -36,48 +30,6 @@ EVENT_FIELDS = {"time_s", "type", "kind", "priority", "category", "key", "region
 def alarm(alarm_id=1, kind="raised", priority="high"):
     return as_event(AlarmEvent(time_s=10.0 * alarm_id, kind=kind, alarm_id=alarm_id, key="pressure:sacrum:4",
                                category="clinical", priority=priority, message="Sacrum dose over limit"))
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_until(condition, timeout_s=10.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.02)
-    return False
-
-
-class Broker:
-    """A Mosquitto process on a fixed port that a test can stop and start again."""
-
-    def __init__(self):
-        self.binary = shutil.which("mosquitto", path=os.environ.get("PATH", "") + ":/usr/sbin:/sbin")
-        assert self.binary, "mosquitto is not installed (apt-get install mosquitto); .ci/run installs it"
-        self.port = free_port()
-        self.process = None
-
-    def start(self):
-        self.process = subprocess.Popen([self.binary, "-p", str(self.port)],
-                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-
-        def accepting():
-            try:
-                socket.create_connection(("127.0.0.1", self.port), timeout=0.2).close()
-                return True
-            except OSError:
-                return False
-        assert wait_until(accepting), "mosquitto did not start"
-
-    def stop(self):
-        self.process.terminate()
-        self.process.wait(5)
-        self.process = None
 
 
 @pytest.fixture

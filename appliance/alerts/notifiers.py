@@ -25,8 +25,17 @@ MQTT topics (``<prefix>`` is ``topic_prefix``, "appliance" by default)::
     <prefix>/<bed_id>/status  QoS 1, retained: "online" once connected; "offline"
                               on close, and as the last will when the connection
                               dies, so a dashboard sees a silent bed as offline.
+    <prefix>/<bed_id>/summary QoS 0, retained: the bed at a glance, about once a
+                              second, for the ward station (appliance.ward)
+                              {bed_id, time_s, written_at (unix time),
+                               peak_mmhg, regions: [{zone, peak_mmhg, dose}],
+                               turn: {due_in_s}, alarms: [{alarm_id, key,
+                               priority, state, message, acknowledged_by}],
+                               status: {maps, faults}}
 
 An MQTT event counts as delivered only when the broker acknowledges it (PUBACK).
+A summary is not an event: it is not queued, retried or dead-lettered. Each one
+replaces the last, so one missed while the broker is away is simply skipped.
 """
 
 from __future__ import annotations
@@ -99,6 +108,12 @@ class Notifier(ABC):
             self._dead_letter(event, f"queue full ({self._queue.maxsize} events waiting)", 0)
             return False
         return True
+
+    def summarise(self, summary: dict) -> None:
+        """The bed's state at a glance, every frame (see the daemon); channels that show it override this.
+
+        It must return at once, like :meth:`notify`: the monitor loop calls it.
+        """
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Deliver what is queued for up to ``timeout_s``, dead-letter the rest, and release the channel."""
@@ -190,16 +205,28 @@ class MqttNotifier(Notifier):
     paho's network thread keeps the connection and reconnects after an outage;
     the worker only publishes while connected, so retries wait for the broker
     instead of piling messages into paho's own queue.
+
+    Summaries go out one per ``summary_interval_s`` on a schedule, so frames
+    that come at just that period each send one despite jitter; never two
+    within half an interval. ``summaries_sent`` and ``summaries_skipped``
+    (broker away) count them.
     """
 
     name = "mqtt"
 
     def __init__(self, host: str, port: int, bed_id: str, *, client_id: str, topic_prefix: str = "appliance",
-                 keepalive_s: int = 30, publish_timeout_s: float = 5.0, **options):
+                 keepalive_s: int = 30, publish_timeout_s: float = 5.0, summary_interval_s: float = 1.0,
+                 **options):
+        if summary_interval_s <= 0:
+            raise ValueError(f"summary_interval_s must be more than 0, got {summary_interval_s}")
         base = f"{topic_prefix}/{bed_id}"
         self.topics = {kind: f"{base}/{kind}" for kind in EVENT_TYPES}
         self.status_topic = f"{base}/status"
+        self.summary_topic = f"{base}/summary"
         self.publish_timeout_s = publish_timeout_s
+        self.summary_interval_s = summary_interval_s
+        self.summaries_sent = self.summaries_skipped = 0
+        self._summary_due = float("-inf")
         self._client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id)
         self._client.will_set(self.status_topic, "offline", qos=1, retain=True)
         self._client.reconnect_delay_set(min_delay=1, max_delay=10)
@@ -221,6 +248,21 @@ class MqttNotifier(Notifier):
         info.wait_for_publish(self.publish_timeout_s)
         if not info.is_published():
             raise TimeoutError(f"no PUBACK within {self.publish_timeout_s} s")
+
+    def summarise(self, summary: dict) -> None:
+        """Publish ``summary`` with the wall time added, if one is due and the broker is there; else skip it."""
+        now = time.monotonic()
+        if now < self._summary_due:
+            return
+        self._summary_due = max(self._summary_due + self.summary_interval_s, now + self.summary_interval_s / 2)
+        if not self._client.is_connected():  # QoS 0 is never queued, but a half-open connection would be
+            self.summaries_skipped += 1
+            return
+        payload = json.dumps({**summary, "written_at": time.time()})
+        if self._client.publish(self.summary_topic, payload, qos=0, retain=True).rc == mqtt.MQTT_ERR_SUCCESS:
+            self.summaries_sent += 1
+        else:
+            self.summaries_skipped += 1
 
     def _shutdown(self) -> None:
         if self._client.is_connected():

@@ -7,7 +7,8 @@ the empty-mat reference, and on the virtual bed the scene time) and neither
 loses nor repeats an alarm. The last frame's events are kept with the state and
 notified again after a restart, so a crash between the commit and the hand-over
 to the notifiers loses no notification (delivery is at least once). Nothing downstream can hold the loop up: notifiers
-and the live view take their work on their own threads.
+and the live view take their work on their own threads. Each frame the notifiers also get a compact summary of
+the live view (:func:`ward_summary`) for the ward station; sending it never waits either.
 
 Frames that cannot be taken are technical conditions, not silence: the front
 end's error at once (``technical:front-end``), and after ``NO_DATA_FRAMES`` in a
@@ -31,6 +32,7 @@ from collections.abc import Callable
 import numpy as np
 
 from appliance.alerts.events import Event, as_event
+from appliance.alerts.notifiers import Notifier
 from appliance.alerts.pipeline import AlertPipeline, FrameAlerts, technical_alarms
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.errors import ApplianceError, ConfigError, DataFileInvalid
@@ -49,6 +51,22 @@ NO_DATA_FRAMES = 3
 electrode fault must be reported in)."""
 
 
+def ward_summary(snapshot: dict) -> dict:
+    """The live snapshot cut down for the ward station: no map (too big for a ward of beds), no positions.
+
+    Between maps (a fault) ``peak_mmhg`` is None and ``regions`` empty.
+    """
+    pressure_map = snapshot.get("map")
+    return {"bed_id": snapshot["bed_id"], "time_s": snapshot["time_s"],
+            "peak_mmhg": None if pressure_map is None else pressure_map["peak_kpa"] / KPA_PER_MMHG,
+            "regions": [{"zone": r["zone"], "peak_mmhg": r["peak_mmhg"], "dose": r["dose"]}
+                        for r in snapshot.get("regions", [])],
+            "turn": {"due_in_s": snapshot["turn"]["due_in_s"]},
+            "alarms": [{k: a[k] for k in ("alarm_id", "key", "priority", "state", "message", "acknowledged_by")}
+                       for a in snapshot["alarms"]],
+            "status": {"maps": snapshot["status"]["maps"], "faults": snapshot["status"]["faults"]}}
+
+
 class MonitorDaemon:
     """The monitor configured by ``config``, around a frame ``source`` (a VirtualBedSource or a BoardSource).
 
@@ -62,6 +80,7 @@ class MonitorDaemon:
                  systemd: SystemdNotifier | None = None):
         self.config, self.source, self.model, self.store = config, source, model, store
         self.notifiers, self.gpio, self.live = list(notifiers), gpio, live
+        self._summarised = [n for n in self.notifiers if isinstance(n, Notifier)]  # those with summarise()
         self.on_event, self.on_map, self.say = on_event, on_map, say
         self.systemd = systemd or SystemdNotifier()
         self.monitor = Monitor(source.acquire, model, calibration)   # refuses a calibration for another mat
@@ -194,6 +213,10 @@ class MonitorDaemon:
             self.on_map(pressure_map)
         if self.live is not None:
             self.live.publish(snapshot)
+        if self._summarised:
+            summary = ward_summary(snapshot)
+            for notifier in self._summarised:
+                notifier.summarise(summary)
         if not self._ready and pressure_map is not None:
             self._ready = True
             self.systemd.ready(f"monitoring {self.config.bed_id}")

@@ -1,0 +1,53 @@
+"""A real Mosquitto broker for the MQTT tests (notifiers, ward station), and the small helpers they share.
+
+No skip when Mosquitto is missing: CI installs it (.ci/run), and a test of the
+alarm path that silently does not run would hide a broken alarm path.
+"""
+
+import os
+import shutil
+import socket
+import subprocess
+import time
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_until(condition, timeout_s=10.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+class Broker:
+    """A Mosquitto process on a fixed port that a test can stop and start again."""
+
+    def __init__(self):
+        self.binary = shutil.which("mosquitto", path=os.environ.get("PATH", "") + ":/usr/sbin:/sbin")
+        assert self.binary, "mosquitto is not installed (apt-get install mosquitto); .ci/run installs it"
+        self.port = free_port()
+        self.process = None
+
+    def start(self):
+        self.process = subprocess.Popen([self.binary, "-p", str(self.port)],
+                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+        def accepting():
+            try:
+                socket.create_connection(("127.0.0.1", self.port), timeout=0.2).close()
+                return True
+            except OSError:
+                return False
+        assert wait_until(accepting), "mosquitto did not start"
+
+    def stop(self):
+        self.process.terminate()
+        self.process.wait(5)
+        self.process = None

@@ -1,0 +1,389 @@
+"""The ward station against a real Mosquitto broker (tests/mqtt_broker.py), with beds as MqttNotifiers, raw
+paho clients, a separate process and a small monitor daemon."""
+
+import json
+import signal
+import statistics
+import subprocess
+import sys
+import textwrap
+import time
+
+import paho.mqtt.client as mqtt
+import pytest
+from mqtt_broker import Broker, free_port, wait_until
+
+from appliance.alerts.alarms import AlarmEvent
+from appliance.alerts.events import as_event
+from appliance.alerts.notifiers import MqttNotifier
+from appliance.core.layouts import get_layout
+from appliance.core.protocols import default_protocol
+from appliance.service.config import config_from_mapping
+from appliance.service.daemon import MonitorDaemon
+from appliance.service.virtual_bed import VirtualBedSource
+from appliance.sim.loads import square_load_scene
+from appliance.store import Store
+from appliance.ward.station import BedState, WardStation
+
+
+def alarm(alarm_id=1, kind="raised", priority="high", time_s=None, key="pressure:sacrum:4"):
+    return as_event(AlarmEvent(time_s=10.0 * alarm_id if time_s is None else time_s, kind=kind, alarm_id=alarm_id,
+                               key=key, category="clinical", priority=priority, message="Sacrum dose over limit"))
+
+
+def summary(bed_id, time_s=100.0, alarms=()):
+    return {"bed_id": bed_id, "time_s": time_s, "peak_mmhg": 41.5,
+            "regions": [{"zone": "sacrum", "peak_mmhg": 41.5, "dose": 0.3}], "turn": {"due_in_s": 3600.0},
+            "alarms": [{"alarm_id": i, "key": f"pressure:sacrum:{i}", "priority": p, "state": "active",
+                        "message": "Sacrum dose over limit", "acknowledged_by": None} for i, p in alarms],
+            "status": {"maps": 7, "faults": 0}}
+
+
+@pytest.fixture
+def broker():
+    b = Broker()
+    b.start()
+    yield b
+    if b.process is not None:
+        b.stop()
+
+
+@pytest.fixture
+def station(broker):
+    s = WardStation("127.0.0.1", broker.port, client_id="test-station", keepalive_s=5)
+    assert s.wait_subscribed(10)
+    yield s
+    s.close()
+
+
+@pytest.fixture
+def beds(broker, tmp_path):
+    """Factory: an MqttNotifier publishing as ``bed_id``; closed after the test."""
+    made = []
+
+    def make(bed_id, **options):
+        options = {"backoff_s": 0.1, "summary_interval_s": 0.1, "dead_letter_path": tmp_path / "dead.jsonl",
+                   **options}
+        made.append(MqttNotifier("127.0.0.1", broker.port, bed_id, client_id=f"{bed_id}-notifier", **options))
+        assert wait_until(made[-1]._client.is_connected)
+        return made[-1]
+    yield make
+    for notifier in made:
+        notifier.close(timeout_s=1.0)
+
+
+class Publisher:
+    """A raw paho client, to publish what no notifier would (repeats, garbage, other beds' summaries)."""
+
+    def __init__(self, port):
+        self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="test-publisher")
+        self.client.connect("127.0.0.1", port)
+        self.client.loop_start()
+
+    def send(self, topic, payload, qos=1, retain=False):
+        info = self.client.publish(topic, payload if isinstance(payload, (str, bytes)) else json.dumps(payload),
+                                   qos=qos, retain=retain)
+        info.wait_for_publish(5)
+
+    def close(self):
+        self.client.disconnect()
+        self.client.loop_stop()
+
+
+@pytest.fixture
+def publisher(broker):
+    p = Publisher(broker.port)
+    yield p
+    p.close()
+
+
+def bed(station, bed_id):
+    """The station's view of ``bed_id``, or None while it knows nothing of it."""
+    return next((b for b in station.beds() if b["bed_id"] == bed_id), None)
+
+
+# What reaches the station.
+
+def test_a_beds_summary_and_alarms_reach_the_station_alarms_within_2_s(station, beds):
+    bed7 = beds("bed7")
+    bed7.summarise(summary("bed7", alarms=[(1, "medium")]))
+    assert wait_until(lambda: (bed(station, "bed7") or {}).get("summary") is not None, 5)
+    seen = bed(station, "bed7")
+    assert seen["online"] and seen["status"] == "online"
+    assert seen["summary"]["peak_mmhg"] == 41.5 and seen["summary"]["status"] == {"maps": 7, "faults": 0}
+    assert 0 <= time.time() - seen["summary"]["written_at"] < 2
+    assert [(a["alarm_id"], a["priority"]) for a in seen["alarms"]] == [(1, "medium")]
+
+    latencies = []
+    for i in range(2, 22):  # each alarm after the last summary: the event alone makes it open
+        sent_at = time.time()
+        bed7.notify(alarm(i, time_s=100.0 + i))
+        assert wait_until(lambda i=i: any(e["alarm_id"] == i for e in bed(station, "bed7")["events"]), 2)
+        [event] = [e for e in bed(station, "bed7")["events"] if e["alarm_id"] == i]
+        latencies.append(event["received_at"] - sent_at)
+    print(f"alarm latency: median {statistics.median(latencies) * 1e3:.1f} ms, max {max(latencies) * 1e3:.1f} ms")
+    assert max(latencies) < 2.0
+    seen = bed(station, "bed7")
+    assert [a["alarm_id"] for a in seen["alarms"]] == list(range(2, 22)) + [1]   # high first, then by id
+    assert seen["highest_priority"] == "high"
+
+
+def test_two_beds_are_kept_apart(station, beds):
+    bed1, bed2 = beds("bed1"), beds("bed2")
+    bed1.notify(alarm(1, priority="low"))
+    bed2.notify(alarm(1, priority="high", key="pressure:heel-left:2"))
+    bed2.notify(alarm(2, priority="medium"))
+    assert wait_until(lambda: [len(b["events"]) for b in sorted(station.beds(), key=lambda b: b["bed_id"])]
+                      == [1, 2], 5)
+    one, two = bed(station, "bed1"), bed(station, "bed2")
+    assert [(a["alarm_id"], a["priority"]) for a in one["alarms"]] == [(1, "low")]
+    assert [(a["alarm_id"], a["priority"], a["key"]) for a in two["alarms"]] == [
+        (1, "high", "pressure:heel-left:2"), (2, "medium", "pressure:sacrum:4")]
+
+
+def test_a_repeated_event_is_counted_once(station, beds, publisher):
+    bed7 = beds("bed7")
+    event = alarm(3)
+    for _ in range(3):               # a retry after a lost PUBACK, and a restart's resend
+        bed7.notify(event)
+    publisher.send("appliance/bed7/alarm", event.to_dict())
+    assert wait_until(lambda: bed(station, "bed7") is not None and bed(station, "bed7")["duplicates"] == 3, 5)
+    seen = bed(station, "bed7")
+    assert len(seen["events"]) == 1 and [a["alarm_id"] for a in seen["alarms"]] == [3]
+    bed7.notify(alarm(3, kind="acknowledged", time_s=31.0))   # same alarm, another kind: not a repeat
+    assert wait_until(lambda: len(bed(station, "bed7")["events"]) == 2, 5)
+
+
+def test_alarm_events_sent_while_the_station_was_away_are_delivered_when_it_is_back(broker, beds):
+    first = WardStation("127.0.0.1", broker.port, client_id="returning-station")
+    assert first.wait_subscribed(10)
+    first.close()
+    bed7 = beds("bed7")
+    bed7.notify(alarm(5))
+    assert wait_until(lambda: bed7.delivered == 1, 5)
+    with WardStation("127.0.0.1", broker.port, client_id="returning-station") as again:
+        assert wait_until(lambda: bed(again, "bed7") is not None and bed(again, "bed7")["events"], 5)
+        assert [a["alarm_id"] for a in bed(again, "bed7")["alarms"]] == [5]
+
+
+# Offline.
+
+BED_PROCESS = textwrap.dedent("""
+    import json, sys, time
+    import paho.mqtt.client as mqtt
+    client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="bed-process")
+    client.will_set("appliance/bed9/status", "offline", qos=1, retain=True)
+    client.connect("127.0.0.1", int(sys.argv[1]), keepalive=int(sys.argv[2]))
+    client.loop_start()
+    client.publish("appliance/bed9/status", "online", qos=1, retain=True).wait_for_publish(5)
+    print("online", flush=True)
+    while True:   # a summary every 0.3 s, as a monitor's loop would send them
+        summary = {"bed_id": "bed9", "time_s": time.time(), "peak_mmhg": None, "regions": [], "alarms": []}
+        client.publish("appliance/bed9/summary", json.dumps(summary), qos=0, retain=True)
+        time.sleep(0.3)
+""")
+
+
+def bed_process(port, keepalive_s):
+    process = subprocess.Popen([sys.executable, "-c", BED_PROCESS, str(port), str(keepalive_s)],
+                               stdout=subprocess.PIPE, text=True)
+    assert process.stdout.readline().strip() == "online"
+    return process
+
+
+def end(process):
+    process.kill()
+    process.wait()
+    process.stdout.close()
+
+
+def offline_after(stations, bed_id, timeout_s):
+    """Seconds from now until each station shows ``bed_id`` offline."""
+    start, delays = time.monotonic(), {}
+    while len(delays) < len(stations) and time.monotonic() - start < timeout_s:
+        for name, station in stations.items():
+            if name not in delays and not bed(station, bed_id)["online"]:
+                delays[name] = time.monotonic() - start
+        time.sleep(0.02)
+    assert len(delays) == len(stations), f"{bed_id} still online after {timeout_s} s: {delays}"
+    return delays
+
+
+@pytest.fixture
+def patient_station(broker):
+    """A station that never calls a bed stale, so offline comes only from the status and the last will."""
+    s = WardStation("127.0.0.1", broker.port, client_id="patient-station", stale_after_s=3600)
+    assert s.wait_subscribed(10)
+    yield s
+    s.close()
+
+
+def test_a_bed_gone_silent_shows_offline_within_1_5_keepalives_and_a_second(broker, patient_station):
+    keepalive_s = 2
+    with WardStation("127.0.0.1", broker.port, client_id="watchful-station", summary_interval_s=0.3) as watchful:
+        assert watchful.wait_subscribed(10)
+        process = bed_process(broker.port, keepalive_s)
+        try:
+            assert wait_until(lambda: all((bed(s, "bed9") or {}).get("summary") for s in (watchful, patient_station)),
+                              5)
+            process.send_signal(signal.SIGSTOP)   # frozen: the connection stays open but nothing more comes
+            delays = offline_after({"stale": watchful, "will": patient_station}, "bed9", keepalive_s * 3 + 1)
+        finally:
+            end(process)
+    print(f"offline after a silent death (keepalive {keepalive_s} s): {delays['stale']:.2f} s by its silence, "
+          f"{delays['will']:.2f} s by the broker's last will")
+    assert delays["stale"] <= keepalive_s * 1.5 + 1
+    assert bed(patient_station, "bed9")["status"] == "offline"
+    # Mosquitto 2.0.11 gives the will later than MQTT's 1.5 keep-alives (measured 2.6 times): hence the silence.
+    assert delays["will"] <= keepalive_s * 3 + 1
+
+
+def test_a_killed_bed_process_shows_offline_at_once(broker, patient_station):
+    process = bed_process(broker.port, 30)
+    assert wait_until(lambda: (bed(patient_station, "bed9") or {}).get("online"), 5)
+    end(process)                               # the kernel closes the socket, with no DISCONNECT
+    print(f"offline after a kill: {offline_after({'will': patient_station}, 'bed9', 2)['will']:.2f} s")
+
+
+def test_a_clean_stop_shows_offline_at_once(patient_station, beds):
+    bed7 = beds("bed7")
+    assert wait_until(lambda: (bed(patient_station, "bed7") or {}).get("online"), 5)
+    start = time.monotonic()
+    bed7.close()
+    offline_after({"will": patient_station}, "bed7", 1)
+    print(f"offline after a clean stop: {time.monotonic() - start:.2f} s")
+
+
+def test_a_bed_that_stops_summarising_goes_stale(broker, beds):
+    with WardStation("127.0.0.1", broker.port, client_id="hasty-station", stale_after_s=0.5) as station:
+        assert station.wait_subscribed(10)
+        bed7 = beds("bed7")
+        bed7.summarise(summary("bed7"))
+        assert wait_until(lambda: (bed(station, "bed7") or {}).get("summary") is not None, 5)
+        assert bed(station, "bed7")["status"] == "online"      # connected, but its loop has stopped
+        delay = offline_after({"stale": station}, "bed7", 2)["stale"]
+        assert bed(station, "bed7")["status"] == "online" and 0.2 < delay <= 1.0
+        bed7.summarise(summary("bed7", time_s=101.0))
+        assert wait_until(lambda: bed(station, "bed7")["online"], 2)
+
+
+# Bad payloads and the ward's order.
+
+def test_garbage_is_counted_and_the_station_keeps_working(station, publisher, beds):
+    garbage = [("appliance/bed3/summary", b"\xff\xfe"), ("appliance/bed3/summary", "not json"),
+               ("appliance/bed3/summary", [1, 2]), ("appliance/bed3/summary", {**summary("bed3"), "time_s": "soon"}),
+               ("appliance/bed3/summary", summary("bed4")),
+               ("appliance/bed3/summary", {**summary("bed3"), "alarms": [{"alarm_id": "one"}]}),
+               ("appliance/bed3/alarm", {"time_s": 1.0, "kind": "raised"}),
+               ("appliance/bed3/alarm", {**alarm().to_dict(), "type": "turn"}),
+               ("appliance/bed3/alarm", {**alarm().to_dict(), "priority": "urgent"}),
+               ("appliance/bed3/turn", "null"), ("appliance/bed3/status", "maybe")]
+    for topic, payload in garbage:
+        publisher.send(topic, payload)
+    assert wait_until(lambda: station.bad_payloads == len(garbage), 5)
+    assert bed(station, "bed3") is None
+    bed3 = beds("bed3")
+    bed3.notify(alarm(1))
+    bed3.summarise(summary("bed3", time_s=5.0))
+    assert wait_until(lambda: (bed(station, "bed3") or {}).get("summary") is not None
+                      and bed(station, "bed3")["events"], 5)
+    assert station.bad_payloads == len(garbage)
+
+
+def test_high_alarm_beds_come_first_then_medium_low_offline_and_the_rest_by_id(broker, station, publisher):
+    ward = {"a-low": [(1, "low")], "b-high": [(1, "medium"), (2, "high")], "c-quiet": [], "e-medium": [(4, "medium")],
+            "f-quiet": [], "g-high": [(1, "high")]}
+    for bed_id, alarms in ward.items():
+        publisher.send(f"appliance/{bed_id}/status", "online", retain=True)
+        publisher.send(f"appliance/{bed_id}/summary", summary(bed_id, alarms=alarms), qos=0, retain=True)
+    publisher.send("appliance/d-offline/status", "offline", retain=True)
+    assert wait_until(lambda: len(station.beds()) == 7 and all(b["summary"] for b in station.beds()
+                                                               if b["bed_id"] != "d-offline"), 5)
+    assert [b["bed_id"] for b in station.beds()] == ["b-high", "g-high", "e-medium", "a-low", "d-offline",
+                                                     "c-quiet", "f-quiet"]
+    with WardStation("127.0.0.1", broker.port, client_id="late-station") as late:   # from the retained messages
+        assert wait_until(lambda: len(late.beds()) == 7 and all(b["summary"] for b in late.beds()
+                                                                if b["bed_id"] != "d-offline"), 5)
+        assert [b["bed_id"] for b in late.beds()] == [b["bed_id"] for b in station.beds()]
+
+
+def test_events_newer_than_the_last_summary_are_applied_over_it_and_older_ones_not():
+    state = BedState("bed7")
+    state.take_event({**alarm(1, time_s=5.0).to_dict(), "received_at": 0.0})
+    assert list(state.open_alarms) == [1]
+    state.take_summary(summary("bed7", time_s=10.0, alarms=[(2, "low")]), now=0.0)
+    assert list(state.open_alarms) == [2]                                           # alarm 1 ended before 10 s
+    state.take_event({**alarm(3, time_s=11.0).to_dict(), "received_at": 0.0})
+    state.take_event({**alarm(2, kind="escalated", priority="medium", time_s=12.0).to_dict(), "received_at": 0.0})
+    state.take_event({**alarm(4, time_s=8.0).to_dict(), "received_at": 0.0})      # late, and the summary knew
+    assert {i: a["priority"] for i, a in state.open_alarms.items()} == {2: "medium", 3: "high"}
+    state.take_event({**alarm(3, kind="acknowledged", time_s=13.0).to_dict(), "user": "nurse", "received_at": 0.0})
+    state.take_event({**alarm(3, kind="ended", time_s=14.0).to_dict(), "received_at": 0.0})
+    state.take_summary(summary("bed7", time_s=12.5, alarms=[(2, "medium"), (3, "high")]), now=0.0)
+    assert list(state.open_alarms) == [2]                                           # the end at 14 s replayed
+
+
+# The daemon's summaries.
+
+GRID = get_layout("grid-4x4")
+
+
+def ward_daemon(small_mat_calibration, tmp_path, notifiers):
+    model, calibration = small_mat_calibration
+    config = config_from_mapping({"monitor": {"layout": "grid-4x4", "frame_interval_s": 600.0, "bed_id": "ward-bed"},
+                                  "alerts": {"alarm_dose": 0.05}})
+    source = VirtualBedSource(GRID, square_load_scene(100, 100, 30, 70, 40, 6.0), default_protocol(GRID),
+                              frame_interval_s=600.0)
+    daemon = MonitorDaemon(config, source, model, calibration, Store.open(tmp_path / f"{len(notifiers)}.db"),
+                           notifiers=notifiers, say=lambda text: None)
+    daemon.start()
+    return daemon
+
+
+def test_the_daemon_publishes_summaries_the_station_sees(small_mat_calibration, tmp_path, station, beds):
+    notifier = beds("ward-bed", summary_interval_s=0.05)
+    daemon = ward_daemon(small_mat_calibration, tmp_path, [notifier])
+    try:
+        while not any(a["key"].startswith("pressure:") for a in (bed(station, "ward-bed") or {}).get("alarms", [])):
+            daemon.step()
+            time.sleep(0.06)
+            assert daemon.maps < 100, "no pressure alarm reached the station"
+        assert wait_until(lambda: bed(station, "ward-bed")["summary"]["status"]["maps"] == daemon.maps, 2)
+    finally:
+        daemon.close()
+    seen = bed(station, "ward-bed")
+    body = seen["summary"]
+    assert set(body) == {"bed_id", "time_s", "written_at", "peak_mmhg", "regions", "turn", "alarms", "status"}
+    assert body["time_s"] == daemon.pipeline.last_time_s and body["peak_mmhg"] > 0
+    assert body["regions"] and set(body["regions"][0]) == {"zone", "peak_mmhg", "dose"}
+    assert {a["alarm_id"] for a in body["alarms"]} == {a.alarm_id for a in daemon.pipeline.engine.alarms()}
+    assert seen["status"] == "offline" and not seen["online"]                     # the daemon closed its notifier
+
+
+def test_an_unreachable_broker_does_not_slow_the_daemons_frames(small_mat_calibration, tmp_path):
+    def step_times(daemon, frames=10):
+        times = []
+        for _ in range(frames):
+            start = time.perf_counter()
+            daemon.step()
+            times.append(time.perf_counter() - start)
+        daemon.close()
+        return times
+
+    alone = step_times(ward_daemon(small_mat_calibration, tmp_path, []))
+    unreachable = MqttNotifier("10.255.255.1", free_port(), "ward-bed", client_id="unreachable",
+                               summary_interval_s=0.001, max_attempts=1)
+    summarise_times = []
+    original = unreachable.summarise
+
+    def timed(summary):
+        start = time.perf_counter()
+        original(summary)
+        summarise_times.append(time.perf_counter() - start)
+    unreachable.summarise = timed
+    cut_off = step_times(ward_daemon(small_mat_calibration, tmp_path, [unreachable]))
+    print(f"step median {statistics.median(alone) * 1e3:.2f} ms alone, {statistics.median(cut_off) * 1e3:.2f} ms "
+          f"with an unreachable broker; summarise max {max(summarise_times) * 1e3:.3f} ms")
+    assert len(summarise_times) == 10 and max(summarise_times) < 0.005
+    assert unreachable.summaries_sent == 0 and unreachable.summaries_skipped > 0
+    assert statistics.median(cut_off) < 1.5 * statistics.median(alone)   # waiting on it would cost seconds
