@@ -137,3 +137,15 @@ def small_mat_calibration(model_cache):
     calibration = pressure_calibration(source.acquire, source.place, model,
                                        calibration_loads(layout, pressures_kpa=(2, 5, 10, 20)))
     return model, calibration
+
+
+@pytest.fixture
+def broker():
+    """A real Mosquitto on a free local port, stopped after the test."""
+    from mqtt_broker import Broker
+
+    b = Broker()
+    b.start()
+    yield b
+    if b.process is not None:
+        b.stop()

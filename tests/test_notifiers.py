@@ -9,7 +9,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import paho.mqtt.client as mqtt
 import pytest
-from mqtt_broker import Broker, wait_until
+from mqtt_broker import wait_until
 
 from appliance.alerts.alarms import AlarmEvent
 from appliance.alerts.events import Event, as_event
@@ -30,15 +30,6 @@ EVENT_FIELDS = {"time_s", "type", "kind", "priority", "category", "key", "region
 def alarm(alarm_id=1, kind="raised", priority="high"):
     return as_event(AlarmEvent(time_s=10.0 * alarm_id, kind=kind, alarm_id=alarm_id, key="pressure:sacrum:4",
                                category="clinical", priority=priority, message="Sacrum dose over limit"))
-
-
-@pytest.fixture
-def broker():
-    b = Broker()
-    b.start()
-    yield b
-    if b.process is not None:
-        b.stop()
 
 
 class Subscriber:

@@ -11,7 +11,7 @@ import time
 
 import paho.mqtt.client as mqtt
 import pytest
-from mqtt_broker import Broker, free_port, wait_until
+from mqtt_broker import free_port, wait_until
 
 from appliance.alerts.alarms import AlarmEvent
 from appliance.alerts.events import as_event
@@ -37,15 +37,6 @@ def summary(bed_id, time_s=100.0, alarms=()):
             "alarms": [{"alarm_id": i, "key": f"pressure:sacrum:{i}", "priority": p, "state": "active",
                         "message": "Sacrum dose over limit", "acknowledged_by": None} for i, p in alarms],
             "status": {"maps": 7, "faults": 0}}
-
-
-@pytest.fixture
-def broker():
-    b = Broker()
-    b.start()
-    yield b
-    if b.process is not None:
-        b.stop()
 
 
 @pytest.fixture
