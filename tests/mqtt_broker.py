@@ -4,11 +4,13 @@ No skip when Mosquitto is missing: CI installs it (.ci/run), and a test of the
 alarm path that silently does not run would hide a broken alarm path.
 """
 
+import getpass
 import os
 import shutil
 import socket
 import subprocess
 import time
+from pathlib import Path
 
 
 def free_port() -> int:
@@ -27,17 +29,23 @@ def wait_until(condition, timeout_s=10.0):
 
 
 class Broker:
-    """A Mosquitto process on a fixed port that a test can stop and start again."""
+    """A Mosquitto process on a fixed port that a test can stop and start again; ``settings`` (mosquitto.conf
+    lines, written to ``folder``) for a listener with TLS and passwords."""
 
-    def __init__(self):
+    def __init__(self, settings: str = "", folder: Path | None = None):
         self.binary = shutil.which("mosquitto", path=os.environ.get("PATH", "") + ":/usr/sbin:/sbin")
         assert self.binary, "mosquitto is not installed (apt-get install mosquitto); .ci/run installs it"
         self.port = free_port()
         self.process = None
+        self.command = [self.binary, "-p", str(self.port)]
+        if settings:
+            conf = folder / "mosquitto.conf"
+            # as root, mosquitto would drop to its own user, who cannot read the test's files
+            conf.write_text(f"user {getpass.getuser()}\nlistener {self.port} 127.0.0.1\n{settings}")
+            self.command = [self.binary, "-c", str(conf)]
 
     def start(self):
-        self.process = subprocess.Popen([self.binary, "-p", str(self.port)],
-                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.process = subprocess.Popen(self.command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
         def accepting():
             try:

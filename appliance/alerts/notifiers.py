@@ -215,7 +215,8 @@ class MqttNotifier(Notifier):
     name = "mqtt"
 
     def __init__(self, host: str, port: int, bed_id: str, *, client_id: str, topic_prefix: str = "appliance",
-                 keepalive_s: int = 30, publish_timeout_s: float = 5.0, summary_interval_s: float = 1.0,
+                 keepalive_s: int = 30, publish_timeout_s: float = 5.0, username: str | None = None,
+                 password: str | None = None, ca_file=None, summary_interval_s: float = 1.0,
                  **options):
         if summary_interval_s <= 0:
             raise ValueError(f"summary_interval_s must be more than 0, got {summary_interval_s}")
@@ -229,6 +230,10 @@ class MqttNotifier(Notifier):
         self._summary_due = float("-inf")
         self._client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id)
         self._client.will_set(self.status_topic, "offline", qos=1, retain=True)
+        if username is not None:
+            self._client.username_pw_set(username, password)
+        if ca_file is not None:
+            self._client.tls_set(ca_certs=str(ca_file))          # the broker's name is checked against its cert
         self._client.reconnect_delay_set(min_delay=1, max_delay=10)
         self._client.on_connect = self._on_connect
         self._client.connect_async(host, port, keepalive=keepalive_s)

@@ -103,6 +103,7 @@ def _notifiers(config: MonitorConfig, dead_letters: Path) -> list:
         m = config.mqtt
         notifiers.append(MqttNotifier(m.host, m.port, config.bed_id, client_id=f"appliance-{config.bed_id}",
                                       topic_prefix=m.topic_prefix, keepalive_s=m.keepalive_s,
+                                      username=m.username, password=m.password(), ca_file=m.ca_file,
                                       dead_letter_path=dead_letters))
     if config.webhook is not None:
         notifiers.append(WebhookNotifier(config.webhook.url, timeout_s=config.webhook.timeout_s,

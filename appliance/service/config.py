@@ -37,8 +37,11 @@ runs, not after it silently ignored it::
 
     [notify.mqtt]
     host = "broker.ward"
-    port = 1883
+    port = 8883
     topic_prefix = "appliance"
+    username = "ward3-bed12"              # with password_file: the broker's account for this bed
+    password_file = "/etc/appliance/mqtt-password"
+    ca_file = "/etc/appliance/ward-ca.crt"  # TLS, the broker's certificate checked against this CA
 
     [notify.webhook]
     url = "https://station.ward/alarms"
@@ -76,10 +79,26 @@ class StoreSettings:
 
 @dataclass(frozen=True)
 class MqttSettings:
+    """The ward's broker; ``username`` with the password kept in ``password_file`` (readable by the service
+    alone, never in this file), and TLS verified against ``ca_file`` when it is given."""
+
     host: str
     port: int = 1883
     topic_prefix: str = "appliance"
     keepalive_s: int = 30
+    username: str | None = None
+    password_file: Path | None = None
+    ca_file: Path | None = None
+
+    def password(self) -> str | None:
+        """The password file's first line; a missing or unreadable file is a ConfigError naming it."""
+        if self.password_file is None:
+            return None
+        try:
+            return self.password_file.read_text(encoding="utf-8").splitlines()[0]
+        except (OSError, IndexError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"[notify.mqtt] password_file {self.password_file}: cannot read a password "
+                              f"({exc or 'the file is empty'})") from None
 
 
 @dataclass(frozen=True)
@@ -162,7 +181,7 @@ def config_from_mapping(data: dict, base: Path | None = None) -> MonitorConfig:
         board=board,
         alerts=_alerts(_section(data, "alerts")),
         store=_store(_section(data, "store")),
-        mqtt=_mqtt(_section(notify, "mqtt", "notify.mqtt")),
+        mqtt=_mqtt(_section(notify, "mqtt", "notify.mqtt"), base),
         webhook=_webhook(_section(notify, "webhook", "notify.webhook")),
         gpio=gpio,
     )
@@ -203,19 +222,26 @@ def _store(table: dict) -> StoreSettings:
                          _number(table, "max_mb", 512.0, where, low=1.0, high=1e6))
 
 
-def _mqtt(table: dict) -> MqttSettings | None:
+def _mqtt(table: dict, base: Path | None) -> MqttSettings | None:
     if not table:
         return None
     where = "[notify.mqtt]"
-    _only(table, {"host", "port", "topic_prefix", "keepalive_s"}, where)
+    _only(table, {"host", "port", "topic_prefix", "keepalive_s", "username", "password_file", "ca_file"}, where)
     if "host" not in table:
         raise ConfigError(f"{where} is missing 'host'")
     prefix = _text(table, "topic_prefix", "appliance", where)
     if any(c in prefix for c in "#+") or prefix.startswith("/") or prefix.endswith("/"):
         raise ConfigError(f"{where}: topic_prefix must not hold wildcards or start or end with '/', got {prefix!r}")
+    if "password_file" in table and "username" not in table:
+        raise ConfigError(f"{where}: password_file needs a username")
+    files = {key: _path(table, key, base, where) for key in ("password_file", "ca_file")}
+    for key, path in files.items():
+        if path is not None and not path.is_file():
+            raise ConfigError(f"{where} {key}: no file {path}")
     return MqttSettings(_text(table, "host", None, where),
                         int(_number(table, "port", 1883, where, low=1, high=65535, integer=True)), prefix,
-                        int(_number(table, "keepalive_s", 30, where, low=5, high=3600, integer=True)))
+                        int(_number(table, "keepalive_s", 30, where, low=5, high=3600, integer=True)),
+                        _text(table, "username", None, where) if "username" in table else None, **files)
 
 
 def _webhook(table: dict) -> WebhookSettings | None:
@@ -299,8 +325,8 @@ def _number(table: dict, key: str, default: float, where: str, *, low: float, hi
     return float(value)
 
 
-def _path(table: dict, key: str, base: Path | None) -> Path | None:
+def _path(table: dict, key: str, base: Path | None, where: str = "[monitor]") -> Path | None:
     if key not in table:
         return None
-    path = Path(_text(table, key, None, "[monitor]"))
+    path = Path(_text(table, key, None, where))
     return path if base is None or path.is_absolute() else base / path
