@@ -89,11 +89,13 @@ def _parser() -> argparse.ArgumentParser:
     from appliance.cli_frontend import add_parsers as add_frontend_parsers
     from appliance.cli_run import add_parsers as add_run_parsers
     from appliance.cli_sim import add_parsers as add_sim_parsers
+    from appliance.cli_ward import add_parsers as add_ward_parsers
 
     add_frontend_parsers(sub)
     add_sim_parsers(sub)
     add_run_parsers(sub)
     add_calibrate_parsers(sub)
+    add_ward_parsers(sub)
     return parser
 
 

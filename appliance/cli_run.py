@@ -120,17 +120,24 @@ def _start_screen(where: str, config, say):
     import subprocess
     import sys
 
-    from appliance.errors import ConfigError
     from appliance.service.virtual_bed import default_data_dir
+
+    host, port = listen_address(where, "--screen")
+    data_dir = config.data_dir or default_data_dir()
+    screen = subprocess.Popen([sys.executable, "-m", "webui", "--data-dir", str(data_dir), "--host", host,
+                               "--port", str(port)], preexec_fn=lambda: os.nice(SCREEN_NICE))
+    say(f"the nurse's screen: http://{host}:{port}/ (the first visit sets up the admin account)")
+    return screen
+
+
+def listen_address(where: str, option: str) -> tuple[str, int]:
+    """(host, port) from ``[HOST:]PORT`` (host 127.0.0.1 by default); a ConfigError naming ``option`` if bad."""
+    from appliance.errors import ConfigError
 
     host, _, port = where.rpartition(":")
     if not port.isdigit() or not 1 <= int(port) <= 65535:
-        raise ConfigError(f"--screen takes [HOST:]PORT with a port from 1 to 65535, got {where!r}")
-    data_dir = config.data_dir or default_data_dir()
-    screen = subprocess.Popen([sys.executable, "-m", "webui", "--data-dir", str(data_dir), "--host",
-                               host or "127.0.0.1", "--port", port], preexec_fn=lambda: os.nice(SCREEN_NICE))
-    say(f"the nurse's screen: http://{host or '127.0.0.1'}:{port}/ (the first visit sets up the admin account)")
-    return screen
+        raise ConfigError(f"{option} takes [HOST:]PORT with a port from 1 to 65535, got {where!r}")
+    return host or "127.0.0.1", int(port)
 
 
 def _show(pressure_map, grid, data_dir: Path, n_readings: int) -> None:

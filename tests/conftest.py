@@ -1,7 +1,5 @@
 """Shared fixtures: a clean environment, the built-in layouts and their models."""
 
-import appliance  # noqa: F401  (first: it pins BLAS to one thread before numpy loads)
-
 import functools
 import os
 import sys
@@ -10,12 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import appliance  # noqa: F401  (first: it pins BLAS to one thread before numpy loads)
 from appliance.core.fem import build_fem_model
 from appliance.core.layouts import get_layout
 from appliance.core.network import build_network_model, network_for_layout
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from report import median_seconds  # noqa: E402,F401  (one timing helper for benchmarks and tests)
+from report import median_seconds  # noqa: F401  (one timing helper for benchmarks and tests)
 
 PERIPHERAL_AND_GRID = ("circular-16", "square-16", "grid-4x4")
 
@@ -149,3 +148,34 @@ def broker():
     yield b
     if b.process is not None:
         b.stop()
+
+
+@pytest.fixture
+def station(broker):
+    """A ward station subscribed to ``broker``."""
+    from appliance.ward.station import WardStation
+
+    s = WardStation("127.0.0.1", broker.port, client_id="test-station", keepalive_s=5)
+    assert s.wait_subscribed(10)
+    yield s
+    s.close()
+
+
+@pytest.fixture
+def beds(broker, tmp_path):
+    """Factory: an MqttNotifier publishing as ``bed_id``; closed after the test."""
+    from mqtt_broker import wait_until
+
+    from appliance.alerts.notifiers import MqttNotifier
+
+    made = []
+
+    def make(bed_id, **options):
+        options = {"backoff_s": 0.1, "summary_interval_s": 0.1, "dead_letter_path": tmp_path / "dead.jsonl",
+                   **options}
+        made.append(MqttNotifier("127.0.0.1", broker.port, bed_id, client_id=f"{bed_id}-notifier", **options))
+        assert wait_until(made[-1]._client.is_connected)
+        return made[-1]
+    yield make
+    for notifier in made:
+        notifier.close(timeout_s=1.0)

@@ -273,3 +273,65 @@ def test_a_monitor_that_stops_writing_is_shown_as_stale_and_recovers(appliance, 
     finally:
         monitor.send_signal(signal.SIGCONT)
     wait_for(lambda: not banner.is_displayed(), 15, "the banner to go once frames come again")
+
+
+def test_the_ward_station_shows_every_bed_a_new_alarm_within_2_s_and_a_stopped_bed_offline(
+        broker, beds, browser, tmp_path):
+    """Twelve beds publishing to a real broker, the station as `appliance ward`, the ward page in Chromium."""
+    import threading
+
+    from selenium.webdriver.common.by import By
+    from ward_payloads import alarm, summary
+
+    (tmp_path / "ward.toml").write_text(f'[broker]\nhost = "127.0.0.1"\nport = {broker.port}\n[station]\n'
+                                        'client_id = "browser-station"\nscreen_url = "https://{bed_id}.ward3.example/"\n')
+    port = free_port()
+    with open(tmp_path / "ward.log", "w") as log:
+        station = subprocess.Popen([sys.executable, "-m", "appliance", "ward", "--config", str(tmp_path / "ward.toml"),
+                                    "--data-dir", str(tmp_path / "station"), "--listen", str(port), "--plain-http"],
+                                   stdout=log, stderr=subprocess.STDOUT)
+    notifiers = {f"ward3-bed{n:02d}": beds(f"ward3-bed{n:02d}") for n in range(1, 13)}
+    alarms = {"ward3-bed04": [(1, "high")], "ward3-bed09": [(2, "medium")]}
+    running = threading.Event()
+    running.set()
+
+    def summarise():
+        while running.is_set():
+            for bed_id, notifier in notifiers.items():
+                notifier.summarise(summary(bed_id, time_s=time.time(), alarms=alarms.get(bed_id, ())))
+            time.sleep(0.5)
+    publisher = threading.Thread(target=summarise, daemon=True)
+    publisher.start()
+    try:
+        base = f"http://127.0.0.1:{port}"
+        wait_for(lambda: _answers(base + "/login"), 30, "the station to listen")
+        viewport(browser, 1920, 1080)
+        browser.get(base + "/")
+        fill(browser, "form", name="admin.ward3", password=PASSWORD, confirm=PASSWORD)
+        assert browser.current_url.endswith("/ward")
+        wait_for(lambda: len(browser.find_elements(By.CSS_SELECTOR, "article.bed")) == 12, 15, "twelve beds")
+        tiles = browser.find_elements(By.CSS_SELECTOR, "article.bed")
+        assert [t.get_attribute("data-bed") for t in tiles[:2]] == ["ward3-bed04", "ward3-bed09"]   # high first
+        assert "high" in tiles[0].get_attribute("class") and "HIGH: Sacrum" in tiles[0].text
+        link = tiles[0].find_element(By.LINK_TEXT, "Open screen")
+        assert link.get_attribute("href") == "https://ward3-bed04.ward3.example/"
+
+        raised = time.monotonic()
+        notifiers["ward3-bed11"].notify(alarm(alarm_id=7, time_s=time.time() + 60))
+        wait_for(lambda: browser.find_elements(By.CSS_SELECTOR, 'article[data-bed="ward3-bed11"] [data-alarm="7"]'),
+                 2, "the new alarm on bed 11's tile", poll_s=0.05)
+        assert time.monotonic() - raised < 2.0
+
+        stopped = time.monotonic()
+        notifiers.pop("ward3-bed12").close(timeout_s=2.0)                   # its monitor stopped
+        wait_for(lambda: "OFFLINE" in text(browser, 'article[data-bed="ward3-bed12"]'), 5, "bed 12 offline")
+        assert time.monotonic() - stopped < 5.0
+        assert "offline" in browser.find_element(By.CSS_SELECTOR, 'article[data-bed="ward3-bed12"]') \
+            .get_attribute("class")
+        assert "12 bed(s): 3 with alarms, 1 offline" in text(browser, "#counts")
+        assert png_size(screenshot(browser, "ward", 1920, 1080)) == (1920, 1080)
+    finally:
+        running.clear()
+        publisher.join(timeout=5)
+        station.terminate()
+        station.wait(timeout=15)

@@ -50,7 +50,8 @@ def directives(path: Path) -> dict[str, list[str]]:
 
 
 def test_every_unit_verifies_without_a_warning(tmp_path):
-    assert {p.name for p in SERVICES} == {"appliance-monitor.service", "appliance-screen.service"}
+    assert {p.name for p in SERVICES} == {"appliance-monitor.service", "appliance-screen.service",
+                                          "appliance-ward.service"}
     result = verify({p.name: p.read_text() for p in SERVICES}, tmp_path)
     assert result.returncode == 0 and result.stdout + result.stderr == "", result.stdout + result.stderr
 
@@ -90,6 +91,16 @@ def test_the_screen_runs_below_the_monitor_with_no_devices_on_its_data():
     assert unit["PrivateDevices"] == ["yes"] and "DeviceAllow" not in unit
     assert "--data-dir /var/lib/appliance" in unit["ExecStart"][0]
     assert unit["ProtectSystem"] == ["strict"] and unit["NoNewPrivileges"] == ["yes"]
+
+
+def test_the_ward_station_has_no_account_no_devices_and_its_password_as_a_credential():
+    unit = directives(UNITS / "appliance-ward.service")
+    assert unit["DynamicUser"] == ["yes"] and unit["PrivateDevices"] == ["yes"] and "DeviceAllow" not in unit
+    assert unit["StateDirectory"] == ["appliance-ward"] and unit["ProtectSystem"] == ["strict"]
+    assert unit["LoadCredential"] == ["mqtt-password:/etc/appliance/ward-password"]
+    command = unit["ExecStart"][0].split()
+    assert command[1:] == ["ward", "--config", "/etc/appliance/ward.toml", "--data-dir", "/var/lib/appliance-ward",
+                           "--listen", "127.0.0.1:8090"]
 
 
 def test_the_account_and_folders_are_made_by_sysusers_and_tmpfiles(tmp_path):

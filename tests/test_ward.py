@@ -12,9 +12,8 @@ import time
 import paho.mqtt.client as mqtt
 import pytest
 from mqtt_broker import free_port, wait_until
+from ward_payloads import alarm, summary
 
-from appliance.alerts.alarms import AlarmEvent
-from appliance.alerts.events import as_event
 from appliance.alerts.notifiers import MqttNotifier
 from appliance.core.layouts import get_layout
 from appliance.core.protocols import default_protocol
@@ -24,43 +23,6 @@ from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.loads import square_load_scene
 from appliance.store import Store
 from appliance.ward.station import BedState, WardStation
-
-
-def alarm(alarm_id=1, kind="raised", priority="high", time_s=None, key="pressure:sacrum:4"):
-    return as_event(AlarmEvent(time_s=10.0 * alarm_id if time_s is None else time_s, kind=kind, alarm_id=alarm_id,
-                               key=key, category="clinical", priority=priority, message="Sacrum dose over limit"))
-
-
-def summary(bed_id, time_s=100.0, alarms=()):
-    return {"bed_id": bed_id, "time_s": time_s, "peak_mmhg": 41.5,
-            "regions": [{"zone": "sacrum", "peak_mmhg": 41.5, "dose": 0.3}], "turn": {"due_in_s": 3600.0},
-            "alarms": [{"alarm_id": i, "key": f"pressure:sacrum:{i}", "priority": p, "state": "active",
-                        "message": "Sacrum dose over limit", "acknowledged_by": None} for i, p in alarms],
-            "status": {"maps": 7, "faults": 0}}
-
-
-@pytest.fixture
-def station(broker):
-    s = WardStation("127.0.0.1", broker.port, client_id="test-station", keepalive_s=5)
-    assert s.wait_subscribed(10)
-    yield s
-    s.close()
-
-
-@pytest.fixture
-def beds(broker, tmp_path):
-    """Factory: an MqttNotifier publishing as ``bed_id``; closed after the test."""
-    made = []
-
-    def make(bed_id, **options):
-        options = {"backoff_s": 0.1, "summary_interval_s": 0.1, "dead_letter_path": tmp_path / "dead.jsonl",
-                   **options}
-        made.append(MqttNotifier("127.0.0.1", broker.port, bed_id, client_id=f"{bed_id}-notifier", **options))
-        assert wait_until(made[-1]._client.is_connected)
-        return made[-1]
-    yield make
-    for notifier in made:
-        notifier.close(timeout_s=1.0)
 
 
 class Publisher:

@@ -2,7 +2,8 @@
 
 ``create_app(data_dir)`` is the app factory (the monitor's data directory: its
 ``live.json`` and ``appliance.db``, and ``webui.db`` with the accounts and audit
-log). The session key
+log). ``create_ward_app`` makes the ward station's screen from the same parts:
+its own accounts, and the ward page instead of one bed's. The session key
 is made once and kept in ``webui.key`` (mode 0600) so a restart does not log
 everyone out. Cookies are HttpOnly, SameSite=Strict and, unless ``secure_cookies``
 is turned off for plain-HTTP tests, Secure.
@@ -15,21 +16,23 @@ import secrets
 from datetime import timedelta
 from pathlib import Path
 
-from flask import Flask, current_app, g
+from flask import Flask, current_app, g, redirect, url_for
 
-from webui import accounts, alarms, auth, engineering, history, live, settings
+from webui import accounts, alarms, auth, engineering, history, live, settings, ward
 from webui.security import LoginLimiter, csrf_token, guard
 from webui.users import UserStore
 
 SESSION_HOURS = 12          # one shift
 BLUEPRINTS = (auth.bp, accounts.bp, live.bp, alarms.bp, history.bp, settings.bp, engineering.bp)
-PAGES = (("live.page", "Live", "nurse"), ("alarms.page", "Alarms", "nurse"), ("history.page", "History", "nurse"),
+WARD_BLUEPRINTS = (auth.bp, accounts.bp, ward.bp)
+PAGES = (("ward.page", "Ward", "nurse"), ("live.page", "Live", "nurse"), ("alarms.page", "Alarms", "nurse"), ("history.page", "History", "nurse"),
          ("settings.page", "Settings", "nurse"), ("engineering.page", "Engineering", "engineer"),
          ("accounts.page", "Accounts", "admin"))
 """The header's links, in order: each shown when its blueprint is registered and the user's role allows it."""
 
 
-def create_app(data_dir, *, secure_cookies: bool = True, **config) -> Flask:
+def create_app(data_dir, *, secure_cookies: bool = True, blueprints=BLUEPRINTS, **config) -> Flask:
+    """``config`` adds to Flask's; ``HOME`` is the endpoint a login leads to (default the live view)."""
     data_dir = Path(data_dir)
     data_dir.mkdir(parents=True, exist_ok=True)
     app = Flask(__name__)
@@ -37,13 +40,23 @@ def create_app(data_dir, *, secure_cookies: bool = True, **config) -> Flask:
                       STORE_PATH=data_dir / "appliance.db",
                       SESSION_COOKIE_HTTPONLY=True, SESSION_COOKIE_SAMESITE="Strict",
                       SESSION_COOKIE_SECURE=secure_cookies,
-                      PERMANENT_SESSION_LIFETIME=timedelta(hours=SESSION_HOURS), **config)
+                      PERMANENT_SESSION_LIFETIME=timedelta(hours=SESSION_HOURS), HOME="live.page")
+    app.config.update(config)
     app.extensions["users"] = UserStore(data_dir / "webui.db")
     app.extensions["login_limiter"] = LoginLimiter()
     app.before_request(guard)
     app.jinja_env.globals.update(csrf_token=csrf_token, nav_links=nav_links)
-    for blueprint in BLUEPRINTS:
+    for blueprint in blueprints:
         app.register_blueprint(blueprint)
+    return app
+
+
+def create_ward_app(data_dir, station, ward_config, *, secure_cookies: bool = True, **config) -> Flask:
+    """The ward station's screen for a running ``WardStation``; accounts in ``data_dir`` (the station's own)."""
+    app = create_app(data_dir, secure_cookies=secure_cookies, blueprints=WARD_BLUEPRINTS, HOME="ward.page",
+                     WARD=ward_config, **config)
+    app.extensions["ward_station"] = station
+    app.add_url_rule("/", "home", lambda: redirect(url_for("ward.page")))
     return app
 
 

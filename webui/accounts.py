@@ -80,7 +80,7 @@ def own_password():
         flash(f"{exc}: nothing was changed", "error")
         return render_template("password.html"), 400
     flash("your password was changed", "info")
-    return redirect(url_for("live.page")), 303
+    return redirect(url_for(current_app.config["HOME"])), 303
 
 
 def _change(change):

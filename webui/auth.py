@@ -8,7 +8,17 @@ failure is in the audit log.
 
 from __future__ import annotations
 
-from flask import Blueprint, current_app, flash, g, redirect, render_template, request, session, url_for
+from flask import (
+    Blueprint,
+    current_app,
+    flash,
+    g,
+    redirect,
+    render_template,
+    request,
+    session,
+    url_for,
+)
 
 from webui.users import AccountError
 
@@ -31,7 +41,7 @@ def setup():
             flash(str(exc), "error")
             return render_template("setup.html", name=name), 400
         _log_in(user.name)
-        return redirect(url_for("live.page"))
+        return redirect(url_for(current_app.config["HOME"]))
     return render_template("setup.html", name="")
 
 
@@ -57,7 +67,7 @@ def login():
         limiter.succeeded(*keys)
         _log_in(user.name)
         target = request.args.get("next", "")
-        return redirect(target if target.startswith("/") and not target.startswith("//") else url_for("live.page"))
+        return redirect(target if target.startswith("/") and not target.startswith("//") else url_for(current_app.config["HOME"]))
     return render_template("login.html", name="")
 
 

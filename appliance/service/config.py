@@ -181,7 +181,7 @@ def config_from_mapping(data: dict, base: Path | None = None) -> MonitorConfig:
         board=board,
         alerts=_alerts(_section(data, "alerts")),
         store=_store(_section(data, "store")),
-        mqtt=_mqtt(_section(notify, "mqtt", "notify.mqtt"), base),
+        mqtt=mqtt_settings(_section(notify, "mqtt", "notify.mqtt"), base),
         webhook=_webhook(_section(notify, "webhook", "notify.webhook")),
         gpio=gpio,
     )
@@ -222,10 +222,10 @@ def _store(table: dict) -> StoreSettings:
                          _number(table, "max_mb", 512.0, where, low=1.0, high=1e6))
 
 
-def _mqtt(table: dict, base: Path | None) -> MqttSettings | None:
+def mqtt_settings(table: dict, base: Path | None, where: str = "[notify.mqtt]") -> MqttSettings | None:
+    """The broker table ``where`` (a bed's ``[notify.mqtt]``, the ward station's ``[broker]``); None if empty."""
     if not table:
         return None
-    where = "[notify.mqtt]"
     _only(table, {"host", "port", "topic_prefix", "keepalive_s", "username", "password_file", "ca_file"}, where)
     if "host" not in table:
         raise ConfigError(f"{where} is missing 'host'")

@@ -39,6 +39,7 @@ import paho.mqtt.client as mqtt
 
 from appliance.alerts.alarms import AWAITING_ACK, PRIORITIES
 from appliance.alerts.events import EVENT_TYPES, Event
+from appliance.ward.config import WardConfig
 
 log = logging.getLogger(__name__)
 
@@ -123,7 +124,8 @@ class WardStation:
     restarts and differ between stations. ``tls`` takes paho's ``tls_set``
     arguments (``ca_certs``, ``certfile``, ``keyfile``). ``stale_after_s``
     defaults to three summary intervals plus ``STALE_MARGIN_S``. Counters:
-    ``messages``, ``bad_payloads``.
+    ``messages``, ``bad_payloads``; ``version`` grows with every message taken, so a screen can tell that
+    something changed without comparing the beds.
     """
 
     def __init__(self, host: str, port: int, *, topic_prefix: str = "appliance", keepalive_s: int = 30,
@@ -135,7 +137,7 @@ class WardStation:
         self.stale_after_s = 3 * summary_interval_s + STALE_MARGIN_S if stale_after_s is None else stale_after_s
         self.subscriptions = [(f"{topic_prefix}/+/status", 0), (f"{topic_prefix}/+/summary", 0),
                               *((f"{topic_prefix}/+/{kind}", 1) for kind in EVENT_TYPES)]
-        self.messages = self.bad_payloads = 0
+        self.messages = self.bad_payloads = self.version = 0
         self._beds: dict[str, BedState] = {}
         self._lock = threading.Lock()
         self._subscribed = threading.Event()
@@ -154,6 +156,19 @@ class WardStation:
         self._client.connect_async(host, port, keepalive=keepalive_s)
         self._client.loop_start()
 
+    @classmethod
+    def from_config(cls, config: WardConfig) -> WardStation:
+        broker = config.broker
+        return cls(broker.host, broker.port, topic_prefix=broker.topic_prefix, keepalive_s=broker.keepalive_s,
+                   client_id=config.client_id, username=broker.username, password=broker.password(),
+                   tls=None if broker.ca_file is None else {"ca_certs": str(broker.ca_file)},
+                   summary_interval_s=config.summary_interval_s)
+
+    @property
+    def connected(self) -> bool:
+        """Connected to the broker and subscribed: the beds' states are current."""
+        return self._subscribed.is_set()
+
     def wait_subscribed(self, timeout_s: float = 10.0) -> bool:
         """True once the station is connected and subscribed, False if that took more than ``timeout_s``."""
         return self._subscribed.wait(timeout_s)
@@ -165,6 +180,12 @@ class WardStation:
         with self._lock:
             beds = [self._view(bed, now) for bed in self._beds.values()]
         return sorted(beds, key=lambda b: (_rank(b), b["bed_id"]))
+
+    def online_flags(self) -> tuple[bool, ...]:
+        """Each bed's ``online``, in no particular order but stable: cheap enough to poll."""
+        now = time.time()
+        with self._lock:
+            return tuple(bed.online(now, self.stale_after_s) for bed in self._beds.values())
 
     def close(self) -> None:
         """Disconnect; the broker keeps the session, and the events for it, until the station is back."""
@@ -223,6 +244,7 @@ class WardStation:
             return
         with self._lock:
             self.messages += 1
+            self.version += 1
             bed = self._beds.setdefault(bed_id, BedState(bed_id))
             bed.last_heard_at = now
             if kind == "status":

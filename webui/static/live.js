@@ -16,13 +16,6 @@ function colour(mmhg) {
   return `rgb(${r},${g},${b})`;
 }
 
-function clock(seconds) {
-  if (seconds === null || seconds === undefined) return "-";
-  const sign = seconds < 0 ? "overdue " : "";
-  const s = Math.abs(Math.round(seconds));
-  return `${sign}${Math.floor(s / 3600)} h ${String(Math.floor(s % 3600 / 60)).padStart(2, "0")} min`;
-}
-
 function draw(snapshot) {
   document.getElementById("stale").hidden = !snapshot.stale;
   const status = document.getElementById("status");

@@ -1,0 +1,85 @@
+"""The ward station's configuration file, checked like the monitor's: every bad key and value is named.
+
+::
+
+    [broker]                      # the same keys as a bed's [notify.mqtt]
+    host = "broker.ward"
+    port = 8883
+    topic_prefix = "appliance"
+    keepalive_s = 30
+    username = "ward-station"
+    password_file = "/etc/appliance/ward-password"
+    ca_file = "/etc/appliance/ward-ca.crt"
+
+    [station]
+    client_id = "ward3-station"   # names the broker session that holds alarms while the station is away
+    summary_interval_s = 1.0      # the beds' summary interval: a bed silent for 3 of them (+2 s) is offline
+    screen_url = "https://{bed_id}.ward3.example/"   # each bed's own screen; omit for no link
+"""
+
+from __future__ import annotations
+
+import socket
+from dataclasses import dataclass, field
+from pathlib import Path
+from urllib.parse import quote
+
+from appliance.core.toml_files import read_toml
+from appliance.errors import ConfigError
+from appliance.service.config import (
+    MqttSettings,
+    _number,
+    _only,
+    _section,
+    _text,
+    mqtt_settings,
+)
+
+
+@dataclass(frozen=True)
+class WardConfig:
+    broker: MqttSettings
+    client_id: str = field(default_factory=lambda: f"ward-station-{socket.gethostname()}")
+    summary_interval_s: float = 1.0
+    screen_url: str | None = None
+
+    def screen_of(self, bed_id: str) -> str | None:
+        """The bed's own screen, from the ``screen_url`` pattern (None without one)."""
+        return None if self.screen_url is None else self.screen_url.format(bed_id=quote(bed_id, safe=""))
+
+
+def load_ward_config(path) -> WardConfig:
+    """The station's configuration in TOML file ``path``; paths in it are relative to the file's folder."""
+    data = read_toml(path, "ward station configuration", ConfigError)
+    try:
+        return ward_config_from_mapping(data, base=Path(path).resolve().parent)
+    except ConfigError as exc:
+        raise ConfigError(f"ward station configuration {path}: {exc}") from None
+
+
+def ward_config_from_mapping(data: dict, base: Path | None = None) -> WardConfig:
+    _only(data, {"broker", "station"}, "the ward station configuration")
+    broker = mqtt_settings(_section(data, "broker"), base, "[broker]")
+    if broker is None:
+        raise ConfigError("[broker] is missing: the station needs the ward's broker 'host'")
+    station = _section(data, "station")
+    where = "[station]"
+    _only(station, {"client_id", "summary_interval_s", "screen_url"}, where)
+    client_id = _text(station, "client_id", f"ward-station-{socket.gethostname()}", where)
+    if len(client_id) > 64 or any(c in client_id for c in "/#+ "):
+        raise ConfigError(f"{where}: client_id must be 1-64 characters without spaces, '/', '#' or '+', "
+                          f"got {client_id!r}")
+    screen_url = _text(station, "screen_url", None, where) if "screen_url" in station else None
+    if screen_url is not None:
+        _check_screen_url(screen_url, where)
+    return WardConfig(broker, client_id, _number(station, "summary_interval_s", 1.0, where, low=0.1, high=60.0),
+                      screen_url)
+
+
+def _check_screen_url(pattern: str, where: str) -> None:
+    if not pattern.startswith(("http://", "https://")):
+        raise ConfigError(f"{where}: screen_url must start with http:// or https://, got {pattern!r}")
+    try:
+        pattern.format(bed_id="bed")
+    except (KeyError, IndexError, ValueError) as exc:
+        raise ConfigError(f"{where}: screen_url may hold only {{bed_id}}, got {pattern!r} ({exc!r})") from None

@@ -1,0 +1,55 @@
+// The ward: one tile per bed, in the station's order (alarming beds first, then the offline ones).
+"use strict";
+
+function element(tag, className, text) {
+  const e = document.createElement(tag);
+  if (className) e.className = className;
+  if (text !== undefined) e.textContent = text;
+  return e;
+}
+
+function tile(bed) {
+  const div = element("article", "bed " + (!bed.online ? "offline" : bed.highest_priority || "quiet"));
+  div.dataset.bed = bed.bed_id;
+  const title = element("h2", null, bed.bed_id);
+  if (bed.screen_url) {
+    const a = element("a", null, "Open screen");
+    a.href = bed.screen_url; a.target = "_blank"; a.rel = "noopener";
+    title.appendChild(a);
+  }
+  div.appendChild(title);
+  if (!bed.online) {
+    const heard = bed.heard_s_ago === null ? "never heard" : `last heard ${Math.round(bed.heard_s_ago)} s ago`;
+    div.appendChild(element("p", "offline-note", `OFFLINE (${bed.status === "offline" ? "monitor stopped" : "silent"}, ${heard})`));
+  }
+  for (const a of bed.alarms) {
+    const text = `${(a.priority || "?").toUpperCase()}: ${a.message}` +
+                 (a.acknowledged_by ? ` (acknowledged by ${a.acknowledged_by})` : "");
+    const p = element("p", "alarm " + a.priority, text);
+    p.dataset.alarm = a.alarm_id;
+    div.appendChild(p);
+  }
+  const facts = element("p", "facts");
+  facts.append(`Peak ${bed.peak_mmhg === null || bed.peak_mmhg === undefined ? "-" : bed.peak_mmhg.toFixed(0)} mmHg · turn `);
+  const turn = element("span", bed.turn_due_in_s !== null && bed.turn_due_in_s < 0 ? "overdue" : null, clock(bed.turn_due_in_s));
+  facts.appendChild(turn);
+  div.appendChild(facts);
+  if (bed.regions.length) {
+    div.appendChild(element("p", "facts", bed.regions.map(r => `${r.zone || "region"} ${Math.round(100 * (r.dose || 0))} %`).join(" · ")));
+  }
+  return div;
+}
+
+function draw(ward) {
+  document.getElementById("lost").hidden = true;
+  document.getElementById("broker").hidden = ward.connected;
+  const c = ward.counts;
+  document.getElementById("counts").textContent =
+    `${c.beds} bed(s): ${c.alarming} with alarms, ${c.offline} offline`;
+  document.getElementById("beds").replaceChildren(...ward.beds.map(tile));
+}
+
+fetch("/api/ward").then(r => r.json()).then(draw);
+const source = new EventSource("/api/ward/stream");
+source.onmessage = event => draw(JSON.parse(event.data));
+source.onerror = () => { document.getElementById("lost").hidden = false; };
