@@ -8,17 +8,7 @@ failure is in the audit log.
 
 from __future__ import annotations
 
-from flask import (
-    Blueprint,
-    current_app,
-    flash,
-    g,
-    redirect,
-    render_template,
-    request,
-    session,
-    url_for,
-)
+from flask import Blueprint, current_app, flash, g, redirect, render_template, request, session, url_for
 
 from webui.users import AccountError
 
@@ -67,7 +57,8 @@ def login():
         limiter.succeeded(*keys)
         _log_in(user.name)
         target = request.args.get("next", "")
-        return redirect(target if target.startswith("/") and not target.startswith("//") else url_for(current_app.config["HOME"]))
+        safe = target.startswith("/") and not target.startswith("//")
+        return redirect(target if safe else url_for(current_app.config["HOME"]))
     return render_template("login.html", name="")
 
 
