@@ -28,18 +28,19 @@ def add_parsers(sub) -> None:
     p.add_argument("--threads", type=int, default=DEFAULT_THREADS,
                    help=f"server threads, one per open ward screen (default {DEFAULT_THREADS})")
     p.add_argument("--plain-http", action="store_true", help="session cookies without the Secure flag")
+    p.add_argument("--behind-proxy", action="store_true",
+                   help="trust X-Forwarded-For/-Proto from the TLS proxy on 127.0.0.1")
     p.set_defaults(run=_ward)
 
 
 def _ward(args) -> int:
-    from waitress import serve
-
     from appliance.cli_run import listen_address
     from appliance.errors import ConfigError
     from appliance.service.virtual_bed import default_data_dir
     from appliance.ward.config import load_ward_config
     from appliance.ward.station import WardStation
     from webui import create_ward_app
+    from webui.server import serve
 
     config = load_ward_config(args.config)
     host, port = listen_address(args.listen, "--listen")
@@ -56,8 +57,7 @@ def _ward(args) -> int:
         print(f"ward station: beds under {b.topic_prefix}/ on {b.host}:{b.port}{' (TLS)' if b.ca_file else ''}; "
               f"the screen on http://{host}:{port}/ (accounts in {data_dir})", flush=True)
         try:
-            serve(app, host=host, port=port, threads=args.threads, ident="appliance-ward",
-                  clear_untrusted_proxy_headers=True)
+            serve(app, host, port, threads=args.threads, ident="appliance-ward", behind_proxy=args.behind_proxy)
         except KeyboardInterrupt:
             pass
     return 0

@@ -100,7 +100,7 @@ def test_the_ward_station_has_no_account_no_devices_and_its_password_as_a_creden
     assert unit["LoadCredential"] == ["mqtt-password:/etc/appliance/ward-password"]
     command = unit["ExecStart"][0].split()
     assert command[1:] == ["ward", "--config", "/etc/appliance/ward.toml", "--data-dir", "/var/lib/appliance-ward",
-                           "--listen", "127.0.0.1:8090"]
+                           "--listen", "127.0.0.1:8090", "--behind-proxy"]
 
 
 def test_the_account_and_folders_are_made_by_sysusers_and_tmpfiles(tmp_path):

@@ -255,3 +255,41 @@ def test_a_nurse_acknowledges_an_alarm_of_the_running_monitor_and_sees_it_in_the
     assert client.get("/api/commands/1").get_json()["state"] == "done"
     assert ("nurse.jones", "acknowledged alarm") in [(e["user"], e["action"])
                                                      for e in app.extensions["users"].audit_log()]
+
+
+@pytest.mark.parametrize("behind_proxy", [True, False])
+def test_behind_the_proxy_the_limiter_counts_each_browser_not_the_proxy(tmp_path, behind_proxy):
+    """Five wrong passwords from one browser through the proxy: another browser can still log in (and without
+    trusting the proxy, as a check that the test can tell, it cannot)."""
+    import threading
+    import urllib.parse
+    import urllib.request
+
+    from waitress import create_server
+
+    from webui.server import server_options
+
+    app = create_app(tmp_path, secure_cookies=False)
+    app.extensions["users"].create("nurse.jones", PASSWORD, "nurse", by="admin")
+    server = create_server(app, **server_options("127.0.0.1", 0, threads=4, ident="test", behind_proxy=behind_proxy))
+    threading.Thread(target=server.run, daemon=True).start()
+    opener = urllib.request.build_opener(urllib.request.HTTPCookieProcessor())
+
+    def log_in_from(address, name, password):
+        base = f"http://127.0.0.1:{server.effective_port}"
+        page = opener.open(urllib.request.Request(base + "/login", headers={"X-Forwarded-For": address})).read()
+        csrf = re.search(rb'name="csrf_token" value="([^"]+)"', page).group(1).decode()
+        form = urllib.parse.urlencode({"name": name, "password": password, "csrf_token": csrf}).encode()
+        try:
+            return opener.open(urllib.request.Request(base + "/login", data=form,
+                                                      headers={"X-Forwarded-For": address})).status
+        except urllib.error.HTTPError as error:
+            return error.code
+    try:
+        assert [log_in_from("10.0.0.66", f"guess{n}", "wrong password!") for n in range(5)] == [401] * 5
+        assert log_in_from("10.0.0.12", "nurse.jones", PASSWORD) == (200 if behind_proxy else 429)
+    finally:
+        server.task_dispatcher.shutdown(timeout=5)         # the workers first, so none writes to a closed server
+        server.close()
+    if behind_proxy:
+        assert "from 10.0.0.12" in app.extensions["users"].audit_log()[0]["detail"]

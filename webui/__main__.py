@@ -14,10 +14,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from waitress import serve
-
 from appliance.service.virtual_bed import default_data_dir
 from webui import create_app
+from webui.server import serve
 
 DEFAULT_THREADS = 48        # 40 live views and requests beside them
 
@@ -31,12 +30,14 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", type=int, default=DEFAULT_THREADS,
                         help=f"worker threads, one per open live view (default {DEFAULT_THREADS})")
     parser.add_argument("--plain-http", action="store_true", help="session cookies without the Secure flag")
+    parser.add_argument("--behind-proxy", action="store_true",
+                        help="trust X-Forwarded-For/-Proto from the TLS proxy on 127.0.0.1 (as on the appliance)")
     args = parser.parse_args(argv)
     if not 1 <= args.threads <= 1000:
         parser.error(f"--threads must be 1-1000, got {args.threads}")
     app = create_app(args.data_dir or default_data_dir(), secure_cookies=not args.plain_http)
     print(f"serving the screen for {app.config['LIVE_PATH'].parent} on http://{args.host}:{args.port}/", flush=True)
-    serve(app, host=args.host, port=args.port, threads=args.threads, ident="appliance", clear_untrusted_proxy_headers=True)
+    serve(app, args.host, args.port, threads=args.threads, ident="appliance", behind_proxy=args.behind_proxy)
     return 0
 
 
