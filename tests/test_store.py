@@ -256,3 +256,22 @@ def test_a_long_command_reports_its_progress(tmp_path):
         assert store.command(command)["progress"] == 1.0
         assert [c["id"] for c in store.commands_since(0.0, kinds=["calibrate"])] == [command]
         assert store.commands_since(0.0, kinds=["acquire"]) == []
+
+
+def test_a_reader_leaves_the_files_alone_and_a_writer_checkpoints_on_close(tmp_path):
+    """The screen opens the store per request: reading must write nothing (no checkpoint of the monitor's WAL),
+    so a page view costs the SD card nothing."""
+    path = tmp_path / "appliance.db"
+    monitor = Store.open(path)
+    monitor.save_state("alarms", {"next_id": 5}, now_s=5.0)
+    wal = tmp_path / "appliance.db-wal"
+    before = (path.stat().st_mtime_ns, path.stat().st_size, wal.stat().st_size)
+    assert before[2] > 0                                        # the monitor's frame is still in the WAL
+    for _ in range(3):
+        with Store.open(path) as reader:
+            assert reader.load_state("alarms") == {"next_id": 5}
+    assert (path.stat().st_mtime_ns, path.stat().st_size, wal.stat().st_size) == before
+    with Store.open(path) as writer:
+        writer.save_state("alarms", {"next_id": 6}, now_s=6.0)
+    assert wal.stat().st_size == 0                              # a writer checkpoints and truncates on close
+    monitor.close()

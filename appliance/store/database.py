@@ -101,6 +101,7 @@ class Store:
         self.event_days = event_days
         self.max_bytes = max_bytes
         self._last_map_s = db.execute("SELECT max(time_s) FROM pressure_history").fetchone()[0]
+        self._wrote = False
 
     @classmethod
     def open(cls, path, *, history_interval_s: float = 60.0, history_days: float = 30.0, event_days: float = 365.0,
@@ -125,9 +126,12 @@ class Store:
             raise
 
     def close(self) -> None:
-        """Checkpoint the WAL into the file and close; later calls raise ``StoreClosed``."""
+        """Checkpoint the WAL into the file if this connection wrote, and close; later calls raise
+        ``StoreClosed``. A reader (the screen opens the store per request) leaves the WAL alone, so that
+        looking at a page writes nothing to the SD card."""
         if self._db is not None:
-            self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+            if self._wrote:
+                self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
             self._db.close()
             self._db = None
 
@@ -148,6 +152,7 @@ class Store:
         db = self._conn()
         db.execute(f"PRAGMA synchronous={synchronous}")
         db.execute("BEGIN IMMEDIATE")
+        self._wrote = True
         try:
             yield db
         except BaseException:
