@@ -23,7 +23,7 @@ def ward_view() -> dict:
     """The ward as the screen shows it: the broker connection, counts, and each bed in the station's order."""
     station, config = current_app.extensions["ward_station"], current_app.config["WARD"]
     now = time.time()
-    beds = [_bed(bed, now, config) for bed in station.beds()]
+    beds = [_bed(bed, now, config) for bed in station.beds(events=False)]
     return {"now": now, "connected": station.connected, "stale_after_s": station.stale_after_s,
             "counts": {"beds": len(beds), "offline": sum(not b["online"] for b in beds),
                        "alarming": sum(b["highest_priority"] is not None for b in beds)},

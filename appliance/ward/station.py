@@ -43,8 +43,10 @@ from appliance.ward.config import WardConfig
 
 log = logging.getLogger(__name__)
 
-STALE_MARGIN_S = 2.0
-"""Beyond three missed summaries, the time a late one may still be on its way."""
+STALE_MARGIN_S = 1.0
+"""Beyond three missed summaries, the time a late one may still be on its way. With 1 s summaries a hung bed
+shows offline 4 s after its last one, so within the least keep-alive a bed may set (5 s) even when it hung
+just after a summary and the screen looks a poll later."""
 
 EVENTS_KEPT = 50
 """Latest events kept per bed (for the screen, the latency record, and to replay over a summary)."""
@@ -173,12 +175,13 @@ class WardStation:
         """True once the station is connected and subscribed, False if that took more than ``timeout_s``."""
         return self._subscribed.wait(timeout_s)
 
-    def beds(self) -> list[dict]:
+    def beds(self, *, events: bool = True) -> list[dict]:
         """Every bed as a plain dict: high, then medium, then low alarms first, then the offline beds, then the
-        rest, each group by bed id."""
+        rest, each group by bed id. ``events=False`` leaves out each bed's latest events, the costly part to
+        copy, for a screen that polls."""
         now = time.time()
         with self._lock:
-            beds = [self._view(bed, now) for bed in self._beds.values()]
+            beds = [self._view(bed, now, events) for bed in self._beds.values()]
         return sorted(beds, key=lambda b: (_rank(b), b["bed_id"]))
 
     def online_flags(self) -> tuple[bool, ...]:
@@ -198,14 +201,15 @@ class WardStation:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _view(self, bed: BedState, now: float) -> dict:
+    def _view(self, bed: BedState, now: float, events: bool) -> dict:
         alarms = sorted(bed.open_alarms.values(),
                         key=lambda a: (-PRIORITIES.index(a["priority"]) if a["priority"] in PRIORITIES else 1,
                                        a["alarm_id"]))
         return {"bed_id": bed.bed_id, "online": bed.online(now, self.stale_after_s), "status": bed.status,
                 "last_heard_at": bed.last_heard_at, "summary": copy.deepcopy(bed.summary),
                 "summary_at": bed.summary_at, "alarms": copy.deepcopy(alarms),
-                "highest_priority": bed.highest_priority(), "events": copy.deepcopy(list(bed.events)),
+                "highest_priority": bed.highest_priority(),
+                "events": copy.deepcopy(list(bed.events)) if events else None,
                 "duplicates": bed.duplicates}
 
     # paho's network thread.
