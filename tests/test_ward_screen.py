@@ -147,3 +147,19 @@ def _answers(url):
             return True
     except OSError:
         return False
+
+
+def test_the_example_configuration_in_docs_is_valid(tmp_path):
+    """docs/ward.example.toml as the README's server installation uses it, with its secrets' paths made here."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "ward.example.toml").read_text()
+    for server_path, name in (("/run/credentials/appliance-ward.service/mqtt-password", "password"),
+                              ("/etc/appliance/ward-ca.crt", "ca.crt")):
+        assert server_path in text
+        (tmp_path / name).write_text("secret\n")
+        text = text.replace(server_path, str(tmp_path / name))
+    (tmp_path / "ward.toml").write_text(text)
+    config = load_ward_config(tmp_path / "ward.toml")
+    assert (config.broker.port, config.broker.username, config.client_id) == (8883, "ward3-station", "ward3-station")
+    assert config.screen_of("ward3-bed12") == "https://ward3-bed12.ward3.example/"
