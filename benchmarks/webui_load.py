@@ -26,7 +26,6 @@ import contextlib
 import json
 import os
 import shutil
-import socket
 import statistics
 import subprocess
 import sys
@@ -37,18 +36,12 @@ from pathlib import Path
 from appliance.cli_run import SCREEN_NICE  # the screen below the monitor's priority, as `run --screen` starts it
 
 sys.path.insert(0, str(Path(__file__).parent))
-from report import machine, table  # noqa: E402
+from report import cpu_seconds, free_port, listening, machine, percentile, table, wait_for  # noqa: E402
 
 HERE = Path(__file__).parent
 CLIENTS = 20
 PASSWORD = "load test password"
 APPLIANCE_CPU, CLIENT_CPU = {0}, {1}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def on_appliance_cpu(nice: int = 0):
@@ -74,8 +67,8 @@ def appliance(folder: Path, *, speed: float, interval_s: float, screen_nice: int
                                "--plain-http"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                               preexec_fn=on_appliance_cpu(screen_nice))
     try:
-        _wait(lambda: (data / "live.json").exists(), 300, "the monitor's first frame")
-        _wait(lambda: _listening(port), 30, "the screen")
+        wait_for(lambda: (data / "live.json").exists(), 300, "the monitor's first frame", poll_s=0.2)
+        wait_for(lambda: listening(port), 30, "the screen", poll_s=0.2)
         yield f"http://127.0.0.1:{port}", monitor, screen, data / "live.json"
     finally:
         for process in (screen, monitor):
@@ -86,19 +79,6 @@ def appliance(folder: Path, *, speed: float, interval_s: float, screen_nice: int
 def _mkdir(path: Path) -> Path:
     path.mkdir(parents=True, exist_ok=True)
     return path
-
-
-def _listening(port: int) -> bool:
-    with socket.socket() as s:
-        return s.connect_ex(("127.0.0.1", port)) == 0
-
-
-def _wait(condition, timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"no {what} within {timeout_s:.0f} s")
-        time.sleep(0.2)
 
 
 def browser():
@@ -177,16 +157,6 @@ def frame_rate(log) -> float:
 
 def periods(log) -> list[float]:
     return [b[1] - a[1] for a, b in zip(log, log[1:]) if b[0] == a[0] + 1]
-
-
-def cpu_seconds(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def percentile(values, q: float) -> float:
-    values = sorted(values)
-    return values[min(len(values) - 1, round(q * (len(values) - 1)))]
 
 
 def responsiveness(url: str, live_json: Path, clients, probe, monitor, screen, window_s: float = 60.0) -> dict:
