@@ -309,12 +309,12 @@ def test_the_ward_station_shows_every_bed_a_new_alarm_within_2_s_and_a_stopped_b
         browser.get(base + "/")
         fill(browser, "form", name="admin.ward3", password=PASSWORD, confirm=PASSWORD)
         assert browser.current_url.endswith("/ward")
-        wait_for(lambda: len(browser.find_elements(By.CSS_SELECTOR, "article.bed")) == 12, 15, "twelve beds")
-        tiles = browser.find_elements(By.CSS_SELECTOR, "article.bed")
-        assert [t.get_attribute("data-bed") for t in tiles[:2]] == ["ward3-bed04", "ward3-bed09"]   # high first
-        assert "high" in tiles[0].get_attribute("class") and "HIGH: Sacrum" in tiles[0].text
-        link = tiles[0].find_element(By.LINK_TEXT, "Open screen")
-        assert link.get_attribute("href") == "https://ward3-bed04.ward3.example/"
+        wait_for(lambda: len(tiles(browser)) == 12 and "HIGH" in tiles(browser)[0]["text"], 15,
+                 "twelve beds, the high alarm's first")
+        shown = tiles(browser)                              # read in one go: the page redraws on every update
+        assert [t["bed"] for t in shown[:2]] == ["ward3-bed04", "ward3-bed09"]                   # high first
+        assert "high" in shown[0]["class"] and "HIGH: Sacrum" in shown[0]["text"]
+        assert shown[0]["link"] == "https://ward3-bed04.ward3.example/"
 
         raised = time.monotonic()
         notifiers["ward3-bed11"].notify(alarm(alarm_id=7, time_s=time.time() + 60))
@@ -324,10 +324,10 @@ def test_the_ward_station_shows_every_bed_a_new_alarm_within_2_s_and_a_stopped_b
 
         stopped = time.monotonic()
         notifiers.pop("ward3-bed12").close(timeout_s=2.0)                   # its monitor stopped
-        wait_for(lambda: "OFFLINE" in text(browser, 'article[data-bed="ward3-bed12"]'), 5, "bed 12 offline")
+        wait_for(lambda: any(t["bed"] == "ward3-bed12" and "OFFLINE" in t["text"] for t in tiles(browser)), 5,
+                 "bed 12 offline")
         assert time.monotonic() - stopped < 5.0
-        assert "offline" in browser.find_element(By.CSS_SELECTOR, 'article[data-bed="ward3-bed12"]') \
-            .get_attribute("class")
+        assert "offline" in next(t["class"] for t in tiles(browser) if t["bed"] == "ward3-bed12")
         assert "12 bed(s): 3 with alarms, 1 offline" in text(browser, "#counts")
         assert png_size(screenshot(browser, "ward", 1920, 1080)) == (1920, 1080)
     finally:
@@ -335,3 +335,10 @@ def test_the_ward_station_shows_every_bed_a_new_alarm_within_2_s_and_a_stopped_b
         publisher.join(timeout=5)
         station.terminate()
         station.wait(timeout=15)
+
+
+def tiles(driver) -> list[dict]:
+    """The ward page's tiles, in order, read in one script so that no redraw falls between two reads."""
+    return driver.execute_script(
+        "return Array.from(document.querySelectorAll('article.bed')).map(t => ({bed: t.dataset.bed, "
+        "class: t.className, text: t.innerText, link: (t.querySelector('h2 a') || {}).href || null}));")

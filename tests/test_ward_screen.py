@@ -36,7 +36,9 @@ def test_the_ward_shows_every_bed_alarming_first_with_its_screen_link(tmp_path, 
     quiet, alarming = beds("bed-01"), beds("bed-02")
     quiet.summarise(summary("bed-01"))
     alarming.summarise(summary("bed-02", alarms=[(3, "medium")]))
-    assert wait_until(lambda: ward(nurse)["counts"]["beds"] == 2)
+    # A bed's retained "online" can come before its first summary: wait for both beds' summaries.
+    assert wait_until(lambda: all(b["peak_mmhg"] is not None for b in ward(nurse)["beds"][:2])
+                      and len(ward(nurse)["beds"]) == 2)
     view = ward(nurse)
     assert view["connected"] and view["counts"] == {"beds": 2, "offline": 0, "alarming": 1}
     first, second = view["beds"]
