@@ -153,12 +153,10 @@ def broker():
 @pytest.fixture
 def station(broker):
     """A ward station subscribed to ``broker``."""
-    from appliance.ward.station import WardStation
+    from mqtt_broker import subscribed_station
 
-    s = WardStation("127.0.0.1", broker.port, client_id="test-station", keepalive_s=5)
-    assert s.wait_subscribed(10)
-    yield s
-    s.close()
+    with subscribed_station(broker.port, client_id="test-station", keepalive_s=5) as s:
+        yield s
 
 
 @pytest.fixture

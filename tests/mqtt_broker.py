@@ -4,6 +4,7 @@ No skip when Mosquitto is missing: CI installs it (.ci/run), and a test of the
 alarm path that silently does not run would hide a broken alarm path.
 """
 
+import contextlib
 import getpass
 import os
 import shutil
@@ -59,3 +60,13 @@ class Broker:
         self.process.terminate()
         self.process.wait(5)
         self.process = None
+
+
+@contextlib.contextmanager
+def subscribed_station(port: int, **options):
+    """A ward station on the broker at ``port``, subscribed before it is handed over, closed after."""
+    from appliance.ward.station import WardStation
+
+    with WardStation("127.0.0.1", port, **options) as station:
+        assert station.wait_subscribed(10), "the ward station did not subscribe within 10 s"
+        yield station

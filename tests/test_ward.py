@@ -11,7 +11,7 @@ import time
 
 import paho.mqtt.client as mqtt
 import pytest
-from mqtt_broker import free_port, wait_until
+from mqtt_broker import free_port, subscribed_station, wait_until
 from ward_payloads import alarm, summary
 
 from appliance.alerts.notifiers import MqttNotifier
@@ -165,10 +165,8 @@ def offline_after(stations, bed_id, timeout_s):
 @pytest.fixture
 def patient_station(broker):
     """A station that never calls a bed stale, so offline comes only from the status and the last will."""
-    s = WardStation("127.0.0.1", broker.port, client_id="patient-station", stale_after_s=3600)
-    assert s.wait_subscribed(10)
-    yield s
-    s.close()
+    with subscribed_station(broker.port, client_id="patient-station", stale_after_s=3600) as s:
+        yield s
 
 
 def test_a_bed_gone_silent_shows_offline_within_1_5_keepalives_and_a_second(broker, patient_station):
