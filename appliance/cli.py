@@ -41,10 +41,10 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("protocol", help="print a measurement protocol as CSV")
     p.add_argument("--layout", required=True, help="layout name or .toml file")
     p.add_argument("--kind", default="default",
-                   choices=["default", "adjacent", "opposite", "skip", "distributed", "local"])
+                   choices=["default", "adjacent", "opposite", "skip", "distributed", "local", "rows"])
     p.add_argument("--skip", type=int, default=0, help="electrodes skipped between a drive pair (--kind skip)")
     p.add_argument("--reach", type=float, default=None,
-                   help="electrode spacings a reading may lie from its drive pair (--kind local)")
+                   help="electrode spacings a reading may lie from its drive pair (--kind local or rows)")
     p.set_defaults(run=_protocol)
 
     p = sub.add_parser("simulate", help="simulate one frame of readings and print it as CSV")

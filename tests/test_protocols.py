@@ -68,6 +68,19 @@ def test_local_protocol_limits_reach_and_keeps_large_mats_practical():
     assert len(bed) < full_bed_estimate / 8
 
 
+def test_rows_protocol_measures_only_along_the_rows():
+    rows = protocol_for(get_layout("grid-4x8@100x200"), "rows", reach=2)
+    local = protocol_for(get_layout("grid-4x8@100x200"), "local", reach=2)
+    a, b, c, d = (rows.readings - 1).T
+    assert np.all(d - c == 1) and np.all(c // 8 == d // 8), "every measuring pair lies along a row"
+    assert np.array_equal(rows.drives, local.drives), "drives along rows and columns, as before"
+    kept = {tuple(r) for r in local.readings.tolist() if (r[3] - r[2] == 1)}
+    assert {tuple(r) for r in rows.readings.tolist()} == kept
+    assert rows.name == "local-2-rows"
+    with pytest.raises(ProtocolInvalid, match="measuring pairs must be one of all, rows"):
+        distributed_protocol(4, 4, measuring="diagonal")
+
+
 def test_default_protocols_per_layout():
     assert len(default_protocol(get_layout("circular-16"))) == 208
     assert len(default_protocol(get_layout("square-16"))) == 208

@@ -156,16 +156,21 @@ def grid_pairs(rows: int, cols: int) -> np.ndarray:
     return np.vstack([horizontal, vertical])
 
 
-def distributed_protocol(rows: int, cols: int, reach: float | None = None) -> Protocol:
+def distributed_protocol(rows: int, cols: int, reach: float | None = None, *,
+                         measuring: str = "all") -> Protocol:
     """The thesis's distributed protocol for a grid (sensor C), optionally limited in reach.
 
     Every horizontally or vertically adjacent pair drives in turn; for each, every
     adjacent pair sharing no electrode with it is read (448 readings on 4 x 4).
     With ``reach`` only pairs whose midpoint lies within ``reach`` electrode
     spacings of the drive pair's midpoint (in both directions) are read, so that a
-    bed-size mat stays practical. The rule is symmetric, so every reading keeps
-    its reciprocal.
+    bed-size mat stays practical. ``measuring="rows"`` reads horizontally adjacent
+    pairs only: a front end with a fixed measuring channel on each pair along the
+    rows has no others. With every pair measured the rule is symmetric, so every
+    reading keeps its reciprocal (with ``rows``, the readings driven along a row).
     """
+    if measuring not in MEASURING:
+        raise ProtocolInvalid(f"measuring pairs must be one of {', '.join(MEASURING)}, got {measuring!r}")
     pairs = grid_pairs(rows, cols)
     if len(pairs) < 2:
         raise ProtocolInvalid(f"a {rows} x {cols} grid has too few adjacent pairs for a protocol")
@@ -173,16 +178,24 @@ def distributed_protocol(rows: int, cols: int, reach: float | None = None) -> Pr
         raise ProtocolInvalid(f"reach must be positive, got {reach}")
     r, c = np.divmod(pairs - 1, cols)
     mid = np.column_stack([r.mean(axis=1), c.mean(axis=1)])
+    measured = np.arange(len(pairs)) if measuring == "all" else np.flatnonzero(r[:, 0] == r[:, 1])
     out = []
     for i, (a, b) in enumerate(pairs):
-        for j, (p, q) in enumerate(pairs):
+        for j in measured:
+            p, q = pairs[j]
             if {a, b} & {p, q}:
                 continue
             if reach is not None and np.max(np.abs(mid[i] - mid[j])) > reach + 1e-9:
                 continue
             out.append((a, b, p, q))
-    name = "distributed" if reach is None else f"local-{reach:g}"
+    if not out:
+        raise ProtocolInvalid(f"a {rows} x {cols} grid has no measuring pair within reach {reach} of a drive")
+    name = ("distributed" if reach is None else f"local-{reach:g}") + ("" if measuring == "all" else "-rows")
     return Protocol(np.array(out), rows * cols, name)
+
+
+MEASURING = ("all", "rows")
+"""Which adjacent pairs a grid protocol measures on: all of them, or those along the rows."""
 
 
 LOCAL_REACH_DEFAULT = 2.0
@@ -199,7 +212,8 @@ def default_protocol(layout: Layout) -> Protocol:
 
 
 def protocol_for(layout: Layout, kind: str | None = None, *, skip: int = 0, reach: float | None = None) -> Protocol:
-    """A named protocol kind for ``layout``: default, adjacent, opposite, skip, distributed or local."""
+    """A named protocol kind for ``layout``: default, adjacent, opposite, skip, distributed, local or rows
+    (local, measured on the pairs along the rows only)."""
     n = layout.n_electrodes
     if kind in (None, "default"):
         return default_protocol(layout)
@@ -209,14 +223,15 @@ def protocol_for(layout: Layout, kind: str | None = None, *, skip: int = 0, reac
         return opposite_protocol(n)
     if kind == "skip":
         return skip_protocol(n, skip, 0)
-    if kind in ("distributed", "local"):
+    if kind in ("distributed", "local", "rows"):
         if layout.grid_shape is None:
             raise ProtocolInvalid(f"the {kind} protocol needs a grid layout; {layout.name!r} has its "
                                   f"electrodes around the edge")
-        reach = (reach if reach is not None else LOCAL_REACH_DEFAULT) if kind == "local" else None
-        return distributed_protocol(*layout.grid_shape, reach=reach)
+        reach = (reach if reach is not None else LOCAL_REACH_DEFAULT) if kind != "distributed" else None
+        return distributed_protocol(*layout.grid_shape, reach=reach,
+                                    measuring="rows" if kind == "rows" else "all")
     raise ProtocolInvalid(f"unknown protocol kind {kind!r}: use default, adjacent, opposite, skip, "
-                          f"distributed or local")
+                          f"distributed, local or rows")
 
 
 # ---------------------------------------------------------------------------
