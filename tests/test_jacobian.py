@@ -5,7 +5,7 @@ import pytest
 
 from appliance.core.fem import build_fem_model
 from appliance.core.forward import simulate
-from appliance.core.jacobian import jacobian
+from appliance.core.jacobian import jacobian, pixel_jacobian
 from appliance.core.layouts import get_layout
 from appliance.core.protocols import default_protocol
 
@@ -52,3 +52,27 @@ def test_uniform_scaling_sums_to_minus_the_readings():
     j = jacobian(fem, np.ones(fem.n_elements), protocol, relative=True)
     v = simulate(fem, np.ones(fem.n_elements), protocol)
     assert np.abs(j.sum(axis=1) + v).max() < 1e-6 * np.abs(v).max()
+
+
+@pytest.mark.parametrize("kind", ["fem", "network"])
+def test_the_pixel_jacobian_is_the_element_jacobian_summed_onto_pixels(models, kind, rng):
+    from appliance.core.pixels import element_pixel_map, pixel_grid
+
+    layout = get_layout("grid-4x4")
+    model = models["grid-4x4", kind]
+    protocol = default_protocol(layout)
+    sigma = rng.uniform(0.3, 3.0, model.n_elements)
+    mapping = element_pixel_map(model, pixel_grid(layout, 5, 7)) if kind == "fem" else \
+        element_pixel_map(model, pixel_grid(layout))
+    expected = jacobian(model, sigma, protocol, relative=True) @ mapping
+    got = pixel_jacobian(model, sigma, protocol, mapping, relative=True)
+    assert np.abs(got - expected).max() <= 1e-10 * np.abs(expected).max()
+
+
+def test_the_pixel_jacobian_refuses_a_mapping_of_another_model(models):
+    import scipy.sparse as sp
+
+    model = models["grid-4x4", "fem"]
+    with pytest.raises(ValueError, match="one row per element"):
+        pixel_jacobian(model, np.ones(model.n_elements), default_protocol(get_layout("grid-4x4")),
+                       sp.identity(model.n_elements + 1))

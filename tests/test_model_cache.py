@@ -64,3 +64,18 @@ def test_cache_dir_follows_the_environment(monkeypatch, tmp_path):
     monkeypatch.delenv("APPLIANCE_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "x"))
     assert default_cache_dir() == tmp_path / "x" / "appliance"
+
+
+def test_a_large_mat_model_is_saved_and_loaded_in_its_factored_form(tmp_path, monkeypatch):
+    import appliance.core.reconstruct as reconstruct
+
+    monkeypatch.setattr(reconstruct, "DENSE_LIMIT", 0)
+    layout = get_layout("grid-4x4")
+    setup = ModelSetup(layout, default_protocol(layout), density=0.5)
+    built, loaded = cached_model(setup, tmp_path)
+    again, loaded_again = cached_model(setup, tmp_path)
+    assert not loaded and loaded_again
+    assert built.reconstructor.matrix is None and again.reconstructor.matrix is None
+    frame = np.random.default_rng(2).normal(size=len(setup.protocol))
+    reference = built.reconstructor.linear.reference
+    assert np.allclose(again.reconstructor.pixels(frame, reference), built.reconstructor.pixels(frame, reference))

@@ -1,6 +1,5 @@
-"""Reconstruction: per-frame cost, accuracy on grid-4x4, stability, broken electrodes, bad input."""
-
-import time
+"""Reconstruction: accuracy on grid-4x4, stability, broken electrodes, bad input, the factored form
+of large mats (per-frame cost is measured by benchmarks/reconstruction.py)."""
 
 import numpy as np
 import pytest
@@ -18,7 +17,6 @@ from appliance.core.reconstruct import (
 from appliance.core.regularisation import NoiseModel
 from appliance.errors import ConfigError, ReconstructionError
 
-from conftest import median_seconds
 
 LAYOUT = get_layout("grid-4x4")
 PROTOCOL = default_protocol(LAYOUT)
@@ -53,24 +51,6 @@ def centroid(image, grid):
     value = -np.nan_to_num(image.ravel())
     weight = np.where(value >= 0.25 * value.max(), value, 0.0)
     return weight @ grid.centres_mm / weight.sum()
-
-
-def test_frame_costs_about_one_matrix_vector_product(product, truth):
-    r = product.reconstructor
-    v, ref = load_frame(truth, [(40, 60)]), truth[1]
-
-    bare = median_seconds(lambda: r.matrix @ v, 2000)
-    ours = median_seconds(lambda: r.pixels(v, ref), 2000)
-    whole = median_seconds(lambda: product.reconstruct(v, ref, iterate="never"), 2000)
-    print(f"bare product {bare * 1e6:.1f} us, reconstruction {ours * 1e6:.1f} us, whole path {whole * 1e6:.1f} us")
-    assert ours <= 2 * bare
-    assert whole < 1e-3
-
-
-def test_setup_of_the_default_model_takes_under_a_second():
-    start = time.perf_counter()
-    build_model(ModelSetup(LAYOUT, PROTOCOL))
-    assert time.perf_counter() - start < 1.0
 
 
 def test_pressed_region_is_negative_where_it_was_pressed(product, truth):
@@ -163,12 +143,10 @@ def test_reference_readings_at_or_near_zero_do_not_blow_up_the_image(product, tr
 
 def test_any_one_electrode_removed(product, truth):
     rng = np.random.default_rng(15)
-    errors, updates = [], []
+    errors = []
     for electrode in range(1, 17):
         drop = readings_using(PROTOCOL, [electrode])
-        start = time.perf_counter()
         r = without_readings(product.reconstructor, drop)
-        updates.append(time.perf_counter() - start)
         assert not r.usable[drop].any() and np.all(r.matrix[:, drop] == 0)
         for _ in range(4):
             x, y = rng.uniform(12, 88, 2)
@@ -177,10 +155,7 @@ def test_any_one_electrode_removed(product, truth):
             image, info = product.reconstruct(v, truth[1])
             assert info["usable_readings"] == int((~drop).sum())
             errors.append(np.linalg.norm(centroid(image, r.grid) - (x, y)))
-    print(f"one electrode removed: median centroid error {np.median(errors):.2f} mm, "
-          f"matrix update median {np.median(updates) * 1e3:.1f} ms")
     assert np.median(errors) <= 3.0
-    assert np.median(updates) < 0.050
 
 
 def test_too_few_readings_is_refused(product, truth):
@@ -202,3 +177,26 @@ def test_bad_options_are_refused():
         ReconstructionOptions("sart")
     with pytest.raises(ConfigError, match="unknown lambda rule"):
         ReconstructionOptions(lambda_rule="guess")
+
+
+@pytest.mark.parametrize("algorithm,rule", [("gn-laplace", "expected-error"), ("greit", "expected-error"),
+                                            ("gn-tikhonov", "noise-figure")])
+def test_the_factored_form_of_a_large_mat_images_as_the_matrix_does(product, truth, algorithm, rule, monkeypatch):
+    import appliance.core.reconstruct as reconstruct
+
+    linear = product.reconstructor.linear
+    options = ReconstructionOptions(algorithm=algorithm, noise=NoiseModel(1e-2, 1e-3), lambda_rule=rule)
+    chosen = build_reconstructor(linear, options).lam
+    dense = build_reconstructor(linear, options, lam=1e-2)       # well conditioned, to compare to rounding
+    monkeypatch.setattr(reconstruct, "DENSE_LIMIT", 0)
+    assert build_reconstructor(linear, options).lam == pytest.approx(chosen, rel=1e-6)
+    factored = build_reconstructor(linear, options, lam=1e-2)
+    assert dense.normal_form is None and factored.matrix is None
+    assert factored.achieved_noise_figure == pytest.approx(dense.achieved_noise_figure, rel=1e-6)
+    v = load_frame(truth, [(30, 70)], np.random.default_rng(3))
+    assert np.allclose(factored.pixels(v, truth[1]), dense.pixels(v, truth[1]), rtol=1e-7, atol=1e-10)
+    drop = readings_using(PROTOCOL, [6])
+    v[drop] = np.nan
+    dense, factored = without_readings(dense, drop), without_readings(factored, drop)
+    assert factored.achieved_noise_figure == pytest.approx(dense.achieved_noise_figure, rel=1e-6)
+    assert np.allclose(factored.pixels(v, truth[1]), dense.pixels(v, truth[1]), rtol=1e-7, atol=1e-10)

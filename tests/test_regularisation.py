@@ -84,7 +84,7 @@ def test_spectral_expected_error_equals_the_direct_one(kind):
     areas = rng.uniform(0.5, 1.5, 16)
     for left in (None, blur):
         desired = targets if left is None else left @ targets
-        spectrum = ExpectedErrorSpectrum(normal, prior, jw, std, targets, desired, areas, left)
+        spectrum = ExpectedErrorSpectrum(normal, prior, targets, desired, areas, left)
         for lam in (1e-8, 1e-3, 10.0):
             r = np.linalg.solve(normal + lam * prior, jw)
             r = r if left is None else left @ r

@@ -38,12 +38,13 @@ from appliance.core.mesh import Mesh, mesh_layout
 from appliance.core.pixels import PixelGrid, pixel_grid
 from appliance.core.protocols import Protocol
 from appliance.core.reconstruct import (
-    LinearModel, ReconstructionOptions, Reconstructor, build_reconstructor, linear_model, without_readings,
+    LinearModel, NormalForm, ReconstructionOptions, Reconstructor, build_reconstructor, linear_model,
+    without_readings,
 )
 from appliance.errors import ReconstructionError
 from appliance.files import write_atomic
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 LINEAR_LIMIT = 0.05
 """Below this largest relative change the one-step image is taken as it is, without the
@@ -187,10 +188,17 @@ def save_model(model: ReconstructionModel, path: Path) -> None:
         "nodes": model.mesh.nodes, "triangles": model.mesh.triangles, "contact": model.mesh.contact,
         "inside": linear.grid.inside, "jacobian": linear.jacobian, "reference": linear.reference,
         "areas": linear.areas_mm2, "map_data": linear.mapping.data, "map_indices": linear.mapping.indices,
-        "map_indptr": linear.mapping.indptr, "matrix": r.matrix, "usable": r.usable,
+        "map_indptr": linear.mapping.indptr, "usable": r.usable,
         "scalars": np.array([r.lam, r.achieved_noise_figure, linear.grid.width_mm, linear.grid.height_mm]),
         "key": np.array(model.setup.key()),
     }
+    if r.matrix is not None:
+        arrays["matrix"] = r.matrix
+    else:
+        form = r.normal_form
+        arrays.update(normal=form.normal, prior=form.prior, weights=form.weights)
+        if form.left is not None:
+            arrays["left"] = form.left
     if r.sensitivity is not None:
         arrays["sensitivity"] = r.sensitivity
     path = Path(path)
@@ -218,8 +226,14 @@ def load_model(path: Path, setup: ModelSetup) -> ReconstructionModel:
                                 shape=(len(f["triangles"]), grid.n_inside))
         linear = LinearModel(setup.protocol, grid, f["jacobian"], f["reference"], f["areas"], mapping)
         sensitivity = f["sensitivity"] if "sensitivity" in f.files else None
-        reconstructor = Reconstructor(linear, setup.options, f["matrix"], f["usable"], float(lam), float(figure),
-                                      sensitivity)
+        if "matrix" in f.files:
+            reconstructor = Reconstructor(linear, setup.options, f["matrix"], f["usable"], float(lam),
+                                          float(figure), sensitivity)
+        else:
+            form = NormalForm(f["normal"], f["prior"], f["weights"], f["left"] if "left" in f.files else None,
+                              float(lam))
+            reconstructor = Reconstructor(linear, setup.options, None, f["usable"], float(lam), float(figure),
+                                          None, form)
         mesh = Mesh(f["nodes"], f["triangles"], f["contact"])
     return ReconstructionModel(setup, mesh, reconstructor)
 

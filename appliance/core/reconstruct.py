@@ -51,7 +51,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from appliance.core.forward import ForwardModel, solve_electrodes
-from appliance.core.jacobian import jacobian
+from appliance.core.jacobian import pixel_jacobian
 from appliance.core.pixels import PixelGrid, element_pixel_map, pixel_areas_mm2
 from appliance.core.protocols import Protocol
 from appliance.core.regularisation import (
@@ -94,7 +94,7 @@ def linear_model(model: ForwardModel, protocol: Protocol, grid: PixelGrid) -> Li
     sigma = np.ones(model.n_elements)
     fields = solve_electrodes(model, sigma)
     mapping = element_pixel_map(model, grid)
-    j = np.asarray((mapping.T @ jacobian(model, sigma, protocol, fields, relative=True).T).T)
+    j = pixel_jacobian(model, sigma, protocol, mapping, fields, relative=True)
     return LinearModel(protocol, grid, j, fields.readings(protocol), pixel_areas_mm2(model, mapping), mapping)
 
 
@@ -140,21 +140,80 @@ class ReconstructionOptions:
             raise ConfigError(f"noise figure and target size must be positive, contrast non-zero: {self}")
 
 
+DENSE_LIMIT = 6_000_000
+"""Pixels x readings beyond which R is kept as its factors rather than as one matrix. A bed
+mat at 30 mm pixels has an R of 1,920 x 14,786 (227 MB), and each set of missing readings
+would cost another; its factors are two pixel-square matrices and J, which the model keeps
+anyway, and a new set of missing readings costs one Cholesky factorisation."""
+
+
+@dataclass(frozen=True)
+class NormalForm:
+    """R = L (N + lambda P)^-1 J^T W kept as its parts, applied to a frame's changes directly.
+
+    ``normal`` is J^T W J over the usable readings, ``prior`` P, ``weights`` W (zero on the
+    unusable readings), ``left`` GREIT's desired-image blur L (None for Gauss-Newton).
+    A frame costs one product with J^T and two triangular solves: about what R itself costs.
+    """
+
+    normal: np.ndarray
+    prior: np.ndarray
+    weights: np.ndarray
+    left: np.ndarray | None
+    lam: float
+
+    @cached_property
+    def solve(self):
+        """x -> (N + lambda P)^-1 x, factorised once."""
+        return spd_solver(self.normal + self.lam * self.prior)
+
+    def apply(self, jacobian: np.ndarray, delta: np.ndarray) -> np.ndarray:
+        """The image of reading changes ``delta`` (zero on unusable readings), before scaling."""
+        x = self.solve(jacobian.T @ (self.weights * delta))
+        return x if self.left is None else self.left @ x
+
+    def noise_figure(self, jacobian: np.ndarray, noise_std: np.ndarray, target: np.ndarray,
+                     areas: np.ndarray) -> float:
+        """As :func:`appliance.core.regularisation.noise_figure`, without forming R: with W = S^-1
+        the image noise R S R^T is L A^-1 N A^-1 L^T (A = N + lambda P), pixel-sized."""
+        signal = np.where(noise_std > 0, jacobian @ target, 0.0)          # unusable readings: std 0
+        snr_in = np.linalg.norm(signal) / np.sqrt(np.sum(noise_std**2))
+        a_inv_n = self.solve(self.normal)
+        image = a_inv_n @ target
+        covariance = self.solve(a_inv_n.T)
+        if self.left is not None:
+            image, covariance = self.left @ image, self.left @ covariance @ self.left.T
+        snr_out = np.sqrt(np.sum(areas * image**2)) / np.sqrt(np.sum(areas * np.diag(covariance)))
+        return float(snr_in / snr_out)
+
+    def without(self, jacobian: np.ndarray, drop: np.ndarray) -> "NormalForm":
+        """The same with the readings ``drop`` (bool) removed: their part taken out of N, and the
+        prior scaled to the new N as :func:`appliance.core.regularisation.prior_matrix` scales it."""
+        drop = np.asarray(drop, dtype=bool) & (self.weights > 0)
+        part = jacobian[drop]
+        normal = self.normal - (part.T * self.weights[drop]) @ part
+        prior = self.prior * (np.trace(normal) / np.trace(self.normal))
+        return NormalForm(normal, prior, np.where(drop, 0.0, self.weights), self.left, self.lam)
+
+
 @dataclass(frozen=True)
 class Reconstructor:
     """A precomputed reconstruction: ``matrix`` (n_pixels, n_readings) and what made it.
 
     ``usable`` marks the readings it uses (the others have zero columns); ``lam``
-    and ``achieved_noise_figure`` record the regularisation.
+    and ``achieved_noise_figure`` record the regularisation. On a mat whose R would be
+    too large (beyond ``DENSE_LIMIT`` entries) ``matrix`` is None and R is kept as its
+    factors, ``normal_form``.
     """
 
     linear: LinearModel
     options: ReconstructionOptions
-    matrix: np.ndarray
+    matrix: np.ndarray | None
     usable: np.ndarray
     lam: float
     achieved_noise_figure: float
     sensitivity: np.ndarray | None = None
+    normal_form: NormalForm | None = None
 
     @property
     def grid(self) -> PixelGrid:
@@ -179,7 +238,9 @@ class Reconstructor:
         if not np.isfinite(delta).all():
             raise ReconstructionError("frame or reference has a missing or non-finite reading that the "
                                       "reconstructor still uses; drop it with without_readings first")
-        return (self.matrix @ delta) / self.scale(reference)
+        image = self.matrix @ delta if self.matrix is not None else \
+            self.normal_form.apply(self.linear.jacobian, delta)
+        return image / self.scale(reference)
 
     @cached_property
     def _all_usable(self) -> bool:
@@ -242,29 +303,68 @@ def build_reconstructor(linear: LinearModel, options: ReconstructionOptions | No
     if usable.sum() < 2:
         raise ReconstructionError(f"only {int(usable.sum())} of {n} readings are usable: nothing can be "
                                   f"reconstructed")
-    j = np.where(usable[:, None], linear.jacobian, 0.0)
     std = options.noise.std(linear.reference)
     weights = np.where(usable, 1.0 / std**2, 0.0)
     used_std = np.where(usable, std, 0.0)
+    if linear.jacobian.size > DENSE_LIMIT and options.algorithm != "backprojection":
+        return _normal_form_reconstructor(linear, options, usable, weights, used_std, lam)
+    j = np.where(usable[:, None], linear.jacobian, 0.0)
     build, parts = _builder(options, linear, j, weights, usable, sensitivity)
     figure = lambda r: noise_figure(r, j, used_std, _centre_target(linear.grid), linear.areas_mm2)   # noqa: E731
     if lam is None and options.algorithm != "backprojection":
         if options.lambda_rule == "noise-figure":
             lam, _ = choose_lambda(build, figure, options.noise_figure)
         else:
-            normal, prior, jw, left = parts
-            targets = _training_targets(linear.grid, options)
-            desired = targets if left is None else left @ targets
-            lam = minimise_lambda(ExpectedErrorSpectrum(normal, prior, jw, used_std, targets, desired,
-                                                        linear.areas_mm2, left))
+            normal, prior, _, left = parts
+            lam = _expected_error_lambda(linear, options, normal, prior, left)
     lam = 0.0 if lam is None else lam
     matrix = build(lam)
     return Reconstructor(linear, options, matrix, usable, lam, figure(matrix), sensitivity)
 
 
+def _expected_error_lambda(linear, options, normal, prior, left) -> float:
+    targets = _training_targets(linear.grid, options)
+    desired = targets if left is None else left @ targets
+    return minimise_lambda(ExpectedErrorSpectrum(normal, prior, targets, desired, linear.areas_mm2, left))
+
+
+def _normal_form_reconstructor(linear, options, usable, weights, used_std, lam) -> Reconstructor:
+    """A Gauss-Newton or GREIT reconstructor kept as its factors (see :class:`NormalForm`)."""
+    j = linear.jacobian
+    normal = np.zeros((j.shape[1], j.shape[1]))
+    for start in range(0, len(j), NORMAL_BLOCK):              # J^T W J without a copy of J
+        part = j[start:start + NORMAL_BLOCK]
+        normal += (part.T * weights[start:start + NORMAL_BLOCK]) @ part
+    algorithm = options.algorithm
+    prior = prior_matrix(algorithm[3:] if algorithm.startswith("gn-") else "tikhonov", normal, linear.grid)
+    left = _desired_image(linear.grid, linear.areas_mm2, options.desired_blur_px) if algorithm == "greit" else None
+    target = _centre_target(linear.grid)
+    build = lambda value: NormalForm(normal, prior, weights, left, value)                  # noqa: E731
+    figure = lambda form: form.noise_figure(j, used_std, target, linear.areas_mm2)         # noqa: E731
+    if lam is None:
+        if options.lambda_rule == "noise-figure":
+            lam, _ = choose_lambda(build, figure, options.noise_figure)
+        else:
+            lam = _expected_error_lambda(linear, options, normal, prior, left)
+    form = build(lam)
+    return Reconstructor(linear, options, None, usable, lam, figure(form), None, form)
+
+
+NORMAL_BLOCK = 2048
+"""Readings per block when forming J^T W J."""
+
+
 def without_readings(r: Reconstructor, drop: np.ndarray) -> Reconstructor:
     """``r`` rebuilt without the readings marked in ``drop`` (bool, n_readings), same lambda."""
     usable = r.usable & ~np.asarray(drop, dtype=bool)
+    if r.normal_form is not None:
+        if usable.sum() < 2:
+            raise ReconstructionError(f"only {int(usable.sum())} of {len(usable)} readings are usable: "
+                                      f"nothing can be reconstructed")
+        form = r.normal_form.without(r.linear.jacobian, ~usable)
+        std = np.where(usable, r.options.noise.std(r.linear.reference), 0.0)
+        figure = form.noise_figure(r.linear.jacobian, std, _centre_target(r.grid), r.linear.areas_mm2)
+        return Reconstructor(r.linear, r.options, None, usable, r.lam, figure, None, form)
     return build_reconstructor(r.linear, r.options, usable, r.lam, r.sensitivity)
 
 
@@ -291,12 +391,19 @@ def _builder(options, linear, j, weights, usable, sensitivity):
 
 def solve_spd(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Solve a x = b for a symmetric positive (semi-)definite ``a``."""
+    return spd_solver(a)(b)
+
+
+def spd_solver(a: np.ndarray):
+    """b -> a^-1 b for a symmetric positive (semi-)definite ``a``, factorised once."""
     try:
-        return sla.cho_solve(sla.cho_factor(a), b)
+        factor = sla.cho_factor(a)
     except np.linalg.LinAlgError:
         # Laplace's prior is singular on constants; a tiny lambda with few readings can leave
         # the sum only semi-definite, where a least-squares solve still gives a finite answer.
-        return np.linalg.lstsq(a, b, rcond=None)[0]
+        inverse = np.linalg.pinv(a, hermitian=True)
+        return lambda b: inverse @ b
+    return lambda b: sla.cho_solve(factor, b)
 
 
 def _desired_image(grid: PixelGrid, areas: np.ndarray, blur_px: float) -> np.ndarray:

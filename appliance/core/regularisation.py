@@ -138,18 +138,20 @@ class ExpectedErrorSpectrum:
     (N + lambda P)^-1 = V diag(1 / (mu + lambda)) V^T, so after O(n^3) preparation each
     lambda costs O(n^2): the bias and noise terms of :func:`expected_error` become
     weighted sums over the eigenpairs. ``left`` (L) is GREIT's desired-image blur, or None.
+    The readings are weighted by the inverse of their noise variance (W = S^-1), so the
+    noise term R S R^T = L (N + lambda P)^-1 N (N + lambda P)^-1 L^T needs N alone: nothing
+    the size of the readings is formed, which a bed-size mat could not afford.
     """
 
-    def __init__(self, normal, prior, jw, noise_std, targets, desired, areas, left=None):
+    def __init__(self, normal, prior, targets, desired, areas, left=None):
         self.mu, v = sla.eigh(normal, prior)
         u = v if left is None else left @ v
         weighted_u = u * areas[:, None]
-        z = v.T @ jw                                                  # (n, readings)
         y = v.T @ (normal @ targets)                                  # (n, targets)
         g = u.T @ weighted_u
         self._g_m = g * (y @ y.T)
         self._h = np.einsum("it,it->i", y, weighted_u.T @ desired)
-        self._g_q = g * ((z * noise_std**2) @ z.T)
+        self._g_q = g * (v.T @ normal @ v)                            # R S R^T = L A^-1 N A^-1 L^T
         self._constant = float(np.einsum("pt,p,pt->", desired, areas, desired))
         self._targets = targets.shape[1]
 
