@@ -158,7 +158,9 @@ def _summary(item, mmhg, grid, conditions, layout_name: str, out: Path) -> str:
                              y0 + (np.arange(rows) + 0.5) * item.pitch_mm)
     made = _peak_and_centre(mmhg, (np.arange(mmhg.shape[1]) + 0.5) * grid.width_mm / mmhg.shape[1],
                             (np.arange(mmhg.shape[0]) + 0.5) * grid.height_mm / mmhg.shape[0])
-    lost = f"{item.share_off_mat:.1%} of its force off the mat" if item.share_off_mat > 0 else "all on the mat"
+    share = item.share_off_mat
+    lost = "all on the mat" if share == 0 else \
+        f"{'less than 0.1%' if share < 0.0005 else f'{share:.1%}'} of its force off the mat"
     notes = "".join(f"; {c}" for c in conditions)
     return (f"{item.source} ({rows} x {cols} sensels of {item.pitch_mm:g} mm, {lost}): peak {given} in, {made} out "
             f"on {layout_name}{notes}; written to {out}")
