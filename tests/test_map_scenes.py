@@ -133,9 +133,10 @@ def test_bad_map_segments_are_refused_naming_the_file_segment_and_field(tmp_path
         load_scene(path)
 
 
-def test_an_unknown_source_names_those_there_are(tmp_path):
-    with pytest.raises(ConfigError, match=r"recording 1: source must be one of pmatdata, maps, got 'tekscan'"):
-        load_scene(scenario(tmp_path, 'source = "tekscan"'))
+@pytest.mark.parametrize("source, shown", [('"tekscan"', "'tekscan'"), ('["maps"]', r"\['maps'\]")])
+def test_an_unknown_source_names_those_there_are(tmp_path, source, shown):
+    with pytest.raises(ConfigError, match=rf"recording 1: source must be one of pmatdata, maps, got {shown}"):
+        load_scene(scenario(tmp_path, f"source = {source}"))
 
 
 @pytest.fixture(scope="module")

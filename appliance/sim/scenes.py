@@ -310,7 +310,7 @@ def _recorded_scene(head: dict, segments, faults: tuple[ElectrodeFault, ...], fo
     for n, segment in enumerate(segments, start=1):
         where = f"recording {n}"
         source = segment.get("source")
-        if source not in RECORDING_FIELDS:
+        if not isinstance(source, str) or source not in RECORDING_FIELDS:
             raise ConfigError(f"{where}: source must be one of {', '.join(RECORDING_FIELDS)}, got {source!r}")
         _only(segment, RECORDING_FIELDS[source], where)
         try:
