@@ -13,6 +13,9 @@ goes, and writes every event as one JSON object per line::
 
 ``--acknowledge-after-min`` plays a nurse who acknowledges each alarm that long
 after it is raised, so the record shows acknowledgements and what they end.
+
+``appliance sim map`` puts pressure maps (CSV in mmHg) on the virtual bed and
+writes the maps the appliance reconstructs from them (:mod:`appliance.cli_map`).
 """
 
 from __future__ import annotations
@@ -52,6 +55,10 @@ def add_parsers(sub) -> None:
                    help="where the run's store is kept (default: a fresh temporary folder, removed afterwards)")
     p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
     p.set_defaults(run=_run)
+
+    from appliance.cli_map import add_parser as add_map_parser
+
+    add_map_parser(sim)
 
 
 def _load_test(args) -> int:

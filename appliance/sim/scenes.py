@@ -30,7 +30,7 @@ Electrode faults play on any scene, sorted by time::
 Instead of events, a file may hold recorded segments played one after another,
 each from the start of its recording, its last frame held ``hold_s`` after it
 ends; the scene lasts the segments' total (``[scene] duration_s`` may lengthen
-it). ``dir`` is taken relative to the scenario file's folder::
+it). Paths are taken relative to the scenario file's folder::
 
     [[recording]]
     source = "pmatdata"
@@ -38,6 +38,18 @@ it). ``dir`` is taken relative to the scenario file's folder::
     subject = 1
     posture = 1              # experiment I posture file, 1 to 17
     hold_s = 600
+    pitch_mm = 28.5          # optional: the sensel pitch (default PMAT_SENSEL_MM, recordings.py)
+
+    [[recording]]
+    source = "maps"          # pressure maps in mmHg (sim/map_files.py), in this order
+    files = ["supine.csv", "left-30.csv"]
+    pitch_mm = 28.5          # their sensel pitch, 1 to 100 mm
+    each_s = 1800            # each map held this long; or rate_hz = 1 (each held 1 / rate_hz)
+    hold_s = 0               # optional: the last one held this much longer
+
+Maps are placed centred on the [scene] grid with their force kept
+(:mod:`appliance.sim.map_scenes`); a map that lays no force on it, or a pressure
+beyond the mat model's limit, is refused naming the file and cell.
 
 Unknown keys and kinds, negative or overlapping times and positions off the mat
 are refused with the event's (fault's, segment's) number and field. A change box
@@ -64,6 +76,7 @@ from appliance.core.toml_files import read_toml
 from appliance.errors import ConfigError, DataFileInvalid, ModelInputInvalid
 from appliance.sim.body import BED_GRID, POSTURES, SURFACES, MatGrid, Placement, Subject, body_field, check_sites
 from appliance.sim.field import PressureField
+from appliance.sim.map_files import check_pitch_mm
 
 CHANGE_TOLERANCE_KPA = 0.01
 """Cells whose pressure moves less than this (0.075 mmHg) do not count as changed."""
@@ -78,7 +91,8 @@ SCENE_FIELDS = {"description", "width_mm", "height_mm", "pitch_mm", "weight_kg",
 RECORDED_SCENE_FIELDS = {"description", "width_mm", "height_mm", "pitch_mm", "duration_s"}
 FAULT_FIELDS = {"at_s", "electrode", "kind"}
 FAULT_KINDS = {"disconnect": False, "reconnect": True}
-RECORDING_FIELDS = {"source", "dir", "subject", "posture", "hold_s"}
+RECORDING_FIELDS = {"pmatdata": {"source", "dir", "subject", "posture", "hold_s", "pitch_mm"},
+                    "maps": {"source", "files", "pitch_mm", "each_s", "rate_hz", "hold_s"}}
 PMAT_POSTURES = range(1, 18)
 
 
@@ -282,8 +296,8 @@ def _check_fault_times(faults: tuple[ElectrodeFault, ...], duration_s: float) ->
 
 
 def _recorded_scene(head: dict, segments, faults: tuple[ElectrodeFault, ...], folder: Path) -> Scene:
-    """PmatData recordings played one after another on the [scene] grid."""
-    from appliance.sim.recordings import RecordedScene, pmat_scene    # recordings builds on this module
+    """Recorded segments (PmatData, map files) played one after another on the [scene] grid."""
+    from appliance.sim.recordings import RecordedScene    # recordings builds on this module
 
     _only(head, RECORDED_SCENE_FIELDS, "[scene]")
     try:
@@ -295,22 +309,15 @@ def _recorded_scene(head: dict, segments, faults: tuple[ElectrodeFault, ...], fo
     frames, times, infos, start = [], [], [], 0.0
     for n, segment in enumerate(segments, start=1):
         where = f"recording {n}"
-        _only(segment, RECORDING_FIELDS, where)
-        if segment.get("source") != "pmatdata":
-            raise ConfigError(f"{where}: source must be 'pmatdata', got {segment.get('source')!r}")
-        if not isinstance(segment.get("dir"), str):
-            raise ConfigError(f"{where}: dir must be the path of the PmatData folder, got {segment.get('dir')!r}")
-        data_dir = folder / segment["dir"]
-        if not data_dir.is_dir():
-            raise ConfigError(f"{where}: dir {str(data_dir)!r} is not a folder (the PmatData data set)")
-        subject, posture = (_integer(segment, key, where) for key in ("subject", "posture"))
-        if posture not in PMAT_POSTURES:
-            raise ConfigError(f"{where}: posture must be 1 to 17, got {posture}")
-        hold = _number(segment, "hold_s", where, None)
-        if hold < 0:
-            raise ConfigError(f"{where}: hold_s must not be negative, got {hold:g}")
+        source = segment.get("source")
+        if not isinstance(source, str) or source not in RECORDING_FIELDS:
+            raise ConfigError(f"{where}: source must be one of {', '.join(RECORDING_FIELDS)}, got {source!r}")
+        _only(segment, RECORDING_FIELDS[source], where)
         try:
-            recording = pmat_scene(data_dir, subject, posture, grid)
+            if source == "pmatdata":
+                recording, hold = _pmat_segment(segment, where, folder, grid)
+            else:
+                recording, hold = _map_segment(segment, where, folder, grid)
         except DataFileInvalid as exc:
             raise DataFileInvalid(f"{where}: {exc}") from None
         frames.append(recording.frames)
@@ -323,6 +330,41 @@ def _recorded_scene(head: dict, segments, faults: tuple[ElectrodeFault, ...], fo
     _check_fault_times(faults, duration)
     return RecordedScene(np.concatenate(frames), np.concatenate(times), grid, {"segments": infos},
                          duration_s=duration, faults=faults)
+
+
+def _pmat_segment(segment: dict, where: str, folder: Path, grid: MatGrid):
+    """A PmatData recording on ``grid`` and how long its last frame is held."""
+    from appliance.sim.recordings import PMAT_SENSEL_MM, pmat_scene
+
+    if not isinstance(segment.get("dir"), str):
+        raise ConfigError(f"{where}: dir must be the path of the PmatData folder, got {segment.get('dir')!r}")
+    data_dir = folder / segment["dir"]
+    if not data_dir.is_dir():
+        raise ConfigError(f"{where}: dir {str(data_dir)!r} is not a folder (the PmatData data set)")
+    subject, posture = (_integer(segment, key, where) for key in ("subject", "posture"))
+    if posture not in PMAT_POSTURES:
+        raise ConfigError(f"{where}: posture must be 1 to 17, got {posture}")
+    hold = _not_negative(segment, "hold_s", where, None)
+    pitch = check_pitch_mm(segment.get("pitch_mm", PMAT_SENSEL_MM), f"{where}: pitch_mm")
+    return pmat_scene(data_dir, subject, posture, grid, sensel_mm=pitch), hold
+
+
+def _map_segment(segment: dict, where: str, folder: Path, grid: MatGrid):
+    """Pressure map files played in order on ``grid``, and how long the last is held."""
+    from appliance.sim.map_scenes import map_recording
+
+    files = segment.get("files")
+    if not isinstance(files, list) or not files or not all(isinstance(f, str) for f in files):
+        raise ConfigError(f"{where}: files must be a list of pressure map files (CSV in mmHg), got {files!r}")
+    if "pitch_mm" not in segment:
+        raise ConfigError(f"{where} is missing 'pitch_mm' (the maps' sensel pitch)")
+    pitch = check_pitch_mm(segment["pitch_mm"], f"{where}: pitch_mm")
+    if ("each_s" in segment) == ("rate_hz" in segment):
+        raise ConfigError(f"{where}: give how long each map is held, each_s, or the rate they play at, rate_hz "
+                          "(one of the two)")
+    each = _positive(segment, "each_s", where) if "each_s" in segment else 1.0 / _positive(segment, "rate_hz", where)
+    hold = _not_negative(segment, "hold_s", where, 0.0)
+    return map_recording([folder / f for f in files], pitch, grid, each), hold
 
 
 def _still_end(event: dict) -> float:
@@ -408,6 +450,13 @@ def _integer(table: dict, key: str, where: str) -> int:
     value = table.get(key)
     if isinstance(value, bool) or not isinstance(value, int):
         raise ConfigError(f"{where}: {key} must be an integer, got {value!r}")
+    return value
+
+
+def _not_negative(table: dict, key: str, where: str, default: float | None) -> float:
+    value = _number(table, key, where, default)
+    if value < 0:
+        raise ConfigError(f"{where}: {key} must not be negative, got {value:g}")
     return value
 
 
