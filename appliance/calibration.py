@@ -1,5 +1,6 @@
-"""Calibration procedures: known weights on known areas to a pressure calibration, and the thesis's
-experimental sensitivity (an object on each pixel in turn, eq. 3.4.1).
+"""Calibration procedures: known weights on known areas, or people's pressure maps as a reference mat
+read them, to a pressure calibration; and the thesis's experimental sensitivity (an object on each
+pixel in turn, eq. 3.4.1).
 
 A procedure needs two things from its surroundings: ``acquire()``, giving a frame
 (``.volts`` and ``.temperature_c``: a scan engine on the hardware, or the virtual
@@ -67,6 +68,41 @@ def thesis_loads(width_mm: float, height_mm: float, areas_cm2=(9.0, 16.0, 25.0),
                 for grams in weights_g:
                     loads.append(Load(float(x), float(y), float(side), grams * KPA_PER_GRAM_PER_CM2 / area))
     return loads
+
+
+@dataclass(frozen=True, eq=False)
+class MapLoad:
+    """A whole pressure map on the mat: what a person lying on it presses, as a reference pressure
+    mat under them read it. ``pressure_kpa`` holds square cells of ``pitch_mm`` covering the mat, rows
+    head to foot along its long side (as scenes lie); ``name`` says whose map it is.
+    """
+
+    pressure_kpa: np.ndarray
+    pitch_mm: float
+    name: str = ""
+
+    def pixel_pressure(self, grid) -> np.ndarray:
+        """The map's mean pressure over each pixel of ``grid`` (rows, cols), turned to lie along the grid."""
+        cells = np.asarray(self.pressure_kpa, dtype=float)
+        if (grid.width_mm > grid.height_mm) != (cells.shape[1] > cells.shape[0]):
+            cells = cells.T
+        rows, cols = cells.shape
+        if abs(cols * self.pitch_mm - grid.width_mm) > self.pitch_mm or \
+                abs(rows * self.pitch_mm - grid.height_mm) > self.pitch_mm:
+            raise ConfigError(f"map {self.name!r} covers {cols * self.pitch_mm:g} x {rows * self.pitch_mm:g} mm, "
+                              f"the mat {grid.width_mm:g} x {grid.height_mm:g} mm")
+        across = _shares(rows, self.pitch_mm, grid.rows, grid.height_mm)
+        along = _shares(cols, self.pitch_mm, grid.cols, grid.width_mm)
+        return across @ cells @ along.T
+
+
+def _shares(cells: int, pitch_mm: float, pixels: int, length_mm: float) -> np.ndarray:
+    """Share of each pixel (rows) that each cell (columns) covers along one side."""
+    cell_edges = np.arange(cells + 1) * pitch_mm
+    pixel_edges = np.linspace(0.0, length_mm, pixels + 1)
+    low = np.maximum(pixel_edges[:-1, None], cell_edges[None, :-1])
+    high = np.minimum(pixel_edges[1:, None], cell_edges[None, 1:])
+    return np.clip(high - low, 0.0, None) / np.diff(pixel_edges)[:, None]
 
 
 CALIBRATION_PRESSURES_KPA = (2.0, 3.5, 5.0, 7.5, 10.0, 14.0, 20.0)
@@ -161,6 +197,18 @@ def pressure_calibration(acquire: Callable, place: Callable, model: Reconstructi
                 progress(k, len(loads), load)
     finally:
         place(None)
+    notes = {"loads": len(loads), "averages": averages, "iterate": iterate, "made_at": time.time()}
+    if any(isinstance(load, MapLoad) for load in loads):
+        if not all(isinstance(load, MapLoad) for load in loads):
+            raise ConfigError("a pressure calibration takes either weights or whole maps, not both")
+        # Every pixel of every map counts: a body's loads come in every size, and the curve learns how
+        # the mat and the reconstruction read them all, narrow heels with wide buttocks.
+        inside = np.isfinite(images[0])
+        sizes = np.clip(-np.array([image[inside] for image in images]), 0.0, None)     # a rise reads nothing
+        curve = fit_pressure_curve(sizes, np.array([truth[inside] for truth in truths]))
+        return PressureCalibration(setup.layout.name, layout_fingerprint(setup.layout), setup.options.algorithm,
+                                   grid.shape, curve, reference_temperature,
+                                   notes={**notes, "kind": "maps", "maps": [load.name for load in loads]})
     main = [k for k, load in enumerate(loads) if load.zone is None]
     if not main:
         raise ConfigError("a pressure calibration needs at least one load for the main curve")
@@ -173,8 +221,7 @@ def pressure_calibration(acquire: Callable, place: Callable, model: Reconstructi
                            fit_pressure_curve(np.array(peaks), np.array([loads[k].pressure_kpa for k in foot]))),)
     return PressureCalibration(setup.layout.name, layout_fingerprint(setup.layout), setup.options.algorithm,
                                grid.shape, curve, reference_temperature, flat_field=flat,
-                               notes={"loads": len(loads), "averages": averages, "iterate": iterate,
-                                      "made_at": time.time()}, zones=zones)
+                               notes={**notes, "kind": "weights"}, zones=zones)
 
 
 def fit_with_flat_field(loads, images, truths, grid):

@@ -8,6 +8,7 @@ and one line naming what is wrong.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -73,7 +74,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", default=None, metavar="RELATIVE,ABSOLUTE",
                    help="reading noise: a share of each reading and of the rms reading (default 1e-3,1e-4)")
     p.add_argument("--pixels", default=None, metavar="ROWSxCOLS", help="pixel grid (default 16 on the short side)")
-    p.add_argument("--density", type=float, default=1.0, help="forward mesh density")
+    p.add_argument("--density", type=float, default=None,
+                   help="forward mesh density (default: the appliance's for the layout, 0.5 on a bed mat)")
     p.add_argument("--calibration", type=Path, help="experimental sensitivity for backprojection (eq. 3.4.1)")
     p.add_argument("--normalise", action="store_true", help="write the thesis's 0-100 display scale (eq. 3.4.3)")
     p.add_argument("--segment", type=Path, help="also write the KTC2023 256 x 256 label image (CSV) here")
@@ -167,8 +169,8 @@ def _reconstruct(args) -> int:
     from appliance.core.frames import Frame, check_same_protocol, load_calibration, load_frame
     from appliance.core import ktc
     from appliance.core.layouts import get_layout
-    from appliance.core.model_cache import ModelSetup, cached_model, default_cache_dir
-    from appliance.core.reconstruct import ReconstructionOptions, build_reconstructor
+    from appliance.core.model_cache import ModelSetup, cached_model, default_cache_dir, default_setup
+    from appliance.core.reconstruct import build_reconstructor
     from appliance.core.regularisation import NoiseModel
     from appliance.errors import ConfigError
 
@@ -189,17 +191,17 @@ def _reconstruct(args) -> int:
     reference, frame = frames
     check_same_protocol(frame, reference, f"reference {args.reference}")
     is_ktc = layout.name == "ktc-32"
-    setup = ktc.ktc_setup(reference.protocol) if is_ktc else ModelSetup(layout, reference.protocol)
+    setup = ktc.ktc_setup(reference.protocol) if is_ktc else default_setup(layout, reference.protocol)
     iterate = args.iterate or (ktc.ITERATE if is_ktc else "auto")
     options = setup.options
     if args.algorithm:
-        options = ReconstructionOptions(args.algorithm, noise=options.noise, target_contrast=options.target_contrast)
+        options = dataclasses.replace(options, algorithm=args.algorithm)
     if args.noise:
-        options = ReconstructionOptions(options.algorithm, noise=NoiseModel(*_floats(args.noise, 2, "--noise")),
-                                        target_contrast=options.target_contrast)
+        options = dataclasses.replace(options, noise=NoiseModel(*_floats(args.noise, 2, "--noise")))
     pixels = tuple(int(v) for v in _floats(args.pixels.replace("x", ","), 2, "--pixels")) if args.pixels \
         else setup.pixels
-    setup = ModelSetup(layout, reference.protocol, options, args.density, pixels, setup.contact_impedance_ohm_m2)
+    setup = ModelSetup(layout, reference.protocol, options, args.density or setup.density, pixels,
+                       setup.contact_impedance_ohm_m2)
     pressure = None
     volts = frame.volts
     if args.pressure:

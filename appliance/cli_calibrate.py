@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -37,6 +38,12 @@ def add_parsers(sub) -> None:
     p.add_argument("--pressures", default=None, metavar="P1,P2,...",
                    help="pressures each load is pressed to, kPa (default: the standard set, 2 to 20 kPa)")
     p.add_argument("--averages", type=int, default=1, metavar="K", help="frames averaged per load (default 1)")
+    p.add_argument("--maps", type=Path, default=None, metavar="PMATDATA",
+                   help="calibrate from people's pressure maps instead of weights: a PmatData folder (virtual "
+                        "source; a bed mat reads bodies through this far better than through weights)")
+    p.add_argument("--subjects", default=None, metavar="N1,N2,...", help="with --maps: whose maps")
+    p.add_argument("--frames-per-posture", type=int, default=1, metavar="K",
+                   help="with --maps: frames taken from each posture's recording (default 1)")
     p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
     p.set_defaults(run=_pressure)
 
@@ -67,31 +74,38 @@ def _source_options(p: argparse.ArgumentParser) -> None:
 def _pressure(args) -> int:
     from appliance.calibration import CALIBRATION_PRESSURES_KPA, calibration_loads, pressure_calibration
     from appliance.core.layouts import get_layout
-    from appliance.core.model_cache import ModelSetup, cached_model, default_cache_dir
+    from appliance.core.model_cache import cached_model, default_cache_dir, default_setup
     from appliance.core.pressure import save_pressure_calibration
-    from appliance.core.protocols import default_protocol
-    from appliance.core.reconstruct import ReconstructionOptions
     from appliance.errors import ConfigError
 
     if args.positions < 1 or args.averages < 1:
         raise ConfigError("--positions and --averages take 1 or more")
+    if args.maps and args.source == "hardware":
+        raise ConfigError("--maps lays recorded people on the virtual mat; on hardware, calibrate with weights")
     pressures = _pressures(args.pressures) if args.pressures else CALIBRATION_PRESSURES_KPA
     layout = get_layout(args.layout)
-    protocol = default_protocol(layout)
-    options = ReconstructionOptions(args.algorithm) if args.algorithm else ReconstructionOptions()
-    setup = ModelSetup(layout, protocol, options, pixels=_pixels(args.pixels))
-    loads = calibration_loads(layout, positions=args.positions, pressures_kpa=pressures)
+    setup = default_setup(layout)
+    protocol = setup.protocol
+    if args.algorithm:
+        setup = dataclasses.replace(setup, options=dataclasses.replace(setup.options, algorithm=args.algorithm))
+    if args.pixels:
+        setup = dataclasses.replace(setup, pixels=_pixels(args.pixels))
+    options = setup.options
+    loads = _map_loads(args) if args.maps else \
+        calibration_loads(layout, positions=args.positions, pressures_kpa=pressures)
     start = time.perf_counter()
     model, _ = cached_model(setup, args.cache_dir or default_cache_dir(),
                             lambda step, share: print(f"building the model: {step} ({share:.0%})", file=sys.stderr))
 
     def progress(k, n, load):
-        print(f"load {k}/{n}: {load.side_mm:g} mm square at ({load.x_mm:g}, {load.y_mm:g}) mm, "
-              f"{load.pressure_kpa:.1f} kPa", file=sys.stderr, flush=True)
+        what = f"map {load.name}" if args.maps else \
+            f"{load.side_mm:g} mm square at ({load.x_mm:g}, {load.y_mm:g}) mm, {load.pressure_kpa:.1f} kPa"
+        print(f"load {k}/{n}: {what}", file=sys.stderr, flush=True)
 
-    with _opened_source(args, layout, protocol) as (acquire, place):
+    with _opened_source(args, layout, protocol) as (acquire, place, stamp):
         calibration = pressure_calibration(acquire, place, model, loads, averages=args.averages, progress=progress,
                                            iterate="never" if options.algorithm == "backprojection" else None)
+        calibration = stamp(calibration, model)
     save_pressure_calibration(args.out, calibration)
     curve, flat = calibration.curve, calibration.flat_field
     flat_text = "no flat field" if flat is None else f"flat field {flat.min():.2f} to {flat.max():.2f}"
@@ -120,7 +134,7 @@ def _sensitivity(args) -> int:
     def progress(k, n, pixel):
         print(f"pixel {k}/{n}: row {pixel[0]}, column {pixel[1]}", file=sys.stderr, flush=True)
 
-    with _opened_source(args, layout, protocol) as (acquire, place):
+    with _opened_source(args, layout, protocol) as (acquire, place, _):
         rows = sensitivity_calibration(acquire, place, grid, protocol, side_mm, args.pressure_kpa,
                                        progress=progress)
     args.out.write_text(calibration_to_csv(rows), encoding="utf-8")
@@ -157,29 +171,48 @@ def _pixels(text: str | None) -> tuple[int, int] | None:
     return tuple(int(v) for v in _floats(text.replace("x", ","), 2, "--pixels")) if text else None
 
 
+def _map_loads(args) -> list:
+    """The people's maps ``--maps`` and ``--subjects`` name, as calibration loads."""
+    from appliance.errors import ConfigError
+    from appliance.sim.recordings import pmat_map_loads
+
+    try:
+        subjects = [int(v) for v in args.subjects.split(",")] if args.subjects else []
+    except ValueError:
+        raise ConfigError(f"--subjects takes subject numbers separated by commas, got {args.subjects!r}") from None
+    if not subjects:
+        raise ConfigError("--maps needs --subjects: the people whose maps calibrate the mat")
+    if args.frames_per_posture < 1:
+        raise ConfigError("--frames-per-posture takes 1 or more")
+    return pmat_map_loads(args.maps, subjects, frames_per_posture=args.frames_per_posture)
+
+
 @contextlib.contextmanager
 def _opened_source(args, layout, protocol):
-    """``(acquire, place)`` for ``args.source``; a board is closed when the procedure ends."""
-    from appliance.sim.bed import VirtualBed
+    """``(acquire, place, stamp)`` for ``args.source``, ``stamp(calibration, model)`` marking a calibration
+    with the virtual mat it was made on; a board is closed when the procedure ends."""
     from appliance.cli_frontend import board_table
-    from appliance.sim.loads import empty_mat, placer
+    from appliance.sim.loads import empty_mat
 
     table = board_table(args)
+    unstamped = lambda calibration, model: calibration      # noqa: E731 (a real mat's readings are its own)
     if args.source == "hardware":
         sensor, place = _still_mat(layout), _operator_placer()
     else:
         from appliance.drivers.profile import board_profile
-        from appliance.sim.frontend import VIRTUAL_MAT_BOARD, VirtualFrontEnd
+        from appliance.service.virtual_bed import VirtualBedSource
+        from appliance.sim.frontend import VIRTUAL_MAT_BOARD
 
         table = table or VIRTUAL_MAT_BOARD          # unless told otherwise, a board the virtual mat suits
-        bed = VirtualBed(layout, empty_mat(layout), density=args.density)
-        place = placer(bed)
+        source = VirtualBedSource(layout, empty_mat(layout), protocol, seed=args.seed, profile=board_profile(table),
+                                  density=args.density)
+        place = source.place
         if args.source == "virtual":
-            yield VirtualFrontEnd(bed, protocol, profile=board_profile(table), seed=args.seed).acquire, place
+            yield source.acquire, place, source.stamped
             return
-        table, sensor = {**table, "backend": "emulated"}, (lambda: bed)
+        table, sensor = {**table, "backend": "emulated"}, (lambda: source.bed)
     with _scan_engine(table, sensor, protocol, args.seed) as engine:
-        yield engine.scan, place
+        yield engine.scan, place, unstamped
 
 
 def _still_mat(layout):

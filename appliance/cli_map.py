@@ -49,8 +49,7 @@ def add_parser(sim) -> None:
 def _map(args) -> int:
     from appliance.cli_calibrate import pressure_calibration_for
     from appliance.core.layouts import get_layout
-    from appliance.core.model_cache import ModelSetup, cached_model, default_cache_dir
-    from appliance.core.protocols import default_protocol
+    from appliance.core.model_cache import cached_model, default_cache_dir, default_setup
     from appliance.service.config import MonitorConfig
     from appliance.sim.map_files import write_map_mmhg
     from appliance.sim.map_scenes import load_map, place_map, scene_grid
@@ -59,7 +58,7 @@ def _map(args) -> int:
     layout = get_layout(args.layout or MonitorConfig().layout)
     grid = scene_grid(layout)
     placed = [place_map(load_map(path), pitch, grid, f"pressure map {path}") for path, pitch in zip(args.maps, pitches)]
-    setup = ModelSetup(layout, default_protocol(layout))                # the monitor's model of the mat
+    setup = default_setup(layout)                                       # the monitor's model of the mat
     calibration = None if args.calibration is None else \
         pressure_calibration_for(args.calibration, layout, setup.options.algorithm, setup.pixels)
     cache = args.cache_dir or default_cache_dir()
@@ -77,13 +76,12 @@ class _MapBed:
     """The virtual bed read through the monitor's chain: a placed map in, the monitor's map of it out (mmHg)."""
 
     def __init__(self, layout, model, calibration, cache: Path, seed: int):
-        from appliance.core.protocols import default_protocol
         from appliance.service.assemble import virtual_calibration_path
         from appliance.service.monitor import Monitor
         from appliance.service.virtual_bed import VirtualBedSource
         from appliance.sim.loads import empty_mat
 
-        self.source = VirtualBedSource(layout, empty_mat(layout), default_protocol(layout), seed=seed)
+        self.source = VirtualBedSource(layout, empty_mat(layout), model.setup.protocol, seed=seed)
         if calibration is None:
             path = virtual_calibration_path(cache, model)
             calibration, made = self.source.calibration(

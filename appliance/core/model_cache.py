@@ -36,7 +36,7 @@ from appliance.core.layout_files import layout_to_toml
 from appliance.core.layouts import Layout
 from appliance.core.mesh import Mesh, mesh_layout
 from appliance.core.pixels import PixelGrid, pixel_grid
-from appliance.core.protocols import Protocol
+from appliance.core.protocols import SERIAL_ELECTRODES, Protocol, default_protocol
 from appliance.core.reconstruct import (
     LinearModel, NormalForm, ReconstructionOptions, Reconstructor, build_reconstructor, linear_model,
     without_readings,
@@ -72,6 +72,29 @@ class ModelSetup:
             "format": FORMAT_VERSION, "version": appliance.__version__,
         }
         return hashlib.sha256(json.dumps(description, sort_keys=True).encode()).hexdigest()
+
+
+BED_OPTIONS = ReconstructionOptions("gn-laplace", target_fraction=60.0 / 900.0, target_contrast=-0.3)
+"""How a bed-size mat is reconstructed: Gauss-Newton with Laplace's prior, lambda trained on 60 mm spots
+(a heel or an occiput) thinned by 30 %. On grid-16x32 it finds 98 % of the loaded spots of people left
+out of every fit, where GREIT's blurred target finds 78 % (benchmarks/bed.md)."""
+BED_DENSITY = 0.5
+"""The reconstruction mesh of a bed-size mat: half the default density (benchmarks/bed.md has what the
+full one would add, and what it costs)."""
+
+
+def is_bed(layout: Layout) -> bool:
+    """Whether ``layout`` is a bed-size mat (a grid of more electrodes than a serial front end reads)."""
+    return layout.is_grid and layout.n_electrodes > SERIAL_ELECTRODES
+
+
+def default_setup(layout: Layout, protocol: Protocol | None = None) -> ModelSetup:
+    """The reconstruction the appliance uses on ``layout``: its default protocol, and on a bed-size mat
+    :data:`BED_OPTIONS` at :data:`BED_DENSITY`; the library's defaults elsewhere."""
+    protocol = protocol or default_protocol(layout)
+    if is_bed(layout):
+        return ModelSetup(layout, protocol, BED_OPTIONS, density=BED_DENSITY)
+    return ModelSetup(layout, protocol)
 
 
 @dataclass

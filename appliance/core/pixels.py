@@ -15,6 +15,7 @@ regular) lattice.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -30,6 +31,10 @@ MIN_COVER = 0.25
 
 DEFAULT_PIXELS_ACROSS = 16
 """Pixels along the shorter side of the sheet by default (16 x 16 on the 100 mm sensors)."""
+
+MAX_PIXEL_MM = 30.0
+"""The largest default pixel: a heel or an occiput loads 5 to 7 cm, and commercial pressure mats
+sample at 1.3 to 3.2 cm, so a bed's map is drawn no coarser than this."""
 
 
 @dataclass(frozen=True)
@@ -83,12 +88,12 @@ class PixelGrid:
 
 
 def pixel_grid(layout: Layout, rows: int | None = None, cols: int | None = None) -> PixelGrid:
-    """The pixel grid of ``layout``: by default 16 pixels along its shorter side, square-ish pixels."""
+    """The pixel grid of ``layout``: by default 16 pixels along its shorter side and square-ish pixels,
+    none larger than ``MAX_PIXEL_MM``."""
     width, height = layout.sheet.size_mm
     if rows is None and cols is None:
-        short = DEFAULT_PIXELS_ACROSS
-        rows, cols = (short, max(1, round(short * width / height))) if height <= width else \
-                     (max(1, round(short * height / width)), short)
+        pixel = min(min(width, height) / DEFAULT_PIXELS_ACROSS, MAX_PIXEL_MM)
+        rows, cols = (math.ceil(height / pixel - 1e-9), math.ceil(width / pixel - 1e-9))
     elif rows is None or cols is None:
         rows = rows if rows is not None else max(1, round(cols * height / width))
         cols = cols if cols is not None else max(1, round(rows * width / height))

@@ -201,14 +201,22 @@ MEASURING = ("all", "rows")
 LOCAL_REACH_DEFAULT = 2.0
 """Reach, in electrode spacings, of the default protocol on grids of more than 16 electrodes."""
 
+SERIAL_ELECTRODES = 32
+"""The most electrodes a serial front end's multiplexers address (the ``reference-32`` profile); a grid
+with more is read by the parallel front end, whose fixed channels measure along the rows."""
+
 
 def default_protocol(layout: Layout) -> Protocol:
-    """Adjacent for peripheral layouts, distributed for grids up to 16 electrodes,
-    locality-limited beyond that."""
+    """Adjacent for peripheral layouts, distributed for grids up to 16 electrodes, locality-limited up
+    to 32, and beyond that locality-limited and measured along the rows, as the parallel front end
+    that reads such a mat does."""
     if layout.grid_shape is None:
         return adjacent_protocol(layout.n_electrodes)
     rows, cols = layout.grid_shape
-    return distributed_protocol(rows, cols, None if rows * cols <= 16 else LOCAL_REACH_DEFAULT)
+    if rows * cols <= 16:
+        return distributed_protocol(rows, cols)
+    return distributed_protocol(rows, cols, LOCAL_REACH_DEFAULT,
+                                measuring="rows" if rows * cols > SERIAL_ELECTRODES else "all")
 
 
 def protocol_for(layout: Layout, kind: str | None = None, *, skip: int = 0, reach: float | None = None) -> Protocol:

@@ -23,8 +23,7 @@ def assemble(config: MonitorConfig, *, say: Callable[[str], None], on_event=None
              live: bool = True) -> MonitorDaemon:
     """The daemon, started (reference taken or state resumed) and ready to ``run``."""
     from appliance.core.layouts import get_layout
-    from appliance.core.model_cache import ModelSetup, cached_model, default_cache_dir
-    from appliance.core.protocols import default_protocol
+    from appliance.core.model_cache import cached_model, default_cache_dir, default_setup
     from appliance.service import settings
     from appliance.service.engineering import engineering_commands
     from appliance.service.virtual_bed import default_data_dir
@@ -34,8 +33,9 @@ def assemble(config: MonitorConfig, *, say: Callable[[str], None], on_event=None
     data_dir.mkdir(parents=True, exist_ok=True)
     config = settings.load_overlaid(dataclasses.replace(config, data_dir=data_dir), data_dir)   # the screen's settings
     layout = get_layout(config.layout)
-    protocol = default_protocol(layout)
-    model, _ = cached_model(ModelSetup(layout, protocol), config.cache_dir or default_cache_dir(),
+    setup = default_setup(layout)
+    protocol = setup.protocol
+    model, _ = cached_model(setup, config.cache_dir or default_cache_dir(),
                             lambda step, share: say(f"building the reconstruction model: {step} ({share:.0%})"))
     source = _source(config, layout, protocol)
     closers = [source.close] if hasattr(source, "close") else []

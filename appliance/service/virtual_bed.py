@@ -9,8 +9,12 @@ the data directory under the layout's and reconstruction's name.
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import json
 import os
 import threading
+from importlib import resources
 from collections.abc import Callable
 from pathlib import Path
 
@@ -18,7 +22,7 @@ from appliance.calibration import calibration_loads, pressure_calibration
 from appliance.core.layouts import Layout
 from appliance.core.model_cache import ReconstructionModel
 from appliance.core.pressure import PressureCalibration, load_pressure_calibration, save_pressure_calibration
-from appliance.errors import ConfigError
+from appliance.errors import DataFileInvalid
 from appliance.service.pace import Pace
 from appliance.sim.bed import VirtualBed
 from appliance.sim.frontend import VirtualFrontEnd
@@ -44,10 +48,11 @@ class VirtualBedSource:
     """
 
     def __init__(self, layout: Layout, scene: Scene, protocol, *, seed: int = 0, frame_interval_s: float = 1.0,
-                 speed: float = 0.0, **bed_options):
+                 speed: float = 0.0, profile=None, **bed_options):
         self.scene = scene
         self.bed = VirtualBed(layout, scene, **bed_options)
-        self.front_end = VirtualFrontEnd(self.bed, protocol, seed=seed, frame_interval_s=frame_interval_s)
+        self.front_end = VirtualFrontEnd(self.bed, protocol, profile=profile, seed=seed,
+                                         frame_interval_s=frame_interval_s)
         self.place = placer(self.bed)
         self.pace = Pace(frame_interval_s / speed if speed > 0 else 0.0)
 
@@ -83,24 +88,59 @@ class VirtualBedSource:
         self.front_end.time_s = 0.0
         self.front_end.schedule_faults(self.scene.faults)
 
+    def mat_key(self) -> str:
+        """SHA-256 of what the virtual mat's readings follow from: its mechanics, mesh and front end."""
+        description = {"mat": dataclasses.asdict(self.bed.params), "density": self.bed.density,
+                       "front_end": repr(self.front_end.chain.profile), "current_a": self.front_end.chain.current_a}
+        return hashlib.sha256(json.dumps(description, sort_keys=True, default=str).encode()).hexdigest()
+
+    def fits(self, calibration: PressureCalibration, model: ReconstructionModel) -> bool:
+        """Whether ``calibration`` was made on this virtual mat for ``model``'s reconstruction."""
+        return calibration.notes.get("setup") == model.setup.key() and calibration.notes.get("mat") == self.mat_key()
+
+    def stamped(self, calibration: PressureCalibration, model: ReconstructionModel) -> PressureCalibration:
+        """``calibration`` (made on this virtual mat) marked with what it fits, for :meth:`fits`."""
+        return dataclasses.replace(calibration, notes={**calibration.notes, "setup": model.setup.key(),
+                                                       "mat": self.mat_key()})
+
     def calibration(self, model: ReconstructionModel, path: Path, *,
                     progress: Callable | None = None) -> tuple[PressureCalibration, bool]:
-        """The calibration at ``path`` if it fits ``model``; else one made now on the empty mat and saved.
+        """The calibration at ``path`` if it was made on this virtual mat for ``model``; else the one the
+        package ships for them (:data:`SHIPPED_CALIBRATIONS`: made from people's pressure maps, which a
+        bed mat needs and a fresh appliance does not have); else one made now from weights on the empty
+        mat. Either of the last two is saved at ``path``.
 
         Returns it and whether it was made now.
         """
-        setup = model.setup
         if path.exists():
-            calibration = load_pressure_calibration(path)
             try:
-                calibration.check_fits(setup.layout, setup.options.algorithm, model.reconstructor.grid.shape)
-                if calibration.notes.get("loads") == len(calibration_loads(setup.layout)):
+                calibration = load_pressure_calibration(path)
+                if self.fits(calibration, model):
                     return calibration, False
-            except ConfigError:
-                pass                    # the virtual mat's own file, for a mat or a load set since changed: again
-        calibration = pressure_calibration(self.acquire, self.place, model, calibration_loads(setup.layout),
-                                           progress=progress)
+            except DataFileInvalid:
+                pass                    # the virtual mat's own file, damaged: made again
+        calibration = shipped_calibration(model.setup.layout.name)
+        made = calibration is None or not self.fits(calibration, model)
+        if made:
+            calibration = self.stamped(pressure_calibration(self.acquire, self.place, model,
+                                                            calibration_loads(model.setup.layout),
+                                                            progress=progress), model)
+            self.start_scene()
         path.parent.mkdir(parents=True, exist_ok=True)
         save_pressure_calibration(path, calibration)
-        self.start_scene()
-        return calibration, True
+        return calibration, made
+
+
+SHIPPED_CALIBRATIONS = "calibrations"
+"""The folder of ``appliance.sim`` holding the virtual mats' calibrations made from people's pressure maps
+(``appliance calibrate pressure --maps``), one per layout, ``<layout>.json``; benchmarks/bed.md says how
+each was made and how it reads people it was not made from."""
+
+
+def shipped_calibration(layout_name: str) -> PressureCalibration | None:
+    """The calibration the package ships for the virtual mat of ``layout_name``, or None."""
+    path = resources.files("appliance.sim").joinpath(SHIPPED_CALIBRATIONS, f"{layout_name}.json")
+    if not path.is_file():
+        return None
+    with resources.as_file(path) as file:
+        return load_pressure_calibration(file)

@@ -29,6 +29,7 @@ field is turned to the layout when their sides are swapped.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 
@@ -36,6 +37,7 @@ import numpy as np
 
 from appliance.core.fem import build_fem_model
 from appliance.core.forward import solve_electrodes
+from appliance.calibration import BED_MIN_LENGTH_MM
 from appliance.core.layouts import Layout
 from appliance.errors import ModelInputInvalid
 from appliance.sim.field import PressureField
@@ -45,6 +47,18 @@ from appliance.sim.scenes import Scene
 from appliance.sim.transfer import TransferSolver
 
 SOLVERS = ("block", "fields")
+
+BED_MAT_PARAMETERS = dataclasses.replace(DEFAULT_PARAMETERS, foundation_kpa_per_mm=10.0)
+"""The bed mat: the thesis's liquid, membrane and slack on a foundation about eight times stiffer (a
+denser foam under the liquid, the thesis's chapter 7 "tailoring the response to the pressure range").
+On the thesis's foundation a body's pelvis bottoms the liquid out above about 7.5 kPa (56 mmHg), so no
+reconstruction can tell 60 mmHg from 250; on this one 40 kPa (300 mmHg, above the highest interface
+pressures PmatData records) still leaves a fifth of the depth, and 10 mmHg thins it by about 15 %."""
+
+
+def mat_parameters_for(layout: Layout) -> MatParameters:
+    """The mat a layout stands for: the bed mat on a bed-size sheet, the thesis's sensor otherwise."""
+    return BED_MAT_PARAMETERS if max(layout.sheet.size_mm) >= BED_MIN_LENGTH_MM else DEFAULT_PARAMETERS
 
 
 class VirtualBed:
@@ -58,14 +72,15 @@ class VirtualBed:
     solves' time by stage.
     """
 
-    def __init__(self, layout: Layout, scene: Scene, *, params: MatParameters = DEFAULT_PARAMETERS,
+    def __init__(self, layout: Layout, scene: Scene, *, params: MatParameters | None = None,
                  density: float = 1.0, temperature_c: float | Callable[[float], float] = 24.0,
                  mechanics_merge: int = 1, solver: str = "block"):
         if solver not in SOLVERS:
             raise ModelInputInvalid(f"solver must be one of {', '.join(SOLVERS)}, got {solver!r}")
-        self.layout, self.scene, self.params = layout, scene, params
+        self.layout, self.scene, self.params = layout, scene, params or mat_parameters_for(layout)
         self.mechanics_merge = mechanics_merge
         self.solver = solver
+        self.density = density
         self.model = build_fem_model(layout, density=density)          # numbered in a fill-reducing order
         self._block = TransferSolver(self.model) if solver == "block" else None
         self.temperature = temperature_c if callable(temperature_c) else (lambda t: float(temperature_c))

@@ -1,8 +1,8 @@
 """Test loads on the mat: a scene holding one fixed pressure field, and square weights placed on it.
 
-Calibration puts known weights on known areas (the thesis's Table 6.3.1); on
-the virtual bed a :class:`StaticScene` with a square load plays the weight, on a
-rigid platen as the thesis's weights were.
+Calibration puts known weights on known areas (the thesis's Table 6.3.1), or people's
+pressure maps; on the virtual bed a :class:`StaticScene` with a square load plays the
+weight, on a rigid platen as the thesis's weights were, and one with the map plays the person.
 
 >>> scene = square_load_scene(100, 100, 50, 50, 30, 4.36)
 >>> round(scene.pressure_at(0.0).peak_kpa, 2), scene.changes(0.0, 10.0)
@@ -11,7 +11,7 @@ rigid platen as the thesis's weights were.
 
 from __future__ import annotations
 
-from appliance.calibration import Load
+from appliance.calibration import Load, MapLoad
 from appliance.sim.body import MatGrid
 from appliance.sim.field import PressureField
 from appliance.sim.scenes import Scene
@@ -62,9 +62,11 @@ def placer(bed):
     width, height = bed.layout.sheet.size_mm
     pitch = _pitch_mm(bed.layout)
 
-    def place(load: Load | None) -> None:
+    def place(load: Load | MapLoad | None) -> None:
         if load is None:
             bed.set_scene(empty_mat(bed.layout))
+        elif isinstance(load, MapLoad):
+            bed.set_scene(StaticScene(PressureField(load.pressure_kpa, load.pitch_mm)))
         else:
             bed.set_scene(square_load_scene(width, height, load.x_mm, load.y_mm, load.side_mm, load.pressure_kpa,
                                             pitch))

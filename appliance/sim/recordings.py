@@ -257,3 +257,26 @@ def _existing_dir(path, what: str) -> Path:
     if not path.is_dir():
         raise DataFileInvalid(f"{what} data directory {path} does not exist")
     return path
+
+
+PMAT_POSTURES = tuple(range(1, 18))
+
+
+def pmat_map_loads(pmat_dir, subjects, postures=PMAT_POSTURES, frames_per_posture: int = 1,
+                   grid: MatGrid = BED_GRID) -> list:
+    """PmatData maps of ``subjects`` as calibration loads (:class:`~appliance.calibration.MapLoad`):
+    ``frames_per_posture`` frames spread over the middle half of each posture's recording (the person
+    settled), each named ``S<subject>/<posture>#<frame>``."""
+    from appliance.calibration import MapLoad
+
+    if frames_per_posture < 1:
+        raise DataFileInvalid(f"frames per posture must be 1 or more, got {frames_per_posture}")
+    loads = []
+    for subject in subjects:
+        for posture in postures:
+            scene = pmat_scene(pmat_dir, subject, posture, grid)
+            n = len(scene.frames)
+            picks = np.unique(np.linspace(0.25 * n, 0.75 * n, frames_per_posture).astype(int)) \
+                if frames_per_posture > 1 else [n // 2]
+            loads += [MapLoad(scene.frames[k], grid.pitch_mm, f"S{subject}/{posture}#{k}") for k in picks]
+    return loads
