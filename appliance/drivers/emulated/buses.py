@@ -308,6 +308,7 @@ class EmulatedGPIOLines(GPIOLines):
         if edge not in (RISING, FALLING):
             raise EmulatorViolation(f"GPIO line {name} of {self.consumer} was not requested with edge detection")
         clock = self.bank.clock
+        clock.sleep(self._timing.call_overhead_s)      # the wait is a call too: its events are read by ioctl
         source = self.bank.sources.get(name)
         when = source.next_edge(clock.monotonic(), edge) if source is not None else None
         if when is not None and when <= clock.monotonic() + timeout_s:
