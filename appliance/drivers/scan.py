@@ -19,13 +19,15 @@ last frame's values, flagged HELD (usable). An engine's first frame is always
 a full pass, the reference the held values start from.
 
 Faults: a transfer error is retried (``retries`` attempts in all) and then flags
-that reading (a parallel step: that drive's readings) BUS_ERROR while the scan goes on; electrodes that fail the contact
-check are not used (OPEN_ELECTRODE); a reading over range at the least sensitive
-range is SATURATED; a converter repeating one code across different readings is
-STUCK (on a parallel chain, one AD7606 giving one code on every reading it
-converts); reciprocal readings that disagree beyond the stated accuracy are flagged
+that reading (on a parallel chain, that drive's readings) BUS_ERROR while the
+scan goes on; electrodes that fail the contact check are not used
+(OPEN_ELECTRODE); a reading over range at the least sensitive range is
+SATURATED; a converter repeating one code across different readings is STUCK
+(on a parallel chain, one AD7606 giving one code for every reading it converts);
+reciprocal readings that disagree beyond the stated accuracy are flagged
 RECIPROCITY. Contacts are checked every frame, or every ``[board.contact]
-every_frames`` frames where the check is long (the parallel board's 256 steps). Flagged-unusable readings are NaN in :attr:`AcquiredFrame.volts`, and
+every_frames`` frames where the check is long (the parallel board's 256 steps).
+Flagged-unusable readings are NaN in :attr:`AcquiredFrame.volts`, and
 every fault is also a :class:`TechnicalCondition` naming the part.
 """
 

@@ -164,8 +164,9 @@ def _signal_path_parallel(fe) -> list[ChipCheck]:
             return True, "the reading needs the wide range: the narrow one is not compared"
         ratio = float(on.volts[0] / wide.volts[0])
         ok = abs(ratio - 1) < GAIN_AGREEMENT
-        return ok, (f"+/-{fe.ranges[wide.range_index].second_stage:g} V and +/-{fe.ranges[on.range_index].second_stage:g}"
-                    f" V agree to {abs(ratio - 1):.2%}" + ("" if ok else ": RANGE pin or reference wrong"))
+        wide_v, narrow_v = fe.ranges[wide.range_index].second_stage, fe.ranges[on.range_index].second_stage
+        return ok, (f"+/-{wide_v:g} V and +/-{narrow_v:g} V agree to {abs(ratio - 1):.2%}"
+                    + ("" if ok else ": RANGE pin or reference wrong"))
 
     try:
         check("converters with the source off", quiet)
