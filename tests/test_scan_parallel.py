@@ -249,3 +249,36 @@ def test_the_parallel_profile_without_its_hardware_names_the_missing_device():
 
     with pytest.raises(DeviceMissing, match="/dev/i2c-1"):
         open_board({"profile": "parallel", "backend": "linux"})
+
+
+def test_the_adaptive_plan_takes_fine_drives_only_near_loaded_electrodes():
+    layout = get_layout("grid-16x32")
+    protocol = protocol_for(layout, "rows", reach=2)
+    plan = AdaptivePlan(protocol, 16, 32, radius=2)
+    assert len(plan.coarse) == 16 * 31 and len(plan.fine) == 15 * 32
+    taken = plan.drives_for([5 * 32 + 10 + 1])                      # row 5, column 10
+    fine = np.setdiff1d(taken, plan.coarse)
+    rows, cols = np.divmod(protocol.drives[fine] - 1, 32)
+    near = (np.abs(rows - 5) <= 2) & (np.abs(cols - 10) <= 2)
+    assert near.any(axis=1).all() and len(fine) == 6 * 5             # vertical pairs touching the 5 x 5 block
+    assert np.array_equal(plan.drives_for([]), plan.coarse)
+    with pytest.raises(ConfigError, match="loaded electrode 513"):
+        plan.drives_for([513])
+
+
+@pytest.mark.parametrize(("table", "message"), [
+    ({"grid": {"rows": 16, "cols": 64}}, "128 ADCs need 7 decoder address lines"),
+    ({"measurement": {"adc_oversampling": 3}}, "adc_oversampling must be one of"),
+    ({"measurement": {"adc_tile_rows": 3}}, "must divide the 8 channels"),
+    ({"grid": {"rows": 4, "cols": 1}}, "at least 1 row and 2 columns"),
+    ({"contact": {"every_frames": 0}}, "every_frames must be at least 1"),
+    ({"gpio": {"adc_convst": "GPIO4"}}, "both use GPIO4"),
+])
+def test_bad_parallel_profiles_are_refused_naming_the_key(table, message):
+    with pytest.raises(ConfigError, match=message):
+        board_profile({"profile": "parallel", **table})
+
+
+def test_a_grid_on_a_serial_profile_is_refused():
+    with pytest.raises(ConfigError, match=r"\[board.grid\] belongs to a parallel front end"):
+        board_profile({"profile": "reference", "grid": {"rows": 4, "cols": 4}})
