@@ -524,6 +524,29 @@ def test_board_passes_its_configured_gpio_chip(gpio):
 
 # --- the real libraries on a machine without the hardware -------------------------------------------------
 
+def test_the_parallel_boards_decoded_chip_select_runs_on_the_linux_buses(gpio, spi):
+    """The AD7606 read-out through the 74HC154 decoder: gpiod sets the address (with CONVST low riding along),
+    then one spidev frame; a conversion is CONVST high and BUSY's edge event."""
+    from appliance.drivers.ad7606 import AD7606Array
+    from appliance.drivers.decoder import ChipSelectDecoder
+
+    value = gpio.line.Value
+    gpio.fake.chips[gpio.chip1].update({"GPIO22": 22, "GPIO23": 23})
+    names = dict(convst="GPIO17", busy="GPIO27", reset="GPIO22", range_line="GPIO23")
+    lines = LinuxGPIOLines(AD7606Array.line_request(address_lines=("GPIO2", "GPIO3"), **names), consumer="adc")
+    device = LinuxSPIDevice(1, 0, mode=AD7606Array.SPI_MODE, max_speed_hz=15_625_000)
+    array = AD7606Array(lines, Clock(), ChipSelectDecoder(device, lines, ("GPIO2", "GPIO3")), n_chips=3, **names)
+    gpio.rec.will("wait_edge_events", True)
+    gpio.rec.will("read_edge_events", [gpio.fake.event(27)])
+    spi.will("xfer2", [0x7F, 0xFF, 0xFF, 0xFE] + [0, 1] * 6)
+    array.convert()
+    assert array.read(2) == (32767, -2, 1, 1, 1, 1, 1, 1)
+    assert gpio.rec.named("set_values") == [("set_values", gpio.chip1, {17: value.ACTIVE}),
+                                            ("set_values", gpio.chip0, {2: value.INACTIVE, 3: value.ACTIVE}),
+                                            ("set_values", gpio.chip1, {17: value.INACTIVE})]
+    assert spi.named("xfer2") == [("xfer2", [0] * 16)] and ("set", "mode", 2) in spi.calls
+
+
 def _absent(pattern):
     return pytest.mark.skipif(bool(glob.glob(pattern)), reason=f"{pattern} exists on this machine")
 

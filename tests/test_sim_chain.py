@@ -5,12 +5,13 @@ import pytest
 
 from appliance.core.layouts import get_layout
 from appliance.core.phantoms import Inclusion
-from appliance.core.protocols import default_protocol
+from appliance.core.protocols import default_protocol, protocol_for
 from appliance.drivers.emulated.board import EmulatedBoard
+from appliance.drivers.emulated.sensor import ForwardSensor
 from appliance.drivers.frontend import open_front_end
 from appliance.drivers.profile import board_profile
 from appliance.drivers.scan import Flag, ScanEngine
-from appliance.sim.chain import FrameChain
+from appliance.sim.chain import FrameChain, ParallelFrameChain
 from conftest import sensor_of
 
 PROTOCOL = default_protocol(get_layout("grid-4x4"))
@@ -56,3 +57,73 @@ def test_noise_is_of_the_chips_size_and_independent_between_frames():
     ratio = np.median(spread / expected)
     assert 0.8 < ratio < 1.25, ratio
     assert abs(np.corrcoef(frames[:-1, 0], frames[1:, 0])[0, 1]) < 0.5
+
+
+# --- the parallel chain -------------------------------------------------------------------------------------
+
+SMALL = get_layout("grid-4x8")
+SMALL_PROTOCOL = protocol_for(SMALL, "rows")
+SMALL_GRID = {"profile": "parallel", "grid": {"rows": 4, "cols": 8}}
+
+
+def settled_parallel_scan(profile, sensor, protocol, *, seed, frames=9):
+    """A steady frame of the emulated parallel board (after enough frames for the zero's running mean)."""
+    board = EmulatedBoard(profile, sensor, seed=seed)
+    engine = ScanEngine(open_front_end(board, profile), protocol, contact_check=False)
+    for _ in range(frames):
+        frame = engine.scan()
+    return frame, board
+
+
+def compare_parallel(profile, sensor, protocol, seed, frames=9):
+    """The shortcut against the transfer-level scan: readings within the noise of the two, the same ranges, and
+    the same flags wherever a reading is not within that noise of the low-signal floor."""
+    frame, board = settled_parallel_scan(profile, sensor, protocol, seed=seed, frames=frames)
+    chain = FrameChain(profile, seed=seed)
+    assert isinstance(chain, ParallelFrameChain)
+    assert np.array_equal(chain.errors.channel_gain, board.errors.channel_gain)      # one board, drawn once
+    volts, flags = chain.readings(sensor.transfer, protocol)
+    ideal = chain.ideal(sensor.transfer, protocol)
+    r = chain.drive_ranges(ideal, protocol)
+    assert np.array_equal(r, frame.range_index)
+    lsb = np.array([rng.second_stage for rng in chain.ranges])[r] / 32768
+    e = chain.errors
+    sigma = np.sqrt(2) * np.hypot(np.hypot(e.adc_noise_lsb * lsb, lsb / np.sqrt(12)), e.input_noise_v * chain.gain)
+    sigma = np.hypot(sigma, 5 / 32768 * e.adc_noise_lsb) / chain.gain        # and the two zeros' noise
+    both = np.isfinite(volts) & np.isfinite(frame.volts)
+    assert np.array_equal(np.isfinite(volts), np.isfinite(frame.volts))
+    assert np.all(np.abs(volts - frame.volts)[both] <= 5 * sigma[both] + 1e-3 * np.abs(ideal[both]))
+    clear = np.abs(np.abs(ideal) - profile.measurement.sign_floor_v) > 5 * sigma
+    assert np.array_equal(flags[clear], frame.flags[clear])
+    return frame, flags
+
+
+def test_the_parallel_shortcut_matches_the_transfer_level_scan_on_a_small_grid():
+    profile = board_profile(SMALL_GRID)
+    frame, flags = compare_parallel(profile, sensor_of("grid-4x8"), SMALL_PROTOCOL, seed=4)
+    assert frame.usable.all()
+
+
+def test_the_parallel_shortcut_saturates_where_the_scan_does():
+    sensor = ForwardSensor.of_layout(SMALL, sheet_conductance_s=0.0015)
+    frame, flags = compare_parallel(board_profile(SMALL_GRID), sensor, SMALL_PROTOCOL, seed=5)
+    saturated = (flags & int(Flag.SATURATED)) != 0
+    assert saturated.any() and np.array_equal(saturated, (frame.flags & int(Flag.SATURATED)) != 0)
+
+
+def test_the_parallel_shortcut_matches_the_scan_on_the_bed_for_a_subset_of_steps():
+    from appliance.core.fem import build_fem_model
+    from appliance.core.protocols import Protocol
+    from appliance.sim.mechanics import DEFAULT_PARAMETERS as mat
+    from appliance.sim.transfer import TransferSolver
+
+    layout = get_layout("grid-16x32")
+    full = protocol_for(layout, "rows", reach=2)
+    subset = np.isin(full.drive_index, np.arange(0, len(full.drives), 9))       # 109 of the 976 drives
+    protocol = Protocol(full.readings[subset], full.n_electrodes, "rows-subset")
+    assert len(set(full.drive_index[subset].tolist())) == 109
+    sheet = mat.rest_depth_mm * 1e-3 * mat.conductivity_s_per_m
+    model = build_fem_model(layout)
+    sensor = ForwardSensor(TransferSolver(model).transfer(np.full(model.n_elements, sheet)))
+    frame, flags = compare_parallel(board_profile({"profile": "parallel"}), sensor, protocol, seed=6, frames=3)
+    assert frame.usable.all() and not (flags & int(Flag.LOW_SIGNAL)).any()

@@ -212,3 +212,22 @@ def test_sensitivity_calibration_gives_a_file_the_reconstruction_reads(tmp_path)
     change = front.acquire().volts - reference
     similarity = (sensitivity @ change) / np.linalg.norm(sensitivity, axis=1)
     assert int(np.argmax(np.abs(similarity))) == 6
+
+
+def test_the_bed_mat_can_be_read_through_the_parallel_front_end():
+    from appliance.core.protocols import protocol_for
+    from appliance.drivers.profile import board_profile
+    from appliance.errors import ProtocolInvalid
+
+    layout = get_layout("grid-16x32")
+    bed = VirtualBed(layout, load_scene("supine-still"), density=0.25, mechanics_merge=5)
+    protocol = protocol_for(layout, "rows", reach=2)
+    profile = board_profile({"profile": "parallel"})
+    front = VirtualFrontEnd(bed, protocol, profile=profile, seed=2)
+    frame = front.acquire()
+    ideal = front.chain.ideal(bed.transfer_ohm(0.0), protocol)
+    accuracy = profile.accuracy
+    assert len(protocol) == 14786 and np.isfinite(frame.volts).all() and frame.conditions == ()
+    assert np.all(np.abs(frame.volts - ideal) <= accuracy.relative * np.abs(ideal) + accuracy.absolute_v)
+    with pytest.raises(ProtocolInvalid, match="only horizontally adjacent"):
+        VirtualFrontEnd(bed, protocol_for(layout, "local", reach=2), profile=profile)

@@ -3,7 +3,8 @@
 A :class:`FrontEnd` composes the chip drivers of one board profile (built by
 :func:`open_front_end`). Both chains (RMS converter and ADC, or AD5933) offer the
 same operations, so the scan engine's ordering, auto-ranging and fault handling
-are written once. Electrodes are 1-based here, multiplexer channels 0-based in
+are written once; the parallel chain (``frontend_parallel``) reads all of a
+drive's pairs in one step instead. Electrodes are 1-based here, multiplexer channels 0-based in
 the chip drivers: electrode e is channel e - 1.
 """
 
@@ -152,8 +153,14 @@ class Multiplexers:
 
 
 class FrontEnd(ABC):
-    """A board's measurement chain behind one interface; see the module docstring."""
+    """A board's measurement chain behind one interface; see the module docstring.
 
+    It takes one reading at a time. A chain that reads every measuring pair of a
+    drive at once (:class:`~appliance.drivers.frontend_parallel.ParallelFrontEnd`)
+    offers steps instead, with ``parallel = True``; the scan engine runs either.
+    """
+
+    parallel = False
     profile: BoardProfile
     ranges: tuple[Range, ...]          # least sensitive first
     mux: Multiplexers
@@ -165,6 +172,10 @@ class FrontEnd(ABC):
                                   consumer="current source enable")
         self.range_index = 0
         self.level: tuple[int, float] | None = None     # range and fraction of the last sample
+
+    def check_electrodes(self, n_electrodes: int) -> None:
+        """Refuse a layout with more electrodes than the multiplexers reach."""
+        self.mux.check_electrodes(n_electrodes)
 
     @abstractmethod
     def start_excitation(self, current_a: float | None = None) -> None:
@@ -293,8 +304,13 @@ class FrontEnd(ABC):
         self.mux.off()
 
 
-def open_front_end(board: Board, profile: BoardProfile) -> FrontEnd:
-    """The front end of ``profile`` on ``board``, its chips configured and the excitation off."""
+def open_front_end(board: Board, profile: BoardProfile):
+    """The front end of ``profile`` on ``board``, its chips configured and the excitation off: a
+    :class:`FrontEnd`, or a parallel front end for the ``parallel`` chain."""
+    if profile.chain == "parallel":
+        from appliance.drivers.frontend_parallel import ParallelFrontEnd
+
+        return ParallelFrontEnd(board, profile)
     if profile.chain == "rms":
         from appliance.drivers.frontend_rms import RMSFrontEnd
 

@@ -1,10 +1,12 @@
 """Board profiles: which chips the front end has, where they sit, and how long they take.
 
 A profile is the ``[board]`` section of the appliance's TOML configuration. It
-names a built-in profile (``reference``, ``reference-32``, ``ad5933``; files in
-``drivers/profiles/``) and may override any of its keys, so a board that moved a
-chip select or settles more slowly needs two lines, not a copy. Pins are named as
-on the header ("GPIO17"), never as a GPIO chip and offset.
+names a built-in profile (``reference``, ``reference-32``, ``ad5933``, ``parallel``;
+files in ``drivers/profiles/``) and may override any of its keys, so a board that
+moved a chip select or settles more slowly needs two lines, not a copy. Pins are
+named as on the header ("GPIO17"), never as a GPIO chip and offset. The parallel
+front end is built for a grid of electrodes given in its ``[grid]`` table, so the
+same profile describes the bed mat and a small test mat (``grid = {rows = 4, cols = 8}``).
 
 >>> profile = board_profile({"profile": "reference", "gpio": {"buzzer": "GPIO21"}})
 >>> profile.gpio["buzzer"], profile.spi["dds"].chip_select, profile.timing.drive_settle_s
@@ -23,23 +25,37 @@ from typing import Any, Mapping
 from appliance.core.toml_files import read_toml
 from appliance.errors import ConfigError
 
-BUILTIN_PROFILES = ("reference", "reference-32", "ad5933")
-CHAINS = ("rms", "ad5933")
+BUILTIN_PROFILES = ("reference", "reference-32", "ad5933", "parallel")
+CHAINS = ("rms", "ad5933", "parallel")
 MULTIPLEXERS = {"adg725": ("drive_mux", "measure_mux"),
-                "adg731": ("drive_pos_mux", "drive_neg_mux", "meas_pos_mux", "meas_neg_mux")}
+                "adg731": ("drive_pos_mux", "drive_neg_mux", "meas_pos_mux", "meas_neg_mux"),
+                "adg1414": ("drive_switches",)}
+MULTIPLEXER_CHANNELS = {"adg725": 16, "adg731": 32}
+"""Electrodes a multiplexer set reaches; the ADG1414 switch matrix reaches the profile's whole grid."""
+ADC_OVERSAMPLING = (1, 2, 4, 8, 16, 32, 64)
+"""The AD7606's oversampling ratios, set by its OS[2:0] pins (strapped on the board)."""
+ADC_ADDRESS_LINE = "adc_cs_a"
 ROLES_BY_CHAIN = {
     "rms": {"spi": ("dds",), "i2c": ("adc", "digipot", "thermometer"),
             "gpio": ("gain_a0", "gain_a1", "gain_wr", "adc_ready", "phase_sign", "source_enable")},
     "ad5933": {"spi": (), "i2c": ("impedance", "thermometer"),
                "gpio": ("gain_a0", "gain_a1", "gain_wr", "source_enable")},
+    "parallel": {"spi": ("dds", "adc"), "i2c": ("digipot", "thermometer"),
+                 "gpio": ("adc_convst", "adc_busy", "adc_reset", "adc_range", f"{ADC_ADDRESS_LINE}0",
+                          "source_enable")},
 }
 FIELDS_BY_CHAIN = {
     "rms": {"excitation": ("current_a", "full_scale_current_a"),
             "measurement": ("rms_limit_v", "adc_data_rate_sps"),
             "contact": ("test_current_a",),
-            "timing": ("rms_rise_tau_s", "rms_fall_tau_s", "settle_accuracy")},
+            "timing": ("measure_settle_s", "rms_rise_tau_s", "rms_fall_tau_s", "settle_accuracy")},
     "ad5933": {"excitation": ("output_range_vpp", "transconductance_a_per_v"),
-               "measurement": ("vin_gain", "settling_cycles", "dft_counts_per_volt")},
+               "measurement": ("vin_gain", "settling_cycles", "dft_counts_per_volt"),
+               "timing": ("measure_settle_s",)},
+    "parallel": {"excitation": ("current_a", "full_scale_current_a"),
+                 "measurement": ("lowpass_gain", "lowpass_hz", "adc_oversampling", "channels_per_adc",
+                                 "adc_tile_rows"),
+                 "contact": ("test_current_a",)},
 }
 
 
@@ -63,6 +79,11 @@ class Measurement:
     vin_gain: float | None = None
     settling_cycles: int | None = None
     dft_counts_per_volt: float | None = None
+    lowpass_gain: float | None = None          # parallel chain: gain of the low-pass after the demodulator
+    lowpass_hz: float | None = None            # its -3 dB frequency (two equal real poles)
+    adc_oversampling: int | None = None        # AD7606 OS[2:0] strap
+    channels_per_adc: int | None = None
+    adc_tile_rows: int | None = None           # grid rows one ADC's channels span
 
 
 @dataclass(frozen=True)
@@ -77,14 +98,15 @@ class Accuracy:
 class Contact:
     limit_ohm: float
     test_current_a: float | None = None
+    every_frames: int | None = None            # check contacts every this many frames (default every frame)
 
 
 @dataclass(frozen=True)
 class Timing:
     drive_settle_s: float
-    measure_settle_s: float
     i2c_clock_hz: float
     call_overhead_s: float
+    measure_settle_s: float | None = None
     rms_rise_tau_s: float | None = None
     rms_fall_tau_s: float | None = None
     settle_accuracy: float | None = None
@@ -95,6 +117,14 @@ class SPIAddress:
     bus: int
     chip_select: int
     max_speed_hz: int
+
+
+@dataclass(frozen=True)
+class Grid:
+    """The electrode grid a parallel front end is built for: rows x cols, numbered row-major from 1."""
+
+    rows: int
+    cols: int
 
 
 @dataclass(frozen=True)
@@ -114,6 +144,15 @@ class BoardProfile:
     i2c_bus: int
     i2c: Mapping[str, int]
     gpio: Mapping[str, str] = field(default_factory=dict)
+    grid: Grid | None = None
+
+    @property
+    def adc_address_lines(self) -> tuple[str, ...]:
+        """The header lines of the ADC chip-select decoder's address, least significant first."""
+        lines = []
+        while f"{ADC_ADDRESS_LINE}{len(lines)}" in self.gpio:
+            lines.append(self.gpio[f"{ADC_ADDRESS_LINE}{len(lines)}"])
+        return tuple(lines)
 
 
 def builtin_profile_text(name: str) -> str:
@@ -158,9 +197,16 @@ def _profile_from_mapping(data: dict) -> BoardProfile:
     multiplexer = _take(data, "multiplexer", str, where)
     if multiplexer not in MULTIPLEXERS:
         raise ConfigError(f"{where} multiplexer must be one of {tuple(MULTIPLEXERS)}, got {multiplexer!r}")
-    channels = _take(data, "channels", int, where)
-    if channels != (16 if multiplexer == "adg725" else 32):
-        raise ConfigError(f"{where} channels = {channels} does not match the {multiplexer}")
+    if (multiplexer == "adg1414") != (chain == "parallel"):
+        raise ConfigError(f"{where}: the {chain} chain cannot use the {multiplexer}")
+    grid = _grid(data, where) if chain == "parallel" else None
+    if "grid" in data:
+        raise ConfigError(f"{where}: [board.grid] belongs to a parallel front end, not a {chain} one")
+    expected = grid.rows * grid.cols if grid else MULTIPLEXER_CHANNELS[multiplexer]
+    channels = _take(data, "channels", int, where) if grid is None or "channels" in data else expected
+    if channels != expected:
+        raise ConfigError(f"{where} channels = {channels} does not match the {multiplexer}"
+                          + (f" on a {grid.rows} x {grid.cols} grid ({expected} electrodes)" if grid else ""))
     sections = {key: _section(cls, _take(data, key, dict, where), f"[board.{key}]")
                 for key, cls in (("excitation", Excitation), ("measurement", Measurement),
                                  ("accuracy", Accuracy), ("contact", Contact), ("timing", Timing))}
@@ -184,15 +230,48 @@ def _profile_from_mapping(data: dict) -> BoardProfile:
     _check_distinct(spi, "[board.spi]", lambda a: f"spi{a.bus}.{a.chip_select}")
     _check_distinct(gpio, "[board.gpio]", lambda line: line)
     _check_distinct(i2c, "[board.i2c]", lambda address: f"0x{address:02X}")
+    if sections["contact"].every_frames is not None and sections["contact"].every_frames < 1:
+        raise ConfigError(f"[board.contact] every_frames must be at least 1, got {sections['contact'].every_frames}")
     for key, names in FIELDS_BY_CHAIN[chain].items():
         missing = [n for n in names if getattr(sections[key], n) is None]
         if missing:
             raise ConfigError(f"[board.{key}] needs {missing[0]!r} for a {chain} front end")
-    return BoardProfile(name=name, chain=chain, multiplexer=multiplexer, channels=channels,
-                        excitation=sections["excitation"], measurement=sections["measurement"],
-                        accuracy=sections["accuracy"], contact=sections["contact"], timing=sections["timing"],
-                        spi=MappingProxyType(spi), i2c_bus=i2c_bus, i2c=MappingProxyType(i2c),
-                        gpio=MappingProxyType(gpio))
+    profile = BoardProfile(name=name, chain=chain, multiplexer=multiplexer, channels=channels,
+                           excitation=sections["excitation"], measurement=sections["measurement"],
+                           accuracy=sections["accuracy"], contact=sections["contact"], timing=sections["timing"],
+                           spi=MappingProxyType(spi), i2c_bus=i2c_bus, i2c=MappingProxyType(i2c),
+                           gpio=MappingProxyType(gpio), grid=grid)
+    if chain == "parallel":
+        _check_parallel(profile, where)
+    return profile
+
+
+def _grid(data: dict, where: str) -> Grid:
+    grid = _section(Grid, _take(data, "grid", dict, where), "[board.grid]")
+    if grid.rows < 1 or grid.cols < 2:
+        raise ConfigError(f"[board.grid] needs at least 1 row and 2 columns (a pair along a row), got "
+                          f"{grid.rows} x {grid.cols}")
+    return grid
+
+
+def _check_parallel(profile: BoardProfile, where: str) -> None:
+    """The ADCs must cover the grid's channels and the decoder must reach every ADC."""
+    m = profile.measurement
+    if m.adc_oversampling not in ADC_OVERSAMPLING:
+        raise ConfigError(f"[board.measurement] adc_oversampling must be one of {ADC_OVERSAMPLING} (the AD7606's "
+                          f"OS[2:0] settings), got {m.adc_oversampling}")
+    if m.channels_per_adc != 8:
+        raise ConfigError(f"[board.measurement] channels_per_adc must be 8 (the AD7606), got {m.channels_per_adc}")
+    if not 1 <= m.adc_tile_rows <= m.channels_per_adc or m.channels_per_adc % m.adc_tile_rows:
+        raise ConfigError(f"[board.measurement] adc_tile_rows = {m.adc_tile_rows} must divide the "
+                          f"{m.channels_per_adc} channels of an ADC")
+    from appliance.drivers.channel_map import ChannelMap
+
+    adcs = ChannelMap.of_profile(profile).n_adcs
+    lines = profile.adc_address_lines
+    if 2 ** len(lines) < adcs:
+        raise ConfigError(f"{where}: {adcs} ADCs need {max(1, (adcs - 1).bit_length())} decoder address lines "
+                          f"({ADC_ADDRESS_LINE}0 ...) but [board.gpio] has {len(lines)}")
 
 
 def _check_distinct(mapping: Mapping, where: str, key) -> None:

@@ -8,12 +8,26 @@ converts, and checks what it got. Readings are taken drive pair by drive pair
 of the level the plan predicts, so the RMS converter only ever settles upwards,
 which it does twice as fast.
 
+A parallel front end (``front_end.parallel``) takes a drive's readings in one
+step (:mod:`appliance.drivers.steps`): the engine routes each drive once, in
+protocol order, with the next drive routed while the last is read out, and
+ranges per drive. On a grid the engine also offers adaptive frames:
+``scan(loaded=...)`` takes the coarse drives (along the rows) and only the fine
+drives near the electrodes the caller marks as loaded
+(:mod:`appliance.drivers.adaptive`); the readings of drives not taken keep the
+last frame's values, flagged HELD (usable). An engine's first frame is always
+a full pass, the reference the held values start from.
+
 Faults: a transfer error is retried (``retries`` attempts in all) and then flags
-that reading BUS_ERROR while the scan goes on; electrodes that fail the contact
-check are not used (OPEN_ELECTRODE); a reading over range at the least sensitive
-range is SATURATED; a converter repeating one code across different readings is
-STUCK; reciprocal readings that disagree beyond the stated accuracy are flagged
-RECIPROCITY. Flagged-unusable readings are NaN in :attr:`AcquiredFrame.volts`, and
+that reading (on a parallel chain, that drive's readings) BUS_ERROR while the
+scan goes on; electrodes that fail the contact check are not used
+(OPEN_ELECTRODE); a reading over range at the least sensitive range is
+SATURATED; a converter repeating one code across different readings is STUCK
+(on a parallel chain, one AD7606 giving one code for every reading it converts);
+reciprocal readings that disagree beyond the stated accuracy are flagged
+RECIPROCITY. Contacts are checked every frame, or every ``[board.contact]
+every_frames`` frames where the check is long (the parallel board's 256 steps).
+Flagged-unusable readings are NaN in :attr:`AcquiredFrame.volts`, and
 every fault is also a :class:`TechnicalCondition` naming the part.
 """
 
@@ -27,10 +41,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from appliance.core.protocols import Protocol
+from appliance.drivers.adaptive import AdaptivePlan
 from appliance.drivers.bus import with_retries
 from appliance.drivers.contact import ContactReport, check_contacts
 from appliance.drivers.frontend import FrontEnd, Measured
-from appliance.errors import ApplianceError, ScanError, TransferFailed
+from appliance.drivers.steps import stuck_converters, take_step
+from appliance.errors import ApplianceError, ChipError, ConfigError, ScanError, TransferFailed
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +64,7 @@ class Flag(enum.IntFlag):
     RECIPROCITY = 16
     LOW_SIGNAL = 32
     SIGN_UNCERTAIN = 64
+    HELD = 128              # not taken this frame (adaptive): the last frame's value, with its flags
 
 
 UNUSABLE = Flag.SATURATED | Flag.OPEN_ELECTRODE | Flag.BUS_ERROR | Flag.STUCK | Flag.RECIPROCITY
@@ -136,21 +153,44 @@ class _Tally:
 
 
 class ScanEngine:
-    """Runs ``protocol`` on ``front_end``; keeps the range plan from one frame to the next."""
+    """Runs ``protocol`` on ``front_end``; keeps the range plan, the contact report and the last frame from one
+    frame to the next. ``fine_radius`` (electrode spacings) is how near a loaded electrode an adaptive frame
+    takes the fine drives."""
 
     def __init__(self, front_end: FrontEnd, protocol: Protocol, *, order: str = "optimised", retries: int = 3,
                  conversions: int = 1, contact_check: bool = True,
-                 progress: Callable[[int, int], None] | None = None):
+                 progress: Callable[[int, int], None] | None = None, fine_radius: float = 2.0):
         if order not in ("optimised", "protocol"):
             raise ValueError(f"order must be 'optimised' or 'protocol', got {order!r}")
         if conversions < 1 or retries < 1:
             raise ValueError("conversions and retries must be at least 1")
-        front_end.mux.check_electrodes(protocol.n_electrodes)
+        front_end.check_electrodes(protocol.n_electrodes)
         self.front_end, self.protocol, self.order = front_end, protocol, order
         self.retries, self.conversions, self.contact_check = retries, conversions, contact_check
         self.progress = progress
         self.plan_range: np.ndarray | None = None       # per reading, from the last frame
         self.plan_fraction: np.ndarray | None = None
+        self.parallel = getattr(front_end, "parallel", False)
+        if self.parallel:
+            self.channels, self.signs = front_end.cmap.channels_of_protocol(protocol.readings)
+            self.by_drive = [np.flatnonzero(protocol.drive_index == d) for d in range(len(protocol.drives))]
+            self.plan_drive_range = np.full(len(protocol.drives), -1, dtype=np.int64)
+        grid = front_end.profile.grid
+        self.adaptive = AdaptivePlan(protocol, grid.rows, grid.cols, radius=fine_radius) if grid else None
+        self.contact_every = front_end.profile.contact.every_frames or 1
+        self.frames = 0
+        self.contact: ContactReport | None = None       # the last contact check's report
+        self.last: AcquiredFrame | None = None
+
+    def drives_for(self, loaded) -> np.ndarray | None:
+        """The drives a frame takes (indices into ``protocol.drives``), None for all: all until a first full frame
+        has been taken, or when ``loaded`` is None; else the adaptive plan's for the ``loaded`` electrodes."""
+        if loaded is None or self.last is None:
+            return None
+        if self.adaptive is None:
+            raise ConfigError("adaptive frames need a front end built for a grid ([board.grid], the parallel "
+                              "profile)")
+        return self.adaptive.drives_for(loaded)
 
     # -- ordering ------------------------------------------------------------------------
     def reading_order(self) -> np.ndarray:
@@ -169,27 +209,39 @@ class ScanEngine:
         return np.nan_to_num(self.plan_fraction) * scale[np.clip(self.plan_range, 0, None)]
 
     # -- one frame -------------------------------------------------------------------------
-    def scan(self) -> AcquiredFrame:
-        """Acquire one set: contact check, then every reading; the excitation is off afterwards."""
+    def scan(self, loaded=None) -> AcquiredFrame:
+        """Acquire one set: contact check, then the readings; the excitation is off afterwards.
+
+        ``loaded`` (electrode numbers, any iterable) makes an adaptive frame; see the module docstring.
+        """
         fe, clock = self.front_end, self.front_end.clock
+        drives = self.drives_for(loaded)
         start = clock.monotonic()
         conditions: list[TechnicalCondition] = []
         tally = _Tally(len(self.protocol))
         try:
             temperature = self._temperature(conditions)
             contact = self._contact(conditions)
+            if self.parallel:
+                self._zero(conditions)
             self._start_excitation(conditions)
             blocked = contact.open_electrodes if contact else frozenset()
-            order = self.reading_order()
-            for done, i in enumerate(order, start=1):
-                row = self.protocol.readings[i]
-                if blocked & set(row.tolist()):
-                    tally.flags[i] |= Flag.OPEN_ELECTRODE
-                else:
-                    self._reading(i, row, tally, conditions, start)
-                if self.progress is not None:
-                    self.progress(done, len(order))
-            self._find_stuck(order, tally, conditions)
+            if self.parallel:
+                self._steps(drives, tally, conditions, start, blocked)
+                self._find_stuck_converters(tally, conditions)
+            else:
+                order = self.reading_order()
+                if drives is not None:
+                    order = order[np.isin(self.protocol.drive_index[order], drives)]
+                for done, i in enumerate(order, start=1):
+                    row = self.protocol.readings[i]
+                    if blocked & set(row.tolist()):
+                        tally.flags[i] |= Flag.OPEN_ELECTRODE
+                    else:
+                        self._reading(i, row, tally, conditions, start)
+                    if self.progress is not None:
+                        self.progress(done, len(order))
+                self._find_stuck(order, tally, conditions)
         finally:
             self._safe_state(conditions)
         self._check_drives(tally, conditions)
@@ -198,12 +250,16 @@ class ScanEngine:
         if saturation is not None:
             conditions.append(saturation)
         self._update_plan(tally)
+        self._hold(drives, tally)
         volts = np.where((tally.flags & int(UNUSABLE)) == 0, tally.volts, np.nan)
         if not np.isfinite(volts).any():
             conditions.append(TechnicalCondition("front end", "no usable reading in this frame"))
-        return AcquiredFrame(self.protocol, volts, tally.volts, tally.flags, tally.ranges, tally.fraction,
-                             tally.times, clock.monotonic() - start, fe.drive_current_a(), contact,
-                             tuple(conditions), temperature_c=temperature)
+        frame = AcquiredFrame(self.protocol, volts, tally.volts, tally.flags, tally.ranges, tally.fraction,
+                              tally.times, clock.monotonic() - start, fe.drive_current_a(), contact,
+                              tuple(conditions), temperature_c=temperature)
+        self.last = frame
+        self.frames += 1
+        return frame
 
     def _temperature(self, conditions) -> float | None:
         """The mat's temperature (its conductivity follows it, about 2 % per degree for saline)."""
@@ -215,17 +271,34 @@ class ScanEngine:
             return None
 
     def _contact(self, conditions) -> ContactReport | None:
+        """A contact check when one is due (every frame, or every ``contact_every``); else the last report."""
         if not self.contact_check:
             return None
-        try:
-            report = check_contacts(self.front_end, self.protocol.n_electrodes, retries=self.retries)
-        except TransferFailed as exc:
-            conditions.append(TechnicalCondition("contact check", f"could not complete: {exc}"))
-            return None
+        if self.contact is None or self.frames % self.contact_every == 0:
+            try:
+                self.contact = check_contacts(self.front_end, self.protocol.n_electrodes, retries=self.retries)
+            except TransferFailed as exc:
+                conditions.append(TechnicalCondition("contact check", f"could not complete: {exc}"))
+                self.contact = None
+                return None
+        report = self.contact
         for e in sorted(report.open_electrodes):
             conditions.append(TechnicalCondition(f"electrode {e}", "open or lost contact: its readings are "
                                                  "left out"))
         return report
+
+    def _zero(self, conditions) -> None:
+        """The parallel channels' offsets, with the source off; the last ones are kept if it fails."""
+        fe = self.front_end
+        try:
+            with_retries(fe.measure_zero, attempts=self.retries, what="zero of the measuring channels",
+                         on_retry=lambda *_: fe.forget_routing())
+        except TransferFailed as exc:
+            conditions.append(TechnicalCondition(fe.converter_name(), f"zero not measured ({exc}); the last "
+                                                 "offsets are used"))
+            fe.forget_routing()
+        except ChipError as exc:
+            raise ScanError(f"the converters do not respond: {exc}") from exc
 
     def _start_excitation(self, conditions) -> None:
         try:
@@ -265,6 +338,68 @@ class ScanEngine:
         return self.front_end.measure(drive, measure, range_index=int(self.plan_range[i]) if planned else None,
                                       expected_fraction=float(self.plan_fraction[i]) if planned else None,
                                       conversions=self.conversions)
+
+    def _steps(self, drives, tally: _Tally, conditions, start: float, blocked) -> None:
+        """A parallel front end's readings: one step per drive, in protocol order."""
+        fe, protocol = self.front_end, self.protocol
+        blocked_electrodes = np.array(sorted(blocked), dtype=np.int64)
+        runnable = []
+        for d in (range(len(protocol.drives)) if drives is None else drives):
+            idx = self.by_drive[d]
+            if np.isin(protocol.drives[d], blocked_electrodes).any():
+                tally.flags[idx] |= Flag.OPEN_ELECTRODE
+                continue
+            off = np.isin(protocol.readings[idx, 2:], blocked_electrodes).any(axis=1)
+            tally.flags[idx[off]] |= Flag.OPEN_ELECTRODE
+            if (~off).any():
+                runnable.append((d, idx[~off]))
+        floor = fe.profile.measurement.sign_floor_v
+        done, total = 0, sum(len(idx) for _, idx in runnable)
+        for n, (d, idx) in enumerate(runnable):
+            drive = tuple(int(e) for e in protocol.drives[d])
+            then = None
+            if n + 1 < len(runnable) and self.plan_drive_range[d] >= 0:
+                then = tuple(int(e) for e in protocol.drives[runnable[n + 1][0]])
+            try:
+                result = with_retries(
+                    lambda: take_step(fe, drive, self.channels[idx], self.signs[idx], int(self.plan_drive_range[d]),
+                                      then=then, conversions=self.conversions),
+                    attempts=self.retries, what=f"drive {drive[0]}-{drive[1]}",
+                    on_retry=lambda *_: fe.forget_routing())
+            except TransferFailed as exc:
+                tally.flags[idx] |= Flag.BUS_ERROR
+                conditions.append(TechnicalCondition("bus", str(exc)))
+                fe.forget_routing()
+                continue
+            self.plan_drive_range[d] = result.range_index
+            tally.volts[idx], tally.fraction[idx] = result.volts, result.fraction
+            tally.ranges[idx], tally.times[idx] = result.range_index, result.sampled_at_s - start
+            for i, code in zip(idx, result.codes):
+                tally.codes[i] = code
+            tally.flags[idx[result.saturated]] |= Flag.SATURATED
+            quiet = idx[(np.abs(result.volts) < floor) & ~result.saturated]
+            tally.flags[quiet] |= Flag.LOW_SIGNAL | Flag.SIGN_UNCERTAIN
+            done += len(idx)
+            if self.progress is not None:
+                self.progress(done, total)
+
+    def _find_stuck_converters(self, tally: _Tally, conditions) -> None:
+        quiet = int(Flag.LOW_SIGNAL | Flag.SATURATED)
+        stuck = stuck_converters(tally.codes, (tally.flags & quiet) == 0, tally.times, run=STUCK_RUN)
+        for adc, code in sorted(stuck.items()):
+            mine = np.array([c is not None and c[0] == adc for c in tally.codes])
+            tally.flags[mine] |= Flag.STUCK
+            conditions.append(TechnicalCondition(self.front_end.converter_name(adc),
+                                                 f"returned code {code} for every reading it converted: stuck"))
+
+    def _hold(self, drives, tally: _Tally) -> None:
+        """Readings of drives not taken this frame keep the last frame's values and flags, flagged HELD."""
+        if drives is None:
+            return
+        held = ~np.isin(self.protocol.drive_index, drives)
+        last = self.last
+        tally.volts[held], tally.fraction[held] = last.measured_volts[held], last.fraction[held]
+        tally.ranges[held], tally.flags[held] = last.range_index[held], last.flags[held] | Flag.HELD
 
     # -- checks over the frame -------------------------------------------------------------
     def _find_stuck(self, order, tally: _Tally, conditions) -> None:

@@ -3,8 +3,9 @@
 Chips with registers are read back (:meth:`FrontEnd.self_check`). Write-only parts
 (the DDS, the multiplexers, the AD8251) are checked through the signal they
 shape: no signal with the source off, a signal with it on, the same reading at
-two gains, and a converter that does not repeat one code. The contact table
-comes last.
+two gains (on the parallel chain: the AD7606's two ranges, and every converter
+answering with the source off), and a converter that does not repeat one code.
+The contact table comes last.
 """
 
 from __future__ import annotations
@@ -12,11 +13,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from appliance.drivers.contact import ContactReport, check_contacts
-from appliance.drivers.frontend import ChipCheck, FrontEnd
+from appliance.drivers.frontend import OVER_RANGE, ChipCheck, FrontEnd
 from appliance.errors import ApplianceError
 
 QUIET_FRACTION = 0.05        # with the source off, the most sensitive range must read below this
 GAIN_AGREEMENT = 0.02        # one reading at two gains must agree to this, relative
+SIGNAL_OVER_ACCURACY = 10    # parallel chain: the test reading must be this many times the stated absolute accuracy
 
 
 @dataclass(frozen=True)
@@ -40,9 +42,9 @@ class SelfTestReport:
 
 def run_self_test(front_end: FrontEnd, n_electrodes: int) -> SelfTestReport:
     """Chip read-backs, the signal path on electrodes 1-2, then the contact check of every electrode."""
-    front_end.mux.check_electrodes(n_electrodes)
+    front_end.check_electrodes(n_electrodes)
     checks = list(front_end.self_check())
-    checks += _signal_path(front_end)
+    checks += _signal_path_parallel(front_end) if getattr(front_end, "parallel", False) else _signal_path(front_end)
     contact = None
     try:
         contact = check_contacts(front_end, n_electrodes)
@@ -109,6 +111,69 @@ def _signal_path(fe: FrontEnd) -> list[ChipCheck]:
         check("sine, current source and multiplexers", signal)
         if results[-1].ok:
             check("AD8251 gain steps", gains)
+    finally:
+        fe.stop_excitation()
+    return results
+
+
+def _signal_path_parallel(fe) -> list[ChipCheck]:
+    """The parallel chain on electrodes 1-2: every converter quiet with the source off, then the pair's own
+    channel at the contact current, at both ranges."""
+    results = []
+    pair = (1, 2)
+    channel = fe.cmap.channel_of(*pair)[0]
+    state: dict = {}
+
+    def check(part, action):
+        try:
+            ok, detail = action()
+        except (ApplianceError, OSError) as exc:
+            ok, detail = False, str(exc)
+        results.append(ChipCheck(part, "signal path", ok, detail))
+
+    def quiet():
+        fe.measure_zero()
+        sample = fe.step(pair, list(range(fe.cmap.n_channels)), len(fe.ranges) - 1)
+        state["off"] = sample
+        worst = float(sample.fraction.max())
+        return worst < QUIET_FRACTION, (f"{fe.cmap.n_adcs} converters answer; source off, the largest channel reads "
+                                        f"{worst:.2%} of the most sensitive range"
+                                        + ("" if worst < QUIET_FRACTION else ": enable line stuck on, or interference"))
+
+    def signal():
+        fe.start_excitation()
+        fe.contact_current()
+        wide = fe.step(pair, [channel], 0)
+        best = fe.best_range(wide.volts)
+        sample = fe.step(pair, [channel], best)
+        state["on"], state["wide"] = sample, wide
+        volts = float(sample.volts[0])
+        floor = SIGNAL_OVER_ACCURACY * fe.profile.accuracy.absolute_v
+        stuck = sample.codes[0] == state["off"].codes[channel]
+        ok = abs(volts) > floor and sample.fraction[0] < OVER_RANGE and not stuck
+        detail = f"source on reads {abs(volts) * 1e3:.3f} mV on electrodes 1-2 ({fe.ranges[best].label})"
+        if stuck:
+            detail += f"; the converter returned code {sample.codes[0]} with the source off and on: stuck"
+        elif not ok:
+            detail += ": no usable signal (sine source, current source or drive switches)"
+        return ok, detail
+
+    def ranges():
+        on, wide = state["on"], state["wide"]
+        if on.range_index == wide.range_index:
+            return True, "the reading needs the wide range: the narrow one is not compared"
+        ratio = float(on.volts[0] / wide.volts[0])
+        ok = abs(ratio - 1) < GAIN_AGREEMENT
+        wide_v, narrow_v = fe.ranges[wide.range_index].second_stage, fe.ranges[on.range_index].second_stage
+        return ok, (f"+/-{wide_v:g} V and +/-{narrow_v:g} V agree to {abs(ratio - 1):.2%}"
+                    + ("" if ok else ": RANGE pin or reference wrong"))
+
+    try:
+        check("converters with the source off", quiet)
+        if results[-1].ok:
+            check("sine, current source and drive switches", signal)
+        if len(results) == 2 and results[-1].ok:
+            check("AD7606 ranges", ranges)
     finally:
         fe.stop_excitation()
     return results

@@ -34,7 +34,15 @@ from appliance.drivers.scan import Flag
 
 
 class FrameChain:
-    """Readings of a whole frame from transfer impedances, as the profile's front end would take them."""
+    """Readings of a whole frame from transfer impedances, as the profile's front end would take them.
+
+    A ``parallel`` profile gets :class:`ParallelFrameChain`.
+    """
+
+    def __new__(cls, profile: BoardProfile, **kwargs):
+        if cls is FrameChain and profile.chain == "parallel":
+            cls = ParallelFrameChain
+        return super().__new__(cls)
 
     def __init__(self, profile: BoardProfile, *, errors: ChainErrors | None = None, seed: int = 0):
         self.profile = profile
@@ -53,6 +61,9 @@ class FrameChain:
             self.current_a = ACTUAL_VPP[x.output_range_vpp] / (2 * np.sqrt(2)) * x.transconductance_a_per_v
         self.full_scale = np.array([r.full_scale_input_v for r in self.ranges])
         self.gain = np.array([r.gain for r in self.ranges])
+
+    def check(self, protocol: Protocol) -> None:
+        """Refuse a protocol this front end cannot take (every reading suits the serial chains)."""
 
     def ideal(self, transfer: np.ndarray, protocol: Protocol) -> np.ndarray:
         """V(meas+) - V(meas-) at the set current (less where the source reaches compliance), volts rms."""
@@ -94,3 +105,84 @@ class FrameChain:
         pga = np.array([rng.second_stage for rng in self.ranges])[r]
         # One DFT count, referred to the RMS level after the in-amp and AD8251.
         return 1.0 / (m.dft_counts_per_volt * m.vin_gain * np.sqrt(2) * pga)
+
+
+class ParallelFrameChain(FrameChain):
+    """The parallel front end's frame: every drive's readings from one conversion, ranged per drive.
+
+    Per reading: the current source's current (less at compliance, through the
+    two switches' on resistance), the channel's gain, quadrature leak and
+    offset (:class:`~appliance.drivers.emulated.parallel.ParallelErrors`, drawn as
+    the emulated board draws them for the same ``seed``), the in-amp and
+    converter noise, the AD7606 code at the range the scan engine's ranging
+    settles on for that drive, and the offset the zero measurement leaves
+    (its running mean's noise). Readings over range at +/-10 V are saturated
+    (NaN); below ``sign_floor_v`` they are flagged LOW_SIGNAL and SIGN_UNCERTAIN.
+    """
+
+    def __init__(self, profile: BoardProfile, *, errors=None, seed: int = 0):
+        from appliance.drivers.channel_map import ChannelMap
+        from appliance.drivers.emulated.parallel import ParallelErrors
+        from appliance.drivers.frontend_parallel import parallel_ranges
+        from appliance.drivers.frontend_rms import digipot_setting
+
+        self.profile = profile
+        self.rng = np.random.default_rng(seed)
+        self.cmap = ChannelMap.of_profile(profile)
+        self.errors = errors or ParallelErrors.drawn(np.random.default_rng(seed), self.cmap.n_channels)
+        self.ranges = parallel_ranges(profile)
+        self.current_a = digipot_setting(profile, profile.excitation.current_a)[1]
+        self.full_scale = np.array([r.full_scale_input_v for r in self.ranges])
+        self.gain = self.ranges[0].gain
+
+    def check(self, protocol: Protocol) -> None:
+        """Refuse a protocol measuring a pair no channel reads, or for another grid."""
+        g = self.profile.grid
+        if protocol.n_electrodes != g.rows * g.cols:
+            raise ValueError(f"protocol for {protocol.n_electrodes} electrodes on a parallel front end built for a "
+                             f"{g.rows} x {g.cols} grid")
+        self._channels(protocol)
+
+    def _channels(self, protocol: Protocol) -> tuple[np.ndarray, np.ndarray]:
+        if getattr(self, "_mapped", (None,))[0] is not protocol:
+            self._mapped = (protocol, *self.cmap.channels_of_protocol(protocol.readings))
+        return self._mapped[1], self._mapped[2]
+
+    def ideal(self, transfer: np.ndarray, protocol: Protocol) -> np.ndarray:
+        from appliance.drivers.emulated.parallel import SWITCH_OHM
+
+        a, b, c, d = (protocol.readings - 1).T
+        z = transfer
+        current = compliant_current(self.current_a, z[a, a] - z[a, b] - z[b, a] + z[b, b] + 2 * SWITCH_OHM,
+                                    self.profile.excitation.compliance_v)
+        return current * (z[c, a] - z[c, b] - z[d, a] + z[d, b])
+
+    def drive_ranges(self, volts: np.ndarray, protocol: Protocol) -> np.ndarray:
+        """Each reading's range: the most sensitive one keeping its whole drive under the headroom."""
+        peak = np.zeros(len(protocol.drives))
+        np.maximum.at(peak, protocol.drive_index, np.abs(volts))
+        return self.ranges_for(peak)[protocol.drive_index]
+
+    def readings(self, transfer: np.ndarray, protocol: Protocol) -> tuple[np.ndarray, np.ndarray]:
+        from appliance.drivers.frontend_parallel import ZERO_FRAMES
+
+        channels, signs = self._channels(protocol)
+        ideal = self.ideal(transfer, protocol)
+        r = self.drive_ranges(ideal, protocol)
+        e, n = self.errors, len(ideal)
+        lsb = np.array([rng.second_stage for rng in self.ranges])[r] / 32768
+        pin = self.gain * e.channel_factor()[channels] * signs * ideal + e.offset_v[channels]
+        pin += e.input_noise_v * self.gain * self.rng.standard_normal(n)
+        oversampling = self.profile.measurement.adc_oversampling
+        codes = np.clip(np.round(pin / lsb + e.adc_noise_lsb / np.sqrt(oversampling) * self.rng.standard_normal(n)),
+                        -32768, 32767)
+        zero_lsb = self.ranges[-1].second_stage / 32768
+        zero_noise = np.hypot(e.adc_noise_lsb * zero_lsb, e.input_noise_v * self.gain) / np.sqrt(ZERO_FRAMES)
+        zero = e.offset_v[channels] + zero_noise * self.rng.standard_normal(n)
+        measured = signs * (codes * lsb - zero) / self.gain
+        flags = np.zeros(n, dtype=np.int64)
+        saturated = (r == 0) & (np.abs(codes) / 32768 > OVER_RANGE)
+        flags[saturated] |= Flag.SATURATED
+        quiet = ~saturated & (np.abs(measured) < self.profile.measurement.sign_floor_v)
+        flags[quiet] |= Flag.LOW_SIGNAL | Flag.SIGN_UNCERTAIN
+        return np.where(saturated, np.nan, measured), flags

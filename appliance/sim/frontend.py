@@ -3,7 +3,9 @@
 What a settled scan of the emulated board would return, without running the
 chips one transfer at a time: fast enough for a bed-size mat, and the same
 interface (``acquire()`` giving volts, flags, temperature and time) the
-calibration procedures and the monitor use with a real scan engine.
+calibration procedures and the monitor use with a real scan engine. ``profile``
+chooses the front end: the reference board by default, or the bed's parallel
+board (``board_profile({"profile": "parallel"})``, with the rows protocol).
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ class VirtualFrontEnd:
             raise ValueError(f"protocol for {protocol.n_electrodes} electrodes on a {bed.n_electrodes}-electrode mat")
         self.bed, self.protocol = bed, protocol
         self.chain = FrameChain(profile or board_profile(VIRTUAL_MAT_BOARD), seed=seed)
+        self.chain.check(protocol)
         self.seed = seed
         self._noise_key: tuple[int, int] = (-1, -1)        # (scene ms, frames already taken at that instant)
         self.frame_interval_s = frame_interval_s

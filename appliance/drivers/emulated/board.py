@@ -36,7 +36,18 @@ POWERED_BEFORE_OPEN_S = 1.0     # the board is powered a while before software o
 
 
 class EmulatedBoard(Board):
-    """``profile``'s front end over emulated chips measuring ``sensor``; ``seed`` fixes errors and noise."""
+    """``profile``'s front end over emulated chips measuring ``sensor``; ``seed`` fixes errors and noise.
+
+    A profile whose chain is ``parallel`` gets the parallel board
+    (:mod:`appliance.drivers.emulated.parallel_board`), built the same way.
+    """
+
+    def __new__(cls, profile: BoardProfile, *args, **kwargs):
+        if cls is EmulatedBoard and profile.chain == "parallel":
+            from appliance.drivers.emulated.parallel_board import EmulatedParallelBoard
+
+            cls = EmulatedParallelBoard
+        return super().__new__(cls)
 
     def __init__(self, profile: BoardProfile, sensor: SensorModel, *, seed: int = 0,
                  temperature_c: float = 24.0):

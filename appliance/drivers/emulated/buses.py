@@ -63,18 +63,20 @@ class FaultPlan:
     ``missing`` lists device nodes that do not exist when the board opens them.
     """
 
-    failures: dict[str, list[int]] = field(default_factory=dict)
+    failures: dict[str, list[int | None]] = field(default_factory=dict)
     missing: set[str] = field(default_factory=set)
 
-    def fail_next(self, target: str, count: int = 1, error: int = errno.EREMOTEIO) -> None:
-        self.failures.setdefault(target, []).extend([error] * count)
+    def fail_next(self, target: str, count: int = 1, error: int = errno.EREMOTEIO, *, after: int = 0) -> None:
+        """The ``count`` transfers to ``target`` that follow the next ``after`` ones fail."""
+        self.failures.setdefault(target, []).extend([None] * after + [error] * count)
 
     def check(self, target: str) -> None:
         """Raise the OSError queued for ``target``, if any."""
         queued = self.failures.get(target)
         if queued:
             number = queued.pop(0)
-            raise OSError(number, errno.errorcode.get(number, "error"))
+            if number is not None:
+                raise OSError(number, errno.errorcode.get(number, "error"))
 
     def clear(self) -> None:
         self.failures.clear()
@@ -308,6 +310,7 @@ class EmulatedGPIOLines(GPIOLines):
         if edge not in (RISING, FALLING):
             raise EmulatorViolation(f"GPIO line {name} of {self.consumer} was not requested with edge detection")
         clock = self.bank.clock
+        clock.sleep(self._timing.call_overhead_s)      # the wait is a call too: its events are read by ioctl
         source = self.bank.sources.get(name)
         when = source.next_edge(clock.monotonic(), edge) if source is not None else None
         if when is not None and when <= clock.monotonic() + timeout_s:
