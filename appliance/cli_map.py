@@ -36,7 +36,7 @@ def add_parser(sim) -> None:
     p.add_argument("--out", dest="outs", action="append", default=[], type=Path, metavar="OUT",
                    help="where each --map's reconstruction goes, in their order: .csv (mmHg on the pixel grid) "
                         "or .png")
-    p.add_argument("--layout", default=None, help="mat layout (default: the monitor's, grid-8x16)")
+    p.add_argument("--layout", default=None, help="mat layout (default: the monitor's, grid-16x32)")
     p.add_argument("--calibration", type=Path, default=None,
                    help="pressure calibration to use (default: the virtual mat's own, made once and kept with the "
                         "models)")

@@ -28,7 +28,7 @@ def add_parsers(sub) -> None:
                    help="the monitor's TOML configuration (default: none, the virtual bed); the options below "
                         "override it")
     p.add_argument("--check-config", action="store_true", help="check the configuration, print it and exit")
-    p.add_argument("--layout", default=None, help="mat layout (default grid-8x16, a 900 x 1900 mm bed)")
+    p.add_argument("--layout", default=None, help="mat layout (default grid-16x32, a 900 x 1900 mm bed)")
     p.add_argument("--scenario", default=None,
                    help="the virtual patient: a built-in scenario or a scenario .toml file (default turn-schedule)")
     p.add_argument("--frames", type=int, default=None, help="stop after this many frames (default: run until "

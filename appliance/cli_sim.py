@@ -47,7 +47,7 @@ def add_parsers(sub) -> None:
                    help="simulated seconds between frames (default 60: one map a minute)")
     p.add_argument("--config", type=Path, default=None,
                    help="the monitor's TOML configuration (alert settings, layout); its source must be virtual")
-    p.add_argument("--layout", default=None, help="mat layout (default grid-8x16)")
+    p.add_argument("--layout", default=None, help="mat layout (default grid-16x32)")
     p.add_argument("--seed", type=int, default=None, help="seed of the simulated noise")
     p.add_argument("--acknowledge-after-min", type=float, default=None, metavar="M",
                    help="a simulated nurse acknowledges each alarm M minutes after it is raised")

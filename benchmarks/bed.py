@@ -12,6 +12,10 @@ S10: one mid-recording frame of each of their 17 postures) and judged on three o
 (S4, S6, S11, all 17 postures; none of them is in PmatData's experiment II either, whose volunteers
 are experiment I's S1-S3, S5, S7-S10 and S12).
 
+The monitor reads each held-out posture for two frames, as a patient who has just lain down: the parallel
+board reads adaptively (fine drives only near the electrodes the last map found loaded), so the first frame's
+fine readings are where the previous posture lay, and the second, which is judged, is settled.
+
 A loaded spot is a connected set of pixels where the true map, averaged over the reconstruction's
 pixels, is at or above 32 mmHg, with a true peak of 40 mmHg or more. It is seen when the map read
 reaches 32 mmHg within one pixel of it; its peak error is the highest pressure read there against
@@ -157,6 +161,7 @@ class Mat:
     layout: str
     stiffness_kpa_per_mm: float | None = None          # None: the appliance's mat for the layout
     protocol: str = "default"                          # or "local": every adjacent pair measured
+    board: str = "default"                             # or "serial": the reference board's chain, at any size
 
     def protocol_of(self, layout):
         from appliance.core.protocols import default_protocol, protocol_for
@@ -164,27 +169,35 @@ class Mat:
         return default_protocol(layout) if self.protocol == "default" else protocol_for(layout, self.protocol)
 
     def source(self, seed: int = 0):
+        from appliance.drivers.profile import board_profile
         from appliance.service.virtual_bed import VirtualBedSource
         from appliance.sim.bed import mat_parameters_for
+        from appliance.sim.frontend import VIRTUAL_MAT_BOARD
         from appliance.sim.loads import empty_mat
 
         layout = get_layout(self.layout)
         params = mat_parameters_for(layout)
         if self.stiffness_kpa_per_mm is not None:
             params = dataclasses.replace(params, foundation_kpa_per_mm=self.stiffness_kpa_per_mm)
-        return VirtualBedSource(layout, empty_mat(layout), self.protocol_of(layout), seed=seed, params=params)
+        profile = None if self.board == "default" else board_profile(VIRTUAL_MAT_BOARD)
+        return VirtualBedSource(layout, empty_mat(layout), self.protocol_of(layout), seed=seed, params=params,
+                                profile=profile)
 
 
 class RecordedMat:
     """A mat's frames of each load, simulated once and played to every reconstruction of the same mat:
     ``place(load)`` and ``acquire()`` as the calibration procedures and the monitor use them."""
 
-    def __init__(self, mat: Mat, say=print):
-        self.mat, self.say = mat, say
-        self._source = None
+    def __init__(self, mat: Mat):
+        self.mat = mat
+        self._source = self.mat.source()
         self._frames: dict = {}
         self._placed = None
-        self.simulated_s = 0.0
+        self._last = None
+
+    @property
+    def adaptive(self) -> bool:
+        return self._source.adaptive
 
     def _key(self, load):
         return None if load is None else (load.name if isinstance(load, MapLoad) else dataclasses.astuple(load))
@@ -192,16 +205,23 @@ class RecordedMat:
     def place(self, load) -> None:
         self._placed = load
 
-    def acquire(self):
+    def acquire(self, loaded=None):
+        """The placed load's frame; with ``loaded``, the drives an adaptive board skips keep the last
+        frame's readings, as the virtual front end keeps them."""
+        from appliance.drivers.scan import Flag
+
         key = self._key(self._placed)
         if key not in self._frames:
-            if self._source is None:
-                self._source = self.mat.source()
-            start = time.perf_counter()
             self._source.place(self._placed)
             self._frames[key] = self._source.acquire()
-            self.simulated_s += time.perf_counter() - start
-        return self._frames[key]
+        frame = self._frames[key]
+        if loaded is not None and self._last is not None:
+            plan = self._source.front_end.plan
+            held = ~np.isin(plan.protocol.drive_index, plan.drives_for(loaded))
+            frame = dataclasses.replace(frame, volts=np.where(held, self._last.volts, frame.volts),
+                                        flags=np.where(held, self._last.flags | Flag.HELD, frame.flags))
+        self._last = frame
+        return frame
 
     def empty_reference(self):
         self.place(None)
@@ -246,6 +266,7 @@ class Outcome:
     build_peak_mb: float
     frame_ms: float
     maps: dict
+    grid: object
 
 
 def calibrate(design: Design, model, recorded: RecordedMat):
@@ -260,7 +281,7 @@ def read_held_out(model, calibration, recorded: RecordedMat, subjects=HELD_OUT) 
     the monitor's median CPU ms a frame (reconstruction and calibration; the simulation is not counted)."""
     from appliance.service.monitor import Monitor
 
-    monitor = Monitor(recorded.acquire, model, calibration)
+    monitor = Monitor(recorded.acquire, model, calibration, adaptive=recorded.adaptive)
     monitor.take_reference(recorded.empty_reference())
     grid = model.reconstructor.grid
     spots, maps, seconds = [], {}, []
@@ -268,9 +289,9 @@ def read_held_out(model, calibration, recorded: RecordedMat, subjects=HELD_OUT) 
         for load in pmat_map_loads(PMAT, [subject]):
             posture = int(load.name.split("/")[1].split("#")[0])
             recorded.place(load)
-            recorded.acquire()                                  # simulated before the clock starts
+            monitor.next_map()          # the frame the person lay down in: fine drives where the last lay
             start = time.process_time()
-            pressure = monitor.next_map()
+            pressure = monitor.next_map()                       # settled: fine drives where this one lies
             seconds.append(time.process_time() - start)
             truth = load.pixel_pressure(grid) / KPA_PER_MMHG
             read = pressure.pressure_kpa / KPA_PER_MMHG
@@ -305,14 +326,63 @@ def run(design: Design, recorded: RecordedMat, cache_dir: Path) -> Outcome:
     spots, maps, frame_ms = read_held_out(model, calibration, recorded)
     grid = model.reconstructor.grid
     return Outcome(design, spots, tilts_told_apart(maps), len(setup.protocol), grid.pixel_mm, build_s, peak_mb,
-                   frame_ms, maps)
+                   frame_ms, maps, grid)
+
+
+# ---------------------------------------------------------------------------
+# Nights: the alert layer fed the true maps and the maps read
+
+NIGHTS = {
+    "supine, never turned": [(1, 8.0)],
+    "turned every 2 h": [(1, 2.0), (4, 2.0), (1, 2.0), (6, 2.0)],
+    "right side, 6 h": [(2, 6.0)],
+    "head of bed 45 degrees, 6 h": [(16, 6.0)],
+    "left fetal, 6 h": [(14, 6.0)],
+}
+MATCH_S = 3600.0
+
+
+def night_alarms(sequence: list, maps: dict, subject: int, which: int, grid) -> list[tuple[float, str]]:
+    """(time, site) of each pressure alarm the alert layer raises over a night of held postures, one map a
+    minute; ``which`` 0 plays the true maps, 1 the maps read."""
+    from appliance.alerts.pipeline import AlertPipeline
+    from appliance.core.pressure_map import PressureMap, loaded_regions
+
+    pipeline, t, raised = AlertPipeline(grid), 0.0, []
+    for posture, hours in sequence:
+        kpa = np.nan_to_num(maps[(subject, posture)][which]) * KPA_PER_MMHG
+        pressure = PressureMap(0.0, kpa, loaded_regions(kpa, grid), None, 0)
+        for _ in range(int(hours * 60)):
+            alerts = pipeline.update(dataclasses.replace(pressure, time_s=t))
+            raised += [(t, e.key.split(":")[1]) for e in alerts.alarm_events
+                       if e.kind == "raised" and e.key.startswith("pressure:")]
+            t += 60.0
+    return raised
+
+
+def nights(maps: dict, grid) -> dict:
+    """Per night: site alarms of the true maps, how many the maps read missed (no alarm at that site within
+    an hour), and alarms read with no true one near them."""
+    out = {}
+    for name, sequence in NIGHTS.items():
+        true = read = missed = extra = 0
+        for subject in HELD_OUT:
+            truth_alarms = night_alarms(sequence, maps, subject, 0, grid)
+            read_alarms = night_alarms(sequence, maps, subject, 1, grid)
+            near = lambda a, others: any(site == a[1] and abs(t - a[0]) <= MATCH_S for t, site in others)  # noqa
+            true += len(truth_alarms)
+            read += len(read_alarms)
+            missed += sum(not near(a, read_alarms) for a in truth_alarms)
+            extra += sum(not near(a, truth_alarms) for a in read_alarms)
+        out[name] = {"true": true, "read": read, "missed": missed, "extra": extra}
+    return out
 
 
 # ---------------------------------------------------------------------------
 # The designs tried
 
 THESIS_STIFFNESS = 1.183       # the thesis sensor's foundation (appliance.sim.mechanics.DEFAULT_PARAMETERS)
-TODAY = Mat("grid-8x16", THESIS_STIFFNESS, "local")
+TODAY = Mat("grid-8x16", THESIS_STIFFNESS, "local", "serial")
 M8, M12, M16, M20 = Mat("grid-8x16"), Mat("grid-12x24"), Mat("grid-16x32"), Mat("grid-20x40")
 CHOSEN = "grid-16x32"
 DESIGNS = (
@@ -324,7 +394,10 @@ DESIGNS = (
     Design(CHOSEN, M16, note="60 mm pitch, the bed mat: chosen"),
     Design("16x32 weights", M16, calibration="weights", note="calibrated with weights, not maps"),
     Design("16x32 GREIT", M16, algorithm="greit", note="GREIT instead of Gauss-Newton"),
-    Design("16x32 all pairs", Mat("grid-16x32", protocol="local"), note="every adjacent pair measured"),
+    Design("16x32 rows, serial chain", Mat("grid-16x32", board="serial"),
+           note="read through the reference board's chain, to compare with the next"),
+    Design("16x32 all pairs, serial chain", Mat("grid-16x32", protocol="local", board="serial"),
+           note="every adjacent pair measured, not only those along the rows"),
     Design("16x32 fine mesh", M16, density=1.0, note="reconstruction mesh at full density"),
     Design("16x32 20 mm", M16, pixels=(45, 95), note="20 mm pixels"),
     Design("grid-20x40", M20, note="48 mm pitch"),
@@ -417,7 +490,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as cache:
         for design in designs:
             print(f"{design.name}: {design.note}", flush=True)
-            mat = recorded.setdefault(design.mat, RecordedMat(design.mat))
+            if design.mat not in recorded:
+                recorded[design.mat] = RecordedMat(design.mat)
+            mat = recorded[design.mat]
             outcomes.append(run(design, mat, Path(cache)))
             s = summary(outcomes[-1].spots)
             print(f"  {s['spots']} spots, {percent(s['seen'])} seen, median |peak error| "
@@ -453,6 +528,17 @@ def write_report(outcomes: list, seconds: float, arguments: str) -> None:
         "",
         f"Tilts told apart from supine: {chosen.tilts[0]} of {chosen.tilts[1]} (30 degrees right and left, each "
         "held-out person).",
+        "",
+        f"## Nights on {chosen.design.name}",
+        "",
+        "Each held-out person's postures held for hours, one map a minute, through the alert layer "
+        "(`appliance.alerts.pipeline`, default settings): fed the true maps, and fed the maps read. A true site "
+        "alarm is missed when the maps read raise none at that site within an hour of it.",
+        "",
+        table(["night (each of " + ", ".join(f"S{s}" for s in HELD_OUT) + ")", "site alarms, true maps",
+               "maps read", "missed", "read, none true"],
+              [[name, n["true"], n["read"], n["missed"], n["extra"]] for name, n in nights(chosen.maps,
+                                                                                          chosen.grid).items()]),
         "",
         "![designs](bed.png)",
         "",

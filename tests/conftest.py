@@ -105,17 +105,17 @@ def model_cache(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def bed_monitoring(model_cache):
-    """grid-8x16's reconstruction model and the virtual mat's factory calibration: (model, calibration)."""
-    from appliance.core.model_cache import ModelSetup, cached_model
-    from appliance.core.protocols import default_protocol
+    """The default bed's reconstruction model and its virtual mat's calibration, as ``appliance run`` makes
+    them: (model, calibration)."""
+    from appliance.core.model_cache import cached_model, default_setup
     from appliance.service.assemble import virtual_calibration_path
+    from appliance.service.config import MonitorConfig
     from appliance.service.virtual_bed import VirtualBedSource
     from appliance.sim.scenes import load_scene
 
-    layout = get_layout("grid-8x16")
-    protocol = default_protocol(layout)
-    model, _ = cached_model(ModelSetup(layout, protocol), model_cache)
-    source = VirtualBedSource(layout, load_scene("supine-still"), protocol)
+    layout = get_layout(MonitorConfig().layout)
+    model, _ = cached_model(default_setup(layout), model_cache)
+    source = VirtualBedSource(layout, load_scene("supine-still"), model.setup.protocol)
     calibration, _ = source.calibration(model, virtual_calibration_path(model_cache, model))   # where `run` finds it
     return model, calibration
 

@@ -8,12 +8,12 @@ import pytest
 
 from appliance.alerts.pipeline import AlertPipeline, AlertSettings
 from appliance.core.layouts import get_layout
-from appliance.core.protocols import default_protocol
+from appliance.service.config import MonitorConfig
 from appliance.service.monitor import Monitor
 from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.scenes import load_scene
 
-BED = get_layout("grid-8x16")
+BED = get_layout(MonitorConfig().layout)                 # the default bed, which bed_monitoring models
 MINUTE = 60.0
 
 
@@ -21,7 +21,7 @@ def monitored(bed_monitoring, name):
     """The monitor's maps of scenario ``name``, one per simulated minute, from its start to its end."""
     model, calibration = bed_monitoring
     scene = load_scene(name)
-    source = VirtualBedSource(BED, scene, default_protocol(BED), seed=5, frame_interval_s=MINUTE)
+    source = VirtualBedSource(BED, scene, model.setup.protocol, seed=5, frame_interval_s=MINUTE)
     monitor = Monitor(source.acquire, model, calibration)
     monitor.take_reference(source.empty_reference())
     while source.front_end.time_s <= scene.duration_s:

@@ -135,10 +135,10 @@ def test_the_default_bed_mat_maps_a_load_at_the_head_end_on_the_left(bed_monitor
     assert code == 0, err
     assert "pressure calibration loaded from" in err
     image = np.loadtxt(tmp_path / "bed-out.csv", delimiter=",")
-    assert image.shape == (34, 16)
+    assert image.shape == (64, 30)                                  # 30 mm pixels, head end at row 0
     px, py = centre_of_peak(image, 900, 1900)
-    assert np.hypot(px - 200, py - 400) < 120, (px, py)             # within about two pixels (56 mm)
-    yy, xx = (np.mgrid[0:34, 0:16] + 0.5) * np.array([1900 / 34, 900 / 16])[:, None, None]
+    assert np.hypot(px - 200, py - 400) < 60, (px, py)              # within about two pixels (30 mm)
+    yy, xx = (np.mgrid[0:64, 0:30] + 0.5) * np.array([1900 / 64, 900 / 30])[:, None, None]
     assert image[np.hypot(xx - 200, yy - 400) > 500].max() < 0.3 * image.max()
 
 

@@ -14,8 +14,8 @@ from conftest import PERIPHERAL_AND_GRID
 
 def test_default_grids():
     assert pixel_grid(get_layout("grid-4x4")).shape == (16, 16)
-    bed = pixel_grid(get_layout("grid-8x16"))
-    assert bed.rows == 16 and bed.cols == 34
+    bed = pixel_grid(get_layout("grid-16x32"))
+    assert (bed.rows, bed.cols) == (30, 64) and max(bed.pixel_mm) <= 30.0, "no bed pixel over 30 mm"
     disc = pixel_grid(get_layout("circular-16"))
     assert disc.n_inside < 256 and not disc.inside[0, 0] and disc.inside[8, 8]
 

@@ -61,11 +61,11 @@ def test_local_protocol_limits_reach_and_keeps_large_mats_practical():
     assert np.array_equal(distributed_protocol(4, 4, reach=3).readings, full.readings)
     near = distributed_protocol(4, 4, reach=1)
     assert 0 < len(near) < len(full)
-    bed = default_protocol(get_layout("grid-8x16"))
-    assert bed.name == "local-2" and len(bed.drives) == 232
-    assert len(bed) < 7000, "a 128-electrode frame must stay a few thousand readings"
-    full_bed_estimate = 232 * 220
-    assert len(bed) < full_bed_estimate / 8
+    assert default_protocol(get_layout("grid-4x8@100x200")).name == "local-2", "a serial board's 32 electrodes"
+    bed = default_protocol(get_layout("grid-16x32"))
+    assert bed.name == "local-2-rows" and len(bed.drives) == 976, "more than a serial board: the parallel one's"
+    assert len(bed) < 16000, "a 512-electrode frame must stay some ten thousand readings"
+    assert len(bed) < 976 * 496 / 30
 
 
 def test_rows_protocol_measures_only_along_the_rows():

@@ -11,7 +11,7 @@ from appliance.core.pixels import pixel_grid
 from appliance.core.pressure_map import PressureMap
 from appliance.sim.body import Placement, Subject, body_field
 
-BED = pixel_grid(get_layout("grid-8x16"))          # 16 x 34 pixels of ~56 mm, 1900 x 900 mm
+BED = pixel_grid(get_layout("grid-8x16"), 16, 34)  # 16 x 34 pixels of ~56 mm, 1900 x 900 mm
 SMALL = pixel_grid(get_layout("grid-4x4"))         # 16 x 16 pixels of 6.25 mm, 100 x 100 mm
 BED_SIZE = (BED.width_mm, BED.height_mm)
 

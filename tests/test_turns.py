@@ -9,13 +9,13 @@ import pytest
 from appliance.alerts.turns import TurnClock
 from appliance.core.layouts import get_layout
 from appliance.core.pressure_map import PressureMap
-from appliance.core.protocols import default_protocol
 from appliance.errors import ConfigError
+from appliance.service.config import MonitorConfig
 from appliance.service.monitor import Monitor
 from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.scenes import load_scene
 
-BED = get_layout("grid-8x16")
+BED = get_layout(MonitorConfig().layout)                 # the default bed, which bed_monitoring models
 
 
 def bed_clock(**settings):
@@ -35,7 +35,7 @@ def maps(bed_monitoring):
     @functools.lru_cache(maxsize=None)
     def map_at(name, t):
         if name not in monitors:
-            source = VirtualBedSource(BED, load_scene(name), default_protocol(BED), seed=3)
+            source = VirtualBedSource(BED, load_scene(name), model.setup.protocol, seed=3)
             monitor = Monitor(source.acquire, model, calibration)
             monitor.take_reference(source.empty_reference())
             monitors[name] = (source, monitor)

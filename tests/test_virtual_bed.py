@@ -231,3 +231,32 @@ def test_the_bed_mat_can_be_read_through_the_parallel_front_end():
     assert np.all(np.abs(frame.volts - ideal) <= accuracy.relative * np.abs(ideal) + accuracy.absolute_v)
     with pytest.raises(ProtocolInvalid, match="only horizontally adjacent"):
         VirtualFrontEnd(bed, protocol_for(layout, "local", reach=2), profile=profile)
+
+
+def test_a_bed_is_read_by_its_parallel_board_adaptively_and_holds_what_it_skips():
+    from appliance.core.pixels import pixel_grid
+    from appliance.core.pressure_map import loaded_electrodes
+    from appliance.drivers.scan import Flag
+
+    layout = get_layout("grid-16x32")
+    protocol = default_protocol(layout)
+    bed = VirtualBed(layout, empty_mat(layout), density=0.25, mechanics_merge=5)
+    front = VirtualFrontEnd(bed, protocol, seed=3)
+    assert front.chain.profile.name == "parallel" and front.adaptive
+    empty = front.acquire()                                         # the first frame: a full pass
+    heel = get_layout("grid-16x32").centroids_mm()[8 * 32 + 28]     # electrode 285, near the foot end
+    place = placer(bed)
+    place(Load(float(heel[0]), float(heel[1]), 60.0, 8.0))
+    grid = pixel_grid(layout)
+    kpa = np.zeros(grid.shape)
+    kpa[grid.pixel_of(heel[None])[0] // grid.cols, grid.pixel_of(heel[None])[0] % grid.cols] = 8.0
+    loaded = loaded_electrodes(kpa, grid, layout.centroids_mm())
+    assert 285 in loaded and len(loaded) < 12
+    frame = front.acquire(loaded)
+    held = (frame.flags & Flag.HELD) > 0
+    taken = np.isin(protocol.drive_index, front.plan.drives_for(loaded))
+    assert np.array_equal(held, ~taken) and 0.25 < held.mean() < 0.5, "the fine drives far from the heel"
+    assert np.array_equal(frame.volts[held], empty.volts[held]), "held: the last frame's readings"
+    near_heel = np.isin(protocol.readings, [285]).any(axis=1)
+    assert not held[near_heel].any() and np.abs(frame.volts - empty.volts)[near_heel].max() > 0
+    assert np.all((front.acquire().flags & Flag.HELD) == 0), "no electrodes named: a full pass"

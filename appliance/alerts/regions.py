@@ -16,12 +16,12 @@ cannot be inherited by unrelated tissue.
 >>> from appliance.core.layouts import get_layout
 >>> from appliance.core.pixels import pixel_grid
 >>> from appliance.core.pressure_map import PressureMap
->>> grid = pixel_grid(get_layout("grid-8x16"))
->>> kpa = np.zeros(grid.shape); kpa[8, 30] = 6.0                    # a heel
+>>> grid = pixel_grid(get_layout("grid-16x32"))
+>>> kpa = np.zeros(grid.shape); kpa[15, 60] = 6.0                   # a heel
 >>> tracker = RegionTracker(grid)
 >>> [(r.id, r.zone) for r in tracker.update(PressureMap(0.0, kpa, [], None, 0))]
 [(1, 'heel')]
->>> kpa = np.roll(kpa, 1, axis=0)                                     # 56 mm across the bed
+>>> kpa = np.roll(kpa, 2, axis=0)                                     # 60 mm across the bed
 >>> [(r.id, r.first_seen_s) for r in tracker.update(PressureMap(1.0, kpa, [], None, 0))]
 [(1, 0.0)]
 """

@@ -333,7 +333,7 @@ BED_MAT_MM = (900.0, 1900.0)
 
 _GRID_NAME = re.compile(r"^grid-(\d+)x(\d+)(?:@(\d+(?:\.\d+)?)x(\d+(?:\.\d+)?))?$")
 
-BUILTIN_NAMES = ("circular-16", "square-16", "grid-4x4", "grid-8x16", "ktc-32")
+BUILTIN_NAMES = ("circular-16", "square-16", "grid-4x4", "grid-8x16", "grid-16x32", "ktc-32")
 
 
 def get_layout(name: str) -> Layout:

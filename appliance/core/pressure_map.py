@@ -107,3 +107,20 @@ def pressure_map(image: np.ndarray, calibration: PressureCalibration, grid: Pixe
     """A reconstructed image in kPa through ``calibration``, with its regions at or above ``threshold_kpa``."""
     kpa = calibration.pressure_kpa(image)
     return PressureMap(time_s, kpa, loaded_regions(kpa, grid, threshold_kpa), temperature_c, usable_readings)
+
+
+LOAD_PRESENT_KPA = 1.3
+"""About 10 mmHg: the least pressure that says a body lies on a place (the mat's noise reads well below)."""
+
+
+def loaded_electrodes(pressure_kpa: np.ndarray, grid: PixelGrid, centres_mm: np.ndarray,
+                      threshold_kpa: float = LOAD_PRESENT_KPA) -> list[int]:
+    """The electrodes (1-based) under a body: those whose pixel, or a pixel next to it, reads at least
+    ``threshold_kpa``. An adaptive front end reads finely around them next frame."""
+    pressure = np.nan_to_num(np.asarray(pressure_kpa, dtype=float))
+    if pressure.shape != grid.shape:
+        raise ValueError(f"pressure map of shape {pressure.shape} for a {grid.shape} pixel grid")
+    from scipy.ndimage import maximum_filter
+
+    near = maximum_filter(pressure, size=3, mode="nearest").ravel()[grid.pixel_of(np.asarray(centres_mm))]
+    return (np.flatnonzero(near >= threshold_kpa) + 1).tolist()

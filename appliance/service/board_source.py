@@ -42,8 +42,13 @@ class BoardSource:
         self.engine = ScanEngine(self.front_end, protocol)
         self.pace = Pace(frame_interval_s)
 
-    def acquire(self) -> BoardFrame:
-        frame = self.engine.scan()
+    @property
+    def adaptive(self) -> bool:
+        """Whether the board can read adaptively (a parallel front end built for a grid)."""
+        return self.engine.adaptive is not None
+
+    def acquire(self, loaded=None) -> BoardFrame:
+        frame = self.engine.scan(loaded)
         return BoardFrame(frame.volts, frame.flags, frame.temperature_c, time.time(), frame.conditions)
 
     def now(self) -> float:

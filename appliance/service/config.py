@@ -6,7 +6,7 @@ with the section and key named, so ward IT fixes a typo before the monitor
 runs, not after it silently ignored it::
 
     [monitor]
-    layout = "grid-8x16"          # a built-in layout name or a layout .toml file
+    layout = "grid-16x32"         # a built-in layout name or a layout .toml file
     source = "virtual"            # virtual | emulated | hardware
     frame_interval_s = 1.0
     bed_id = "ward3-bed12"        # MQTT topics and the live view name the bed by this
@@ -119,7 +119,7 @@ class GpioSettings:
 class MonitorConfig:
     """Everything the daemon is told; built by :func:`load_config` or :func:`config_from_mapping`."""
 
-    layout: str = "grid-8x16"
+    layout: str = "grid-16x32"
     source: str = "virtual"
     frame_interval_s: float = 1.0
     bed_id: str = field(default_factory=socket.gethostname)
@@ -168,7 +168,7 @@ def config_from_mapping(data: dict, base: Path | None = None) -> MonitorConfig:
     except ConfigError as exc:
         raise ConfigError(f"[board]: {exc}") from None
     return MonitorConfig(
-        layout=_text(monitor, "layout", "grid-8x16", "[monitor]"),
+        layout=_text(monitor, "layout", "grid-16x32", "[monitor]"),
         source=source,
         frame_interval_s=_number(monitor, "frame_interval_s", 1.0, "[monitor]", low=0.05, high=3600.0),
         bed_id=_bed_id(monitor),

@@ -83,7 +83,8 @@ class MonitorDaemon:
         self._summarised = [n for n in self.notifiers if isinstance(n, Notifier)]  # those with summarise()
         self.on_event, self.on_map, self.say = on_event, on_map, say
         self.systemd = systemd or SystemdNotifier()
-        self.monitor = Monitor(source.acquire, model, calibration)   # refuses a calibration for another mat
+        self.monitor = Monitor(source.acquire, model, calibration,   # refuses a calibration for another mat
+                               adaptive=getattr(source, "adaptive", False))
         self.grid = model.reconstructor.grid
         self.pipeline = AlertPipeline(self.grid, config.alerts)
         self.stop_requested = threading.Event()

@@ -17,7 +17,7 @@ import numpy as np
 from appliance.core.iterative import affordable_iterate
 from appliance.core.model_cache import ReconstructionModel
 from appliance.core.pressure import PressureCalibration, temperature_corrected
-from appliance.core.pressure_map import PressureMap, pressure_map
+from appliance.core.pressure_map import PressureMap, loaded_electrodes, pressure_map
 from appliance.drivers.scan import SATURATION_PART, Flag, TechnicalCondition
 from appliance.errors import ConfigError
 
@@ -68,13 +68,17 @@ class Monitor:
 
     ``iterate`` defaults to the calibration's own setting: a curve fitted to
     iterated images does not hold for one-step images, nor the other way round.
+    With ``adaptive`` the front end reads finely only around the electrodes the last
+    map found a body on: ``acquire(loaded=...)``, None for a full pass (the first frame).
     """
 
     def __init__(self, acquire: Callable, model: ReconstructionModel, calibration: PressureCalibration, *,
-                 iterate: str | None = None):
+                 iterate: str | None = None, adaptive: bool = False):
         setup = model.setup
         calibration.check_fits(setup.layout, setup.options.algorithm, model.reconstructor.grid.shape)
         self.acquire, self.model, self.calibration = acquire, model, calibration
+        self.adaptive = adaptive
+        self.loaded: list[int] | None = None    # electrodes under the body in the last map (adaptive front ends)
         self.iterate = iterate or calibration.notes.get("iterate") or affordable_iterate(setup.layout.n_electrodes)
         self.reference: np.ndarray | None = None
         self.reference_temperature_c: float | None = None
@@ -87,18 +91,22 @@ class Monitor:
             raise ConfigError("the reference frame has no usable reading")
         self.reference = np.asarray(frame.volts, dtype=float)
         self.reference_temperature_c = frame.temperature_c
+        self.loaded = None                                   # a full pass first, as after any new reference
 
     def next_map(self) -> PressureMap:
         """Acquire one frame and turn it into a pressure map."""
         if self.reference is None:
             raise ConfigError("the monitor has no reference frame yet (take_reference first)")
-        frame = self.acquire()
+        frame = self.acquire(loaded=self.loaded) if self.adaptive else self.acquire()
         stale = stale_calibration(self.calibration, frame.temperature_c)
         self.conditions = alarm_worthy(frame) + ((stale,) if stale is not None else ())
         volts = frame.volts
         if self.reference_temperature_c is not None:
             volts = temperature_corrected(volts, frame.temperature_c, self.reference_temperature_c)
         image, info = self.model.reconstruct(volts, self.reference, iterate=self.iterate)
-        return pressure_map(image, self.calibration, self.model.reconstructor.grid,
-                            time_s=getattr(frame, "time_s", time.monotonic()), temperature_c=frame.temperature_c,
-                            usable_readings=info["usable_readings"])
+        grid = self.model.reconstructor.grid
+        result = pressure_map(image, self.calibration, grid, time_s=getattr(frame, "time_s", time.monotonic()),
+                              temperature_c=frame.temperature_c, usable_readings=info["usable_readings"])
+        if self.adaptive:
+            self.loaded = loaded_electrodes(result.pressure_kpa, grid, self.model.setup.layout.centroids_mm())
+        return result

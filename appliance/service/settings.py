@@ -13,7 +13,7 @@ file holds the same tables and keys as the configuration it overrides::
 
     [monitor]
     bed_id = "ward3-bed12"
-    layout = "grid-8x16"
+    layout = "grid-16x32"
 
 and is checked by the configuration's own parser, so a value refused in the
 configuration file is refused here with the same message. It is written only

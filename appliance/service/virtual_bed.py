@@ -56,8 +56,12 @@ class VirtualBedSource:
         self.place = placer(self.bed)
         self.pace = Pace(frame_interval_s / speed if speed > 0 else 0.0)
 
-    def acquire(self):
-        return self.front_end.acquire()
+    @property
+    def adaptive(self) -> bool:
+        return self.front_end.adaptive
+
+    def acquire(self, loaded=None):
+        return self.front_end.acquire(loaded)
 
     def now(self) -> float:
         """The scene time of the next frame."""

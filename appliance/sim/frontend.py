@@ -4,8 +4,9 @@ What a settled scan of the emulated board would return, without running the
 chips one transfer at a time: fast enough for a bed-size mat, and the same
 interface (``acquire()`` giving volts, flags, temperature and time) the
 calibration procedures and the monitor use with a real scan engine. ``profile``
-chooses the front end: the reference board by default, or the bed's parallel
-board (``board_profile({"profile": "parallel"})``, with the rows protocol).
+chooses the front end; by default the board that reads such a mat
+(:func:`virtual_board`): the reference board on the small sensors, the parallel
+board, sized to the grid, on a bed.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from appliance.core.protocols import Protocol
+from appliance.drivers.adaptive import AdaptivePlan
 from appliance.drivers.profile import BoardProfile, board_profile
 from appliance.drivers.scan import UNUSABLE, Flag, TechnicalCondition, saturation_condition
 from appliance.sim.bed import VirtualBed
@@ -26,6 +28,29 @@ from appliance.sim.scenes import ElectrodeFault
 # saline sheet the board's 2 mA was chosen for; 1 mA keeps an empty mat's largest
 # readings in range. Heavy loads still saturate a few, as they would on the bench.
 VIRTUAL_MAT_BOARD = {"excitation": {"current_a": 0.001}}
+
+SPARE_ADDRESS_LINES = ("GPIO7", "GPIO8", "GPIO9")
+"""Header lines free on the parallel board, for the decoder address bits a larger grid's ADCs need."""
+
+
+def virtual_board(layout) -> dict:
+    """The board a virtual mat of ``layout`` is read with: a serial board where its multiplexers reach
+    every electrode, else the parallel board built for the layout's grid (more ADCs, and as many decoder
+    address lines as they need)."""
+    from appliance.core.protocols import SERIAL_ELECTRODES
+
+    if not layout.is_grid or layout.n_electrodes <= SERIAL_ELECTRODES:
+        return VIRTUAL_MAT_BOARD
+    from appliance.drivers.channel_map import ChannelMap
+
+    rows, cols = layout.grid_shape
+    table = {"profile": "parallel", "grid": {"rows": rows, "cols": cols}}
+    base = board_profile({"profile": "parallel"})
+    adcs = ChannelMap(rows, cols, base.measurement.adc_tile_rows).n_adcs
+    lines = len(base.adc_address_lines)
+    extra = {f"adc_cs_a{lines + k}": pin
+             for k, pin in enumerate(SPARE_ADDRESS_LINES[:max(0, (adcs - 1).bit_length() - lines)])}
+    return {**table, "gpio": extra} if extra else table
 
 
 @dataclass(frozen=True)
@@ -48,8 +73,11 @@ class VirtualFrontEnd:
         if protocol.n_electrodes != bed.n_electrodes:
             raise ValueError(f"protocol for {protocol.n_electrodes} electrodes on a {bed.n_electrodes}-electrode mat")
         self.bed, self.protocol = bed, protocol
-        self.chain = FrameChain(profile or board_profile(VIRTUAL_MAT_BOARD), seed=seed)
+        self.chain = FrameChain(profile or board_profile(virtual_board(bed.layout)), seed=seed)
         self.chain.check(protocol)
+        grid = getattr(self.chain.profile, "grid", None)
+        self.plan = AdaptivePlan(protocol, grid.rows, grid.cols) if grid is not None else None
+        self._last: tuple[np.ndarray, np.ndarray] | None = None     # the last frame's readings and flags
         self.seed = seed
         self._noise_key: tuple[int, int] = (-1, -1)        # (scene ms, frames already taken at that instant)
         self.frame_interval_s = frame_interval_s
@@ -88,15 +116,26 @@ class VirtualFrontEnd:
             raise ValueError(f"electrode {electrode} is not on this {self.bed.n_electrodes}-electrode mat")
         return electrode
 
-    def acquire(self) -> VirtualFrame:
+    @property
+    def adaptive(self) -> bool:
+        """Whether the board reads adaptively: a parallel board on a grid (:mod:`appliance.drivers.adaptive`)."""
+        return self.plan is not None
+
+    def acquire(self, loaded=None) -> VirtualFrame:
         """The next frame, after the scheduled faults due by its time; scene time moves on by one frame
-        interval."""
+        interval. With ``loaded`` electrodes (an adaptive board) only the coarse drives and the fine
+        ones near them are taken; the other readings keep the last frame's values, flagged HELD, as
+        the scan engine keeps them."""
         t = self.time_s
         while self.pending_faults and self.pending_faults[0].at_s <= t:
             fault = self.pending_faults.pop(0)
             (self.reconnect if fault.connected else self.disconnect)(fault.electrode)
         self._seed_noise(t)
         volts, flags = self.chain.readings(self.bed.transfer_ohm(t), self.protocol)
+        if loaded is not None and self._last is not None:
+            held = ~np.isin(self.protocol.drive_index, self.plan.drives_for(loaded))
+            volts[held], flags[held] = self._last[0][held], self._last[1][held] | Flag.HELD
+        self._last = (volts.copy(), flags.copy())
         conditions = []
         for electrode in sorted(self.open_electrodes):
             flags[(self.protocol.readings == electrode).any(axis=1)] |= Flag.OPEN_ELECTRODE
