@@ -16,9 +16,10 @@ The monitor reads each held-out posture for two frames, as a patient who has jus
 board reads adaptively (fine drives only near the electrodes the last map found loaded), so the first frame's
 fine readings are where the previous posture lay, and the second, which is judged, is settled.
 
-A loaded spot is a connected set of pixels where the true map, averaged over the reconstruction's
-pixels, is at or above 32 mmHg, with a true peak of 40 mmHg or more. It is seen when the map read
-reaches 32 mmHg within one pixel of it; its peak error is the highest pressure read there against
+A loaded spot is a connected set of 30 mm pixels where the true map, averaged over them, is at or above
+32 mmHg, with a true peak of 40 mmHg or more; every design is judged on the same spots, its own map read at
+each 30 mm pixel as the highest of its pixels overlapping it. A spot is seen when the map read reaches
+32 mmHg within one pixel of it; its peak error is the highest pressure read there against
 the true peak. Body sites are told from the spot's place along and across the body (head, shoulders,
 elbows, sacrum, hips, knees, heels). A 30 degree tilt is told apart from supine when the centre of
 pressure moves across the bed to the same side in the map read as in the truth.
@@ -44,6 +45,7 @@ from scipy import ndimage
 from appliance.calibration import MapLoad
 from appliance.core.layouts import get_layout
 from appliance.core.model_cache import ModelSetup, cached_model, default_setup
+from appliance.core.pixels import pixel_grid
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.core.reconstruct import ReconstructionOptions
 from appliance.sim.recordings import pmat_map_loads
@@ -118,6 +120,25 @@ def spots_of(truth_mmhg: np.ndarray, read_mmhg: np.ndarray, subject: int, postur
         out.append(Spot(subject, posture, body_site(truth_mmhg, spot, posture), float(truth_mmhg[spot].max()),
                         float(np.nanmax(read_mmhg[near]))))
     return out
+
+
+TRUTH_PIXELS = (30, 64)
+"""Every design is judged on the same spots: the truth on 30 mm pixels (29.7 x 30 mm), whatever the design's
+own pixels; a design's map is read at each of these pixels as the highest of its own pixels overlapping it."""
+
+
+def on_pixels(read: np.ndarray, grid, shape: tuple[int, int]) -> np.ndarray:
+    """``read`` (on ``grid``) at each pixel of a ``shape`` grid over the same sheet: the highest value of the
+    pixels of ``grid`` that overlap it."""
+    def spans(n_from, n_to):
+        edges_to = np.linspace(0.0, 1.0, n_to + 1)
+        first = np.floor(edges_to[:-1] * n_from + 1e-9).astype(int)
+        last = np.ceil(edges_to[1:] * n_from - 1e-9).astype(int)
+        return list(zip(first, np.maximum(last, first + 1)))
+
+    rows, cols = spans(grid.rows, shape[0]), spans(grid.cols, shape[1])
+    values = np.nan_to_num(read, nan=-np.inf)
+    return np.array([[values[r0:r1, c0:c1].max() for c0, c1 in cols] for r0, r1 in rows])
 
 
 def centre_across(mmhg: np.ndarray) -> float:
@@ -284,6 +305,7 @@ def read_held_out(model, calibration, recorded: RecordedMat, subjects=HELD_OUT) 
     monitor = Monitor(recorded.acquire, model, calibration, adaptive=recorded.adaptive)
     monitor.take_reference(recorded.empty_reference())
     grid = model.reconstructor.grid
+    truth_grid = pixel_grid(model.setup.layout, *TRUTH_PIXELS)
     spots, maps, seconds = [], {}, []
     for subject in subjects:
         for load in pmat_map_loads(PMAT, [subject]):
@@ -293,8 +315,8 @@ def read_held_out(model, calibration, recorded: RecordedMat, subjects=HELD_OUT) 
             start = time.process_time()
             pressure = monitor.next_map()                       # settled: fine drives where this one lies
             seconds.append(time.process_time() - start)
-            truth = load.pixel_pressure(grid) / KPA_PER_MMHG
-            read = pressure.pressure_kpa / KPA_PER_MMHG
+            truth = load.pixel_pressure(truth_grid) / KPA_PER_MMHG
+            read = on_pixels(pressure.pressure_kpa / KPA_PER_MMHG, grid, TRUTH_PIXELS)
             maps[(subject, posture)] = (truth, read)
             spots += spots_of(truth, read, subject, posture)
     return spots, maps, float(np.median(seconds)) * 1e3
@@ -326,7 +348,7 @@ def run(design: Design, recorded: RecordedMat, cache_dir: Path) -> Outcome:
     spots, maps, frame_ms = read_held_out(model, calibration, recorded)
     grid = model.reconstructor.grid
     return Outcome(design, spots, tilts_told_apart(maps), len(setup.protocol), grid.pixel_mm, build_s, peak_mb,
-                   frame_ms, maps, grid)
+                   frame_ms, maps, pixel_grid(setup.layout, *TRUTH_PIXELS))
 
 
 # ---------------------------------------------------------------------------

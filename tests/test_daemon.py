@@ -35,7 +35,7 @@ INTERVAL = 600.0            # ten minutes a frame: 45 mmHg uses 5 % of the toler
 def test_no_configuration_runs_the_virtual_bed_with_the_literature_defaults():
     config = config_from_mapping({})
     assert (config.source, config.layout, config.scenario, config.frame_interval_s) == \
-        ("virtual", "grid-8x16", "turn-schedule", 1.0)
+        ("virtual", "grid-16x32", "turn-schedule", 1.0)
     assert config.alerts.threshold_kpa == pytest.approx(32 * 0.133322, rel=1e-4)
     assert (config.alerts.curve, config.alerts.turn_interval_s, config.alerts.escalate_after_s) == \
         ("reswick-rogers", 7200.0, 900.0)

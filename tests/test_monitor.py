@@ -103,12 +103,13 @@ def test_a_moving_patient_is_solved_again_every_frame_and_mapped(bed_monitoring)
     monitor.take_reference(source.empty_reference())
     moving = [t for t in np.arange(0.0, scene.duration_s - 0.5, 0.5) if scene.changes(t, t + 0.5)][:5]
     assert len(moving) == 5
+    totals = []
     for t in moving:
         source.front_end.time_s = t
         solves = source.bed.solves
-        pressure = monitor.next_map()
+        totals.append(np.nansum(monitor.next_map().pressure_kpa))
         assert source.bed.solves == solves + 1                           # the patient moved: a full re-solve
-        assert pressure.regions and np.nanmax(pressure.pressure_kpa) > 4.3
+    assert totals[-1] > totals[0] + 10.0, "the patient lying down is read as they settle"
 
 
 def test_an_electrode_lost_mid_run_is_a_technical_alarm_and_monitoring_goes_on(small_mat):

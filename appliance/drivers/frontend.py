@@ -224,23 +224,12 @@ class FrontEnd(ABC):
         """Ask each chip to answer and read back."""
 
     def _run_checks(self, checks) -> list[ChipCheck]:
-        """Run (part, bus role, action) checks; a failure is reported with its message, not raised."""
-        results = []
-        for part, role, action in checks:
-            where = f"i2c{self.profile.i2c_bus}@0x{self.profile.i2c[role]:02X}"
-            try:
-                results.append(ChipCheck(part, where, True, action() or "answers and reads back"))
-            except (ApplianceError, OSError) as exc:
-                results.append(ChipCheck(part, where, False, str(exc)))
-        return results
+        """Run (part, bus role, action) checks on the I2C chips."""
+        return run_checks([(part, f"i2c{self.profile.i2c_bus}@0x{self.profile.i2c[role]:02X}", action)
+                           for part, role, action in checks])
 
     def _check_thermometer(self) -> str:
-        self.thermometer.check_identity()
-        temperature = self.thermometer.temperature_c()
-        if not PLAUSIBLE_TEMPERATURE_C[0] <= temperature <= PLAUSIBLE_TEMPERATURE_C[1]:
-            raise ChipError(f"MCP9808 reads {temperature:.2f} degC, outside the plausible "
-                            f"{PLAUSIBLE_TEMPERATURE_C[0]:g}..{PLAUSIBLE_TEMPERATURE_C[1]:g} degC of a ward")
-        return f"{temperature:.2f} degC"
+        return check_thermometer(self.thermometer)
 
     def sample_source_off(self) -> Sample:
         """One sample with the current source off (the self-test's zero): what remains is offset and pickup."""
@@ -318,3 +307,24 @@ def open_front_end(board: Board, profile: BoardProfile):
     from appliance.drivers.frontend_ad5933 import AD5933FrontEnd
 
     return AD5933FrontEnd(board, profile)
+
+
+def run_checks(checks) -> list[ChipCheck]:
+    """Run (part, where, action) checks; a failure is reported with its message, not raised."""
+    results = []
+    for part, where, action in checks:
+        try:
+            results.append(ChipCheck(part, where, True, action() or "answers and reads back"))
+        except (ApplianceError, OSError) as exc:
+            results.append(ChipCheck(part, where, False, str(exc)))
+    return results
+
+
+def check_thermometer(thermometer) -> str:
+    """The MCP9808 answers as itself and reads a temperature a ward can have."""
+    thermometer.check_identity()
+    temperature = thermometer.temperature_c()
+    if not PLAUSIBLE_TEMPERATURE_C[0] <= temperature <= PLAUSIBLE_TEMPERATURE_C[1]:
+        raise ChipError(f"MCP9808 reads {temperature:.2f} degC, outside the plausible "
+                        f"{PLAUSIBLE_TEMPERATURE_C[0]:g}..{PLAUSIBLE_TEMPERATURE_C[1]:g} degC of a ward")
+    return f"{temperature:.2f} degC"

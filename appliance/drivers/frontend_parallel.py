@@ -29,12 +29,12 @@ from appliance.drivers.adg1414 import ADG1414Chain, DriveMatrix
 from appliance.drivers.bus import Board, LineRequest
 from appliance.drivers.channel_map import ChannelMap
 from appliance.drivers.decoder import ChipSelectDecoder
-from appliance.drivers.frontend import PLAUSIBLE_TEMPERATURE_C, ChipCheck, Range
+from appliance.drivers.frontend import ChipCheck, Range, check_thermometer, run_checks
 from appliance.drivers.frontend_rms import digipot_setting
 from appliance.drivers.mcp4017 import MCP4017
 from appliance.drivers.mcp9808 import MCP9808
 from appliance.drivers.profile import BoardProfile
-from appliance.errors import ApplianceError, ChipError, ChipReadbackMismatch, ConfigError
+from appliance.errors import ChipReadbackMismatch, ConfigError
 
 DEMODULATOR_GAIN = 2 * math.sqrt(2) / math.pi
 """Mean output of a full-wave synchronous demodulator per volt rms of an in-phase sine."""
@@ -202,26 +202,12 @@ class ParallelFrontEnd:
     def self_check(self) -> list[ChipCheck]:
         """Chips that answer: the digipot and thermometer read back, the switch chain shifts a pattern
         through every chip and back (its length and wiring)."""
-        checks = []
-        for part, where, action in (
-                ("MCP4017 digipot", f"i2c{self.profile.i2c_bus}@0x{self.profile.i2c['digipot']:02X}",
-                 lambda: self.digipot.set_wiper(self.digipot.wiper())),
-                ("MCP9808 thermometer", f"i2c{self.profile.i2c_bus}@0x{self.profile.i2c['thermometer']:02X}",
-                 self._check_thermometer),
-                ("ADG1414 drive switches", self.switches.chain.spi.name, self._check_switch_chain)):
-            try:
-                checks.append(ChipCheck(part, where, True, action() or "answers and reads back"))
-            except (ApplianceError, OSError) as exc:
-                checks.append(ChipCheck(part, where, False, str(exc)))
-        return checks
-
-    def _check_thermometer(self) -> str:
-        self.thermometer.check_identity()
-        temperature = self.thermometer.temperature_c()
-        if not PLAUSIBLE_TEMPERATURE_C[0] <= temperature <= PLAUSIBLE_TEMPERATURE_C[1]:
-            raise ChipError(f"MCP9808 reads {temperature:.2f} degC, outside the plausible "
-                            f"{PLAUSIBLE_TEMPERATURE_C[0]:g}..{PLAUSIBLE_TEMPERATURE_C[1]:g} degC of a ward")
-        return f"{temperature:.2f} degC"
+        return run_checks([
+            ("MCP4017 digipot", f"i2c{self.profile.i2c_bus}@0x{self.profile.i2c['digipot']:02X}",
+             lambda: self.digipot.set_wiper(self.digipot.wiper())),
+            ("MCP9808 thermometer", f"i2c{self.profile.i2c_bus}@0x{self.profile.i2c['thermometer']:02X}",
+             lambda: check_thermometer(self.thermometer)),
+            ("ADG1414 drive switches", self.switches.chain.spi.name, self._check_switch_chain)])
 
     def _check_switch_chain(self) -> str:
         """With the source off, shift the words of drive 1 -> 2 in and out again: SDO must return them."""

@@ -53,9 +53,9 @@ def run_self_test(front_end: FrontEnd, n_electrodes: int) -> SelfTestReport:
     return SelfTestReport(tuple(checks), contact)
 
 
-def _signal_path(fe: FrontEnd) -> list[ChipCheck]:
-    results = []
-
+def _checker(results: list):
+    """``check(part, action)``: run ``action`` (giving ok, detail) and add its signal-path check to ``results``;
+    a failure is reported with its message, not raised."""
     def check(part, action):
         try:
             ok, detail = action()
@@ -63,6 +63,12 @@ def _signal_path(fe: FrontEnd) -> list[ChipCheck]:
             ok, detail = False, str(exc)
         results.append(ChipCheck(part, "signal path", ok, detail))
 
+    return check
+
+
+def _signal_path(fe: FrontEnd) -> list[ChipCheck]:
+    results = []
+    check = _checker(results)
     pair = (1, 2)
     state: dict = {}
 
@@ -120,16 +126,10 @@ def _signal_path_parallel(fe) -> list[ChipCheck]:
     """The parallel chain on electrodes 1-2: every converter quiet with the source off, then the pair's own
     channel at the contact current, at both ranges."""
     results = []
+    check = _checker(results)
     pair = (1, 2)
     channel = fe.cmap.channel_of(*pair)[0]
     state: dict = {}
-
-    def check(part, action):
-        try:
-            ok, detail = action()
-        except (ApplianceError, OSError) as exc:
-            ok, detail = False, str(exc)
-        results.append(ChipCheck(part, "signal path", ok, detail))
 
     def quiet():
         fe.measure_zero()
