@@ -3,9 +3,16 @@
 Building means meshing, assembling, solving, differentiating and choosing lambda:
 a fraction of a second on the 16-electrode sensors, seconds on a 32-electrode tank.
 A built model is saved under the hash of everything it depends on (the layout as
-TOML, the protocol, the options, mesh density, pixels, contact impedance, the file
-format and the package version), written atomically, so a restart loads it in
-milliseconds and a change to any input builds a new one.
+TOML, the protocol, the options, mesh density, pixels, contact impedance, the
+contacts fitted to a reference if any, the file format and the package version),
+written atomically, so a restart loads it in milliseconds and a change to any
+input builds a new one.
+
+A model is linearised at the nominal contact impedance until :meth:`ReconstructionModel.fitted`
+fits every electrode's contact and the sheet's conductance to an empty-mat reference
+(:mod:`appliance.core.contact_fit`) and relinearises there. Fitted models are cached
+too, the newest few of each setup, so a restart with the same reference loads its
+model instead of building it.
 
 >>> from appliance.core.layouts import get_layout
 >>> from appliance.core.protocols import default_protocol
@@ -29,6 +36,7 @@ import numpy as np
 import scipy.sparse as sp
 
 import appliance
+from appliance.core.contact_fit import ContactFit, ContactPrior, fit_contacts
 from appliance.core.fem import DEFAULT_CONTACT_IMPEDANCE_OHM_M2, build_fem_model
 from appliance.core.forward import ForwardModel
 from appliance.core.iterative import MISFIT_LIMIT, iterative_reconstruct, one_step_misfit
@@ -43,7 +51,24 @@ from appliance.core.reconstruct import (
 from appliance.errors import ReconstructionError
 from appliance.files import write_atomic
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+
+FITTED_KEPT = 3
+"""Fitted models kept in the cache for each setup (the newest): one per reference taken, and an
+engineer may take several in a session; older ones are removed as new ones are saved."""
+
+RELINEARISE_LOG = 0.2
+"""A fit whose every contact lies within this of a model's (20 %), or within three of its own standard
+deviations where that is wider, is served by that model's linearisation: a contact 20 % off moves the
+readings by about a tenth of what 50 % does, below the noise (benchmarks/mismatch.md), a difference the
+fit cannot tell from noise is none, and relinearising costs a model build."""
+FITS_KEPT = 2
+"""References whose fitted models a model keeps at hand (the one in use, and a probe's or the last one)."""
+AFFORDABLE_FIT_ELECTRODES = 32
+"""Up to this many electrodes a setup fits its contacts by default: the fit and the relinearisation
+take well under a second. On a 128-electrode bed the fit takes about 4 s but the relinearisation is a
+second model build (about 40 s and 3.8 GB at peak today, beyond a bedside board at every reference);
+on 512 electrodes the fit alone is about a minute (benchmarks/mismatch.md)."""
 
 LINEAR_LIMIT = 0.05
 """Below this largest relative change the one-step image is taken as it is, without the
@@ -52,7 +77,14 @@ forward solve that checks it (the linearisation's error grows with the square of
 
 @dataclass(frozen=True)
 class ModelSetup:
-    """Everything a reconstruction model depends on."""
+    """Everything a reconstruction model depends on.
+
+    ``fit_contacts`` images each frame with the model linearised at the contacts and
+    conductance fitted to its reference (:meth:`ReconstructionModel.for_reference`); by
+    default (None) where that is affordable (AFFORDABLE_FIT_ELECTRODES).
+    ``fitted_contact_ohm_m2`` holds such a fit's contacts, at unit sheet conductance, where
+    the model is then linearised instead of at the nominal ``contact_impedance_ohm_m2``.
+    """
 
     layout: Layout
     protocol: Protocol
@@ -60,6 +92,8 @@ class ModelSetup:
     density: float = 1.0
     pixels: tuple[int, int] | None = None
     contact_impedance_ohm_m2: float = DEFAULT_CONTACT_IMPEDANCE_OHM_M2
+    fit_contacts: bool | None = None
+    fitted_contact_ohm_m2: tuple[float, ...] | None = None
 
     def key(self) -> str:
         """SHA-256 (hex) of the setup, the file format and the package version."""
@@ -68,25 +102,113 @@ class ModelSetup:
             "protocol": hashlib.sha256(np.ascontiguousarray(self.protocol.readings, dtype=np.int64)).hexdigest(),
             "options": dataclasses.asdict(self.options),
             "density": self.density, "pixels": self.pixels, "contact": self.contact_impedance_ohm_m2,
+            "fits": self.fits_contacts,
+            "fitted": None if self.fitted_contact_ohm_m2 is None else [float(z) for z in self.fitted_contact_ohm_m2],
             "format": FORMAT_VERSION, "version": appliance.__version__,
         }
         return hashlib.sha256(json.dumps(description, sort_keys=True).encode()).hexdigest()
 
+    @property
+    def fits_contacts(self) -> bool:
+        """Whether frames are imaged with the model fitted to their reference."""
+        if self.fit_contacts is None:
+            return self.layout.n_electrodes <= AFFORDABLE_FIT_ELECTRODES
+        return bool(self.fit_contacts)
+
+    @property
+    def nominal(self) -> "ModelSetup":
+        """The setup without fitted contacts."""
+        return dataclasses.replace(self, fitted_contact_ohm_m2=None)
+
+    @property
+    def contact_ohm_m2(self) -> np.ndarray:
+        """Each electrode's contact impedance the model is linearised at (at unit sheet conductance)."""
+        if self.fitted_contact_ohm_m2 is not None:
+            return np.array(self.fitted_contact_ohm_m2, dtype=float)
+        return np.full(self.layout.n_electrodes, float(self.contact_impedance_ohm_m2))
+
 
 @dataclass
 class ReconstructionModel:
-    """A setup built: its mesh and reconstructor; the forward model is rebuilt on first need."""
+    """A setup built: its mesh and reconstructor; the forward model is rebuilt on first need.
+
+    ``cache_dir`` is where the models fitted to its references are cached (set by
+    :func:`cached_model`); ``contact_fit`` is the fit that chose this model for a reference,
+    if one did in this process.
+    """
 
     setup: ModelSetup
     mesh: Mesh
     reconstructor: Reconstructor
+    cache_dir: Path | None = None
+    contact_fit: ContactFit | None = None
     _dropped: dict = field(default_factory=dict, repr=False)
+    _fits: dict = field(default_factory=dict, repr=False)
 
     @cached_property
     def forward(self) -> ForwardModel:
         """The forward model, for iterating (built from the stored mesh)."""
-        return build_fem_model(self.setup.layout, self.mesh,
-                               contact_impedance_ohm_m2=self.setup.contact_impedance_ohm_m2)
+        return build_fem_model(self.setup.layout, self.mesh, contact_impedance_ohm_m2=self.setup.contact_ohm_m2)
+
+    def fit_contacts(self, reference: np.ndarray, prior: ContactPrior = ContactPrior()) -> ContactFit:
+        """Every electrode's contact impedance and the scale fitted to the empty-mat ``reference``
+        (:mod:`appliance.core.contact_fit`), about the setup's nominal contact impedance."""
+        return fit_contacts(self.forward, self.mesh, self.setup.protocol, reference,
+                            self.setup.contact_impedance_ohm_m2, self.setup.options.noise, prior,
+                            start_ohm_m2=self.setup.fitted_contact_ohm_m2)
+
+    def for_reference(self, reference: np.ndarray, progress=None) -> "ReconstructionModel":
+        """The model to image frames against ``reference`` with: linearised at the contacts and
+        conductance fitted to it, or this model if the setup does not fit contacts.
+
+        The fit is made once per reference. A fit that leaves the reference unexplained
+        (``ContactFit.accepted`` false: the model lacks more than contacts can supply, and
+        the contacts would only stand in for it) keeps the nominal linearisation. A model
+        whose contacts are all within RELINEARISE_LOG of the fit's serves as it is (with the
+        fit attached); otherwise the fitted setup's model is loaded from ``cache_dir`` or
+        built on this mesh (``progress`` as for :func:`build_model`), and cached.
+        """
+        if not self.setup.fits_contacts:
+            return self
+        digest = hashlib.sha256(np.ascontiguousarray(reference, dtype=np.float64).tobytes()).hexdigest()
+        if digest not in self._fits:
+            self.for_readings(~np.isfinite(reference)).check_reference(reference)   # the plainer error first
+            fit = self.fit_contacts(reference)
+            if fit.accepted:
+                contacts, tolerance = fit.contact_ohm_m2, np.maximum(RELINEARISE_LOG, 3 * fit.sd_log_contact)
+            else:
+                contacts, tolerance = self.setup.nominal.contact_ohm_m2, np.zeros(self.setup.layout.n_electrodes)
+            model = self._linearised_at(contacts, tolerance, progress)
+            model.contact_fit = fit
+            model._fits = {digest: model}                   # it images this reference itself
+            self._fits = {**dict(list(self._fits.items())[-(FITS_KEPT - 1):]), digest: model}
+        return self._fits[digest]
+
+    def _linearised_at(self, contacts: np.ndarray, tolerance: np.ndarray, progress) -> "ReconstructionModel":
+        """A model linearised within ``tolerance`` (log, per electrode) of ``contacts``: this one, one
+        already fitted here or in the cache, or a new one."""
+        def close(other: np.ndarray) -> bool:
+            return bool(np.all(np.abs(np.log(contacts / other)) <= tolerance))
+
+        for known in (self, *self._fits.values()):
+            if close(known.setup.contact_ohm_m2):
+                same = dataclasses.replace(known, _dropped=known._dropped, _fits={})
+                if "forward" in known.__dict__:
+                    same.__dict__["forward"] = known.forward
+                return same
+        cached = [c for c in cached_fits(self.setup, self.cache_dir) if close(c)] if self.cache_dir else []
+        chosen = cached[0] if cached else contacts
+        fitted = None if close(self.setup.nominal.contact_ohm_m2) else tuple(float(z) for z in chosen)
+        setup = dataclasses.replace(self.setup, fitted_contact_ohm_m2=fitted)
+        if self.cache_dir is not None:
+            model, _ = cached_model(setup, self.cache_dir, progress, mesh=self.mesh)
+        else:
+            model = build_model(setup, progress, mesh=self.mesh)
+        if self.reconstructor.sensitivity is not None:          # an experimental sensitivity stays as it was given
+            r = model.reconstructor
+            model.reconstructor = build_reconstructor(r.linear, r.options, r.usable,
+                                                      sensitivity=self.reconstructor.sensitivity)
+        return model
 
     def for_readings(self, missing: np.ndarray) -> Reconstructor:
         """The reconstructor without the ``missing`` readings (bool mask), built once per mask."""
@@ -104,10 +226,14 @@ class ReconstructionModel:
         Readings that are NaN in either frame are dropped. ``iterate`` is ``auto``
         (iterate when the forward model at the one-step image misses the data by more than
         MISFIT_LIMIT noise deviations, rms; checked only if the image changes some pixel
-        by more than LINEAR_LIMIT), ``always`` or ``never``.
+        by more than LINEAR_LIMIT), ``always`` or ``never``. The model used is
+        :meth:`for_reference`'s.
         """
         if iterate not in ("auto", "always", "never"):
             raise ReconstructionError(f"iterate must be auto, always or never, got {iterate!r}")
+        model = self.for_reference(reference)
+        if model is not self:
+            return model.reconstruct(frame, reference, iterate)
         if self.reconstructor.options.algorithm == "backprojection":
             if iterate == "always":
                 raise ReconstructionError("backprojection has no regularisation to iterate with; use a "
@@ -135,19 +261,20 @@ class ReconstructionModel:
         readings for its position, size, depth and uncertainty (:mod:`appliance.core.localise`)."""
         from appliance.core.localise import localise
 
+        model = self.for_reference(reference)
         missing = ~(np.isfinite(frame) & np.isfinite(reference))
-        r = self.for_readings(missing)
-        return localise(self.forward, r, frame, reference, image, sign)
+        r = model.for_readings(missing)
+        return localise(model.forward, r, frame, reference, image, sign)
 
 
-def build_model(setup: ModelSetup, progress=None) -> ReconstructionModel:
-    """Mesh, forward model, Jacobian on the pixels, reconstruction matrix; ``progress(step, share)``
-    is told each step as it starts."""
+def build_model(setup: ModelSetup, progress=None, mesh: Mesh | None = None) -> ReconstructionModel:
+    """Mesh (unless the setup's ``mesh`` is given), forward model, Jacobian on the pixels, reconstruction
+    matrix; ``progress(step, share)`` is told each step as it starts."""
     report = progress or (lambda step, share: None)
     report("meshing", 0.0)
-    mesh = mesh_layout(setup.layout, setup.density)
+    mesh = mesh if mesh is not None else mesh_layout(setup.layout, setup.density)
     report("assembling the forward model", 0.1)
-    forward = build_fem_model(setup.layout, mesh, contact_impedance_ohm_m2=setup.contact_impedance_ohm_m2)
+    forward = build_fem_model(setup.layout, mesh, contact_impedance_ohm_m2=setup.contact_ohm_m2)
     report("solving and differentiating", 0.3)
     grid = pixel_grid(setup.layout, *(setup.pixels or (None, None)))
     linear = linear_model(forward, setup.protocol, grid)
@@ -160,24 +287,50 @@ def build_model(setup: ModelSetup, progress=None) -> ReconstructionModel:
 
 
 def model_path(setup: ModelSetup, cache_dir: Path) -> Path:
-    """Where ``cache_dir`` keeps the model of ``setup``."""
-    return Path(cache_dir) / f"model-{setup.key()}.npz"
+    """Where ``cache_dir`` keeps the model of ``setup``; a fitted model's name starts with its nominal's key."""
+    if setup.fitted_contact_ohm_m2 is None:
+        return Path(cache_dir) / f"model-{setup.key()}.npz"
+    return Path(cache_dir) / f"model-{setup.nominal.key()}-fitted-{setup.key()[:16]}.npz"
 
 
-def cached_model(setup: ModelSetup, cache_dir: Path, progress=None) -> tuple[ReconstructionModel, bool]:
-    """The model of ``setup`` from ``cache_dir`` if it is there, else built and saved.
+def cached_model(setup: ModelSetup, cache_dir: Path, progress=None, mesh: Mesh | None = None
+                 ) -> tuple[ReconstructionModel, bool]:
+    """The model of ``setup`` from ``cache_dir`` if it is there, else built (on ``mesh`` if given) and saved.
 
-    Returns the model and whether it was loaded. An unreadable cache file is rebuilt.
+    Returns the model and whether it was loaded. An unreadable cache file is rebuilt. Saving a
+    fitted model removes all but the newest FITTED_KEPT of its setup's fitted models.
     """
     path = model_path(setup, cache_dir)
     if path.exists():
         try:
-            return load_model(path, setup), True
+            model = load_model(path, setup)
+            model.cache_dir = Path(cache_dir)
+            return model, True
         except (OSError, ValueError, KeyError):
             pass
-    model = build_model(setup, progress)
+    model = build_model(setup, progress, mesh)
+    model.cache_dir = Path(cache_dir)
     save_model(model, path)
+    if setup.fitted_contact_ohm_m2 is not None:
+        fitted = sorted(Path(cache_dir).glob(f"model-{setup.nominal.key()}-fitted-*.npz"),
+                        key=lambda p: p.stat().st_mtime, reverse=True)
+        for old in fitted[FITTED_KEPT:]:
+            old.unlink(missing_ok=True)
     return model, False
+
+
+def cached_fits(setup: ModelSetup, cache_dir: Path) -> list[np.ndarray]:
+    """The contacts of the fitted models of ``setup``'s nominal in ``cache_dir``, newest first."""
+    out = []
+    paths = sorted(Path(cache_dir).glob(f"model-{setup.nominal.key()}-fitted-*.npz"),
+                   key=lambda p: p.stat().st_mtime, reverse=True)
+    for path in paths:
+        try:
+            with np.load(path) as f:
+                out.append(np.array(f["contacts"], dtype=float))
+        except (OSError, ValueError, KeyError):
+            continue
+    return out
 
 
 def save_model(model: ReconstructionModel, path: Path) -> None:
@@ -189,7 +342,7 @@ def save_model(model: ReconstructionModel, path: Path) -> None:
         "areas": linear.areas_mm2, "map_data": linear.mapping.data, "map_indices": linear.mapping.indices,
         "map_indptr": linear.mapping.indptr, "matrix": r.matrix, "usable": r.usable,
         "scalars": np.array([r.lam, r.achieved_noise_figure, linear.grid.width_mm, linear.grid.height_mm]),
-        "key": np.array(model.setup.key()),
+        "contacts": model.setup.contact_ohm_m2, "key": np.array(model.setup.key()),
     }
     if r.sensitivity is not None:
         arrays["sensitivity"] = r.sensitivity
