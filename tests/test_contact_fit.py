@@ -101,7 +101,7 @@ def test_fit_with_a_broken_electrode(base):
 
 def test_a_reference_the_model_cannot_explain_keeps_the_nominal_model():
     """A load left on the mat while the reference was taken: no homogeneous sheet explains it."""
-    model = build_model(ModelSetup(LAYOUT, PROTOCOL, ReconstructionOptions(noise=NOISE)))
+    model = build_model(ModelSetup(LAYOUT, PROTOCOL, ReconstructionOptions(noise=NOISE), contact_fit="relinearise"))
     truth = build_fem_model(LAYOUT, density=2)
     loaded = simulate(truth, conductivity(truth, [Inclusion("rect", 40, 60, 30, 30, 0.5)]), PROTOCOL)
     chosen = model.for_reference(loaded)
@@ -113,8 +113,8 @@ def test_with_the_fit_regions_are_placed_where_without_it_they_are_not():
     """Near-ideal contacts (0.1 ohm cm^2 on the saline mat, +-50 %) on a finer, independent model: the model at its
     nominal (poor) contact misplaces pressed regions by 0.8 mm (median, 24 loads), the fitted one by 0.5 mm."""
     options = ReconstructionOptions(noise=NOISE)
-    nominal = build_model(ModelSetup(LAYOUT, PROTOCOL, options, fit_contacts=False))
-    fitting = build_model(ModelSetup(LAYOUT, PROTOCOL, options))
+    nominal = build_model(ModelSetup(LAYOUT, PROTOCOL, options, contact_fit="off"))
+    fitting = build_model(ModelSetup(LAYOUT, PROTOCOL, options, contact_fit="relinearise"))
     truth = build_fem_model(LAYOUT, density=2, contact_impedance_ohm_m2=1e-7 * np.random.default_rng(1).uniform(
         0.5, 1.5, 16))
     rng = np.random.default_rng(0)
@@ -134,7 +134,7 @@ def test_with_the_fit_regions_are_placed_where_without_it_they_are_not():
 
 
 def test_fitted_models_are_cached_and_a_close_fit_keeps_its_linearisation(tmp_path, base):
-    setup = ModelSetup(LAYOUT, PROTOCOL, ReconstructionOptions(noise=NOISE))
+    setup = ModelSetup(LAYOUT, PROTOCOL, ReconstructionOptions(noise=NOISE), contact_fit="relinearise")
     model, _ = cached_model(setup, tmp_path)
     reference = measured(base, 1e-4 * np.random.default_rng(6).uniform(0.5, 1.5, 16), SALINE_S)
     steps = []
@@ -169,3 +169,17 @@ def test_bad_references_are_refused(base):
     model = build_model(ModelSetup(LAYOUT, PROTOCOL))
     with pytest.raises(ReconstructionError, match="correlate"):
         model.for_reference(-reference)
+    with pytest.raises(ConfigError, match="unknown contact fit 'always'"):
+        ModelSetup(LAYOUT, PROTOCOL, contact_fit="always")
+
+
+def test_by_default_the_sensors_track_their_contacts_and_the_beds_do_not(base):
+    """grid-4x4 fits every reference and reports it, imaging with the nominal linearisation; a bed does nothing."""
+    model = build_model(ModelSetup(LAYOUT, PROTOCOL))
+    reference = measured(base, 1e-4 * np.random.default_rng(8).uniform(0.5, 1.5, 16), SALINE_S)
+    tracked = model.for_reference(reference)
+    assert tracked.contact_fit.accepted and tracked.setup.fitted_contact_ohm_m2 is None
+    assert tracked.reconstructor is model.reconstructor
+    assert 0.005 < np.median(tracked.contact_fit.contact_ohm_m2 / 1e-4) < 0.015       # 1e-4 x 8.7 mS: near ideal
+    bed = get_layout("grid-8x16")
+    assert ModelSetup(bed, default_protocol(bed)).contact_fit_mode == "off"

@@ -48,7 +48,7 @@ from appliance.core.protocols import Protocol
 from appliance.core.reconstruct import (
     LinearModel, ReconstructionOptions, Reconstructor, build_reconstructor, linear_model, without_readings,
 )
-from appliance.errors import ReconstructionError
+from appliance.errors import ConfigError, ReconstructionError
 from appliance.files import write_atomic
 
 FORMAT_VERSION = 2
@@ -64,11 +64,12 @@ readings by about a tenth of what 50 % does, below the noise (benchmarks/mismatc
 fit cannot tell from noise is none, and relinearising costs a model build."""
 FITS_KEPT = 2
 """References whose fitted models a model keeps at hand (the one in use, and a probe's or the last one)."""
+CONTACT_FIT_MODES = ("off", "track", "relinearise")
 AFFORDABLE_FIT_ELECTRODES = 32
-"""Up to this many electrodes a setup fits its contacts by default: the fit and the relinearisation
-take well under a second. On a 128-electrode bed the fit takes about 4 s but the relinearisation is a
-second model build (about 40 s and 3.8 GB at peak today, beyond a bedside board at every reference);
-on 512 electrodes the fit alone is about a minute (benchmarks/mismatch.md)."""
+"""Up to this many electrodes a setup fits its contacts to every reference by default (``track``): it
+takes well under a second. On a 128-electrode bed the fit takes about 4 s and relinearising is a second
+model build (28 s and 3.7 GB at peak today); on the 512-electrode bed the fit alone is over two minutes
+(benchmarks/mismatch.md)."""
 
 LINEAR_LIMIT = 0.05
 """Below this largest relative change the one-step image is taken as it is, without the
@@ -79,11 +80,15 @@ forward solve that checks it (the linearisation's error grows with the square of
 class ModelSetup:
     """Everything a reconstruction model depends on.
 
-    ``fit_contacts`` images each frame with the model linearised at the contacts and
-    conductance fitted to its reference (:meth:`ReconstructionModel.for_reference`); by
-    default (None) where that is affordable (AFFORDABLE_FIT_ELECTRODES).
-    ``fitted_contact_ohm_m2`` holds such a fit's contacts, at unit sheet conductance, where
-    the model is then linearised instead of at the nominal ``contact_impedance_ohm_m2``.
+    ``contact_fit`` says what is done with each reference's contacts and conductance
+    (:meth:`ReconstructionModel.for_reference`): ``off``; ``track`` fits and reports them;
+    ``relinearise`` also images with the model linearised at the fit. By default (None)
+    ``track`` up to AFFORDABLE_FIT_ELECTRODES electrodes, else ``off``. Relinearising is not
+    the default: it moves one-step images by less than their noise, places fitted regions
+    better on near-ideal contacts, and with those contacts leaves the sheet over each face
+    less determined, which the iteration of wide, heavy loads feels (benchmarks/mismatch.md).
+    ``fitted_contact_ohm_m2`` holds a fit's contacts, at unit sheet conductance, where the
+    model is then linearised instead of at the nominal ``contact_impedance_ohm_m2``.
     """
 
     layout: Layout
@@ -92,28 +97,32 @@ class ModelSetup:
     density: float = 1.0
     pixels: tuple[int, int] | None = None
     contact_impedance_ohm_m2: float = DEFAULT_CONTACT_IMPEDANCE_OHM_M2
-    fit_contacts: bool | None = None
+    contact_fit: str | None = None
     fitted_contact_ohm_m2: tuple[float, ...] | None = None
 
     def key(self) -> str:
-        """SHA-256 (hex) of the setup, the file format and the package version."""
+        """SHA-256 (hex) of the setup, the file format and the package version (not ``contact_fit``, which
+        builds nothing: a fitted model has its contacts in its own key)."""
         description = {
             "layout": layout_to_toml(self.layout),
             "protocol": hashlib.sha256(np.ascontiguousarray(self.protocol.readings, dtype=np.int64)).hexdigest(),
             "options": dataclasses.asdict(self.options),
             "density": self.density, "pixels": self.pixels, "contact": self.contact_impedance_ohm_m2,
-            "fits": self.fits_contacts,
             "fitted": None if self.fitted_contact_ohm_m2 is None else [float(z) for z in self.fitted_contact_ohm_m2],
             "format": FORMAT_VERSION, "version": appliance.__version__,
         }
         return hashlib.sha256(json.dumps(description, sort_keys=True).encode()).hexdigest()
 
+    def __post_init__(self):
+        if self.contact_fit not in (None, *CONTACT_FIT_MODES):
+            raise ConfigError(f"unknown contact fit {self.contact_fit!r}: use one of {', '.join(CONTACT_FIT_MODES)}")
+
     @property
-    def fits_contacts(self) -> bool:
-        """Whether frames are imaged with the model fitted to their reference."""
-        if self.fit_contacts is None:
-            return self.layout.n_electrodes <= AFFORDABLE_FIT_ELECTRODES
-        return bool(self.fit_contacts)
+    def contact_fit_mode(self) -> str:
+        """``contact_fit``, or its default for this layout."""
+        if self.contact_fit is None:
+            return "track" if self.layout.n_electrodes <= AFFORDABLE_FIT_ELECTRODES else "off"
+        return self.contact_fit
 
     @property
     def nominal(self) -> "ModelSetup":
@@ -158,23 +167,27 @@ class ReconstructionModel:
                             start_ohm_m2=self.setup.fitted_contact_ohm_m2)
 
     def for_reference(self, reference: np.ndarray, progress=None) -> "ReconstructionModel":
-        """The model to image frames against ``reference`` with: linearised at the contacts and
-        conductance fitted to it, or this model if the setup does not fit contacts.
+        """The model to image frames against ``reference`` with, its ``contact_fit`` the fit made to it.
 
+        The setup's ``contact_fit`` decides: ``off`` returns this model as it is; ``track``
+        a copy of it with the fit attached; ``relinearise`` the model linearised at the fit.
         The fit is made once per reference. A fit that leaves the reference unexplained
         (``ContactFit.accepted`` false: the model lacks more than contacts can supply, and
         the contacts would only stand in for it) keeps the nominal linearisation. A model
-        whose contacts are all within RELINEARISE_LOG of the fit's serves as it is (with the
-        fit attached); otherwise the fitted setup's model is loaded from ``cache_dir`` or
-        built on this mesh (``progress`` as for :func:`build_model`), and cached.
+        whose contacts are all within RELINEARISE_LOG of the fit's serves as it is;
+        otherwise the fitted setup's model is loaded from ``cache_dir`` or built on this
+        mesh (``progress`` as for :func:`build_model`), and cached.
         """
-        if not self.setup.fits_contacts:
+        mode = self.setup.contact_fit_mode
+        if mode == "off":
             return self
         digest = hashlib.sha256(np.ascontiguousarray(reference, dtype=np.float64).tobytes()).hexdigest()
         if digest not in self._fits:
             self.for_readings(~np.isfinite(reference)).check_reference(reference)   # the plainer error first
             fit = self.fit_contacts(reference)
-            if fit.accepted:
+            if mode == "track":
+                contacts, tolerance = self.setup.contact_ohm_m2, np.zeros(self.setup.layout.n_electrodes)
+            elif fit.accepted:
                 contacts, tolerance = fit.contact_ohm_m2, np.maximum(RELINEARISE_LOG, 3 * fit.sd_log_contact)
             else:
                 contacts, tolerance = self.setup.nominal.contact_ohm_m2, np.zeros(self.setup.layout.n_electrodes)
