@@ -31,6 +31,14 @@ readings' information against the prior's.
 A broken electrode's readings are missing (NaN): its contact is then seen only
 through what it shunts as a floating electrode, and the prior holds the rest.
 
+Refreshing. Every new empty-mat reference refits (the monitor's fresh start and
+restart, the engineer's capture, which is refused while the mat reads loaded;
+``ReconstructionModel.for_reference`` on any empty frame). A refit from a loaded
+mat is not offered: on the 16-electrode sensor a 20 mm load moves all but about 3 %
+of the readings by more than the noise, so there are no unloaded readings to fit,
+and a contact cannot be told from the conductance beside its face without an empty
+reference. Drift shows as the change between fits of successive references.
+
 >>> ContactPrior().spread_log
 0.5
 """
@@ -253,7 +261,8 @@ def fit_contacts(model: ForwardModel, mesh: Mesh, protocol: Protocol, reference,
     reduced, _ = problem.linearise(state)
     information = reduced.T @ reduced
     covariance = np.linalg.inv(information + problem.precision)
-    prior_root = sla.sqrtm(np.linalg.inv(problem.precision)).real
+    values, vectors = np.linalg.eigh(problem.precision)
+    prior_root = (vectors / np.sqrt(values)) @ vectors.T                 # the prior covariance's square root
     eigen = np.sort(np.linalg.eigvalsh(prior_root @ information @ prior_root))[::-1]
     return ContactFit(np.exp(theta), np.exp(nominal), state.scale, np.sqrt(np.diag(covariance)), np.maximum(eigen, 0.0),
                       misfit_nominal, state.misfit, iterations, usable)

@@ -8,11 +8,10 @@ contacts fitted to a reference if any, the file format and the package version),
 written atomically, so a restart loads it in milliseconds and a change to any
 input builds a new one.
 
-A model is linearised at the nominal contact impedance until :meth:`ReconstructionModel.fitted`
-fits every electrode's contact and the sheet's conductance to an empty-mat reference
-(:mod:`appliance.core.contact_fit`) and relinearises there. Fitted models are cached
-too, the newest few of each setup, so a restart with the same reference loads its
-model instead of building it.
+:meth:`ReconstructionModel.for_reference` fits every electrode's contact and the sheet's
+conductance to each empty-mat reference (:mod:`appliance.core.contact_fit`) and, if the
+setup asks, relinearises there. Relinearised models are cached too, the newest few of
+each setup, so a restart with the same reference loads its model instead of building it.
 
 >>> from appliance.core.layouts import get_layout
 >>> from appliance.core.protocols import default_protocol
@@ -59,9 +58,10 @@ engineer may take several in a session; older ones are removed as new ones are s
 
 RELINEARISE_LOG = 0.2
 """A fit whose every contact lies within this of a model's (20 %), or within three of its own standard
-deviations where that is wider, is served by that model's linearisation: a contact 20 % off moves the
-readings by about a tenth of what 50 % does, below the noise (benchmarks/mismatch.md), a difference the
-fit cannot tell from noise is none, and relinearising costs a model build."""
+deviations where that is wider, is served by that model's linearisation: one contact 50 % off moves the
+readings by 1.4e-3 of their size where contacts matter most (near ideal; benchmarks/mismatch.md), 20 % by
+under half that, below the noise; a difference the fit cannot tell from noise is none; and relinearising
+costs a model build."""
 FITS_KEPT = 2
 """References whose fitted models a model keeps at hand (the one in use, and a probe's or the last one)."""
 CONTACT_FIT_MODES = ("off", "track", "relinearise")
