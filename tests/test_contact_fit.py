@@ -110,8 +110,9 @@ def test_a_reference_the_model_cannot_explain_keeps_the_nominal_model():
 
 
 def test_with_the_fit_regions_are_placed_where_without_it_they_are_not():
-    """Near-ideal contacts (0.1 ohm cm^2 on the saline mat, +-50 %) on a finer, independent model: the model at its
-    nominal (poor) contact misplaces pressed regions by 0.8 mm (median, 24 loads), the fitted one by 0.5 mm."""
+    """Near-ideal contacts (0.1 ohm cm^2 on the saline mat, +-50 %) on a finer, independent model, 40 loads: the
+    model at its nominal (poor) contact misplaces pressed regions by 0.66 to 0.83 mm (median, over six noise
+    seeds), the model relinearised at the fit by 0.39 to 0.58 mm."""
     options = ReconstructionOptions(noise=NOISE)
     nominal = build_model(ModelSetup(LAYOUT, PROTOCOL, options, contact_fit="off"))
     fitting = build_model(ModelSetup(LAYOUT, PROTOCOL, options, contact_fit="relinearise"))
@@ -122,7 +123,7 @@ def test_with_the_fit_regions_are_placed_where_without_it_they_are_not():
     sd = 1e-3 * np.sqrt(np.mean(clean**2))
     reference = clean + rng.normal(0, sd, clean.shape)
     errors = {"nominal": [], "fitted": []}
-    for x, y in rng.uniform(12, 88, (24, 2)):
+    for x, y in rng.uniform(12, 88, (40, 2)):
         frame = simulate(truth, conductivity(truth, [Inclusion("rect", x, y, 20, 20, 0.6)]), PROTOCOL) + \
             rng.normal(0, sd, clean.shape)
         for name, model in (("nominal", nominal), ("fitted", fitting)):
@@ -130,7 +131,7 @@ def test_with_the_fit_regions_are_placed_where_without_it_they_are_not():
             errors[name].append(np.hypot(region.x_mm - x, region.y_mm - y))
     assert fitting.for_reference(reference).setup.fitted_contact_ohm_m2 is not None
     print({name: f"{np.median(e):.2f} mm" for name, e in errors.items()})
-    assert np.median(errors["fitted"]) <= 0.65 < np.median(errors["nominal"])
+    assert np.median(errors["fitted"]) <= 0.62 < np.median(errors["nominal"])
 
 
 def test_fitted_models_are_cached_and_a_close_fit_keeps_its_linearisation(tmp_path, base):
