@@ -67,9 +67,9 @@ FITS_KEPT = 2
 CONTACT_FIT_MODES = ("off", "track", "relinearise")
 AFFORDABLE_FIT_ELECTRODES = 32
 """Up to this many electrodes a setup fits its contacts to every reference by default (``track``): it
-takes well under a second. On a 128-electrode bed the fit takes about 4 s and relinearising is a second
-model build (28 s and 3.7 GB at peak today); on the 512-electrode bed the fit alone is over two minutes
-(benchmarks/mismatch.md)."""
+takes well under a second. A bed fits on request: 2 s on grid-8x16 and about 40 s (0.6 GB) on
+grid-16x32, paid again at every restart, where relinearising is a second model build (about 30 s and
+3.8 GB on grid-8x16 today) that moves the bed's images less than their scatter (benchmarks/mismatch.md)."""
 
 LINEAR_LIMIT = 0.05
 """Below this largest relative change the one-step image is taken as it is, without the
