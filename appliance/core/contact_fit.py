@@ -183,7 +183,8 @@ class ContactFit:
         low, mid, high = self.summary()["contact_over_nominal"]
         verdict = "taken" if self.accepted else f"not taken (the model misses the reference by more than " \
                                                  f"{ACCEPT_MISFIT:g} noise deviations)"
-        return (f"contacts {mid:.3g} times nominal (electrodes {low:.3g} to {high:.3g}), {self.determined} of "
+        return (f"contacts {mid:.3g} times nominal (electrodes {low:.3g} to {high:.3g}, each within a factor "
+                f"{np.exp(np.median(self.sd_log_contact)):.3g} typically), {self.determined} of "
                 f"{len(self.contact_ohm_m2)} directions set by the readings; reference misfit "
                 f"{self.misfit_nominal:.2f} -> {self.misfit:.2f} noise deviations; {verdict}")
 
