@@ -82,3 +82,23 @@ def test_pressure_benchmark_helpers_and_a_small_backprojection_run(monkeypatch):
     from appliance.core.pressure import PressureCurve
     note = pressure.curve_note("greit", PressureCurve(np.array([0.0, 0.1, 0.2, 0.22]), np.array([0.0, 2.0, 5.0, 20.0])))
     assert "0.2 -> 5.0" in note and "1.10 times the change" in note
+
+
+def test_mismatch_benchmark_runs_a_small_case(monkeypatch):
+    mismatch = load("mismatch")
+    from appliance.core.layouts import get_layout
+    from appliance.core.protocols import default_protocol
+
+    monkeypatch.setattr(mismatch, "DRAWS", 1)
+    monkeypatch.setattr(mismatch, "LOADS", 4)
+    monkeypatch.setattr(mismatch, "TRUTH_DENSITY", 1.5)
+    layout = get_layout("grid-4x4")
+    protocol = default_protocol(layout)
+    nominal, fitting = mismatch.models(layout, protocol)
+    case = mismatch.CASES[4]                                  # the saline mat: contacts the readings determine
+    result = mismatch.run_case(case, layout, protocol, nominal, fitting)
+    assert all(0 <= result[key][0] < 5 for key in ("image_before", "image_after", "region_before", "region_after"))
+    fit = result["fits"][0]
+    assert fit["accepted"] and fit["determined"] >= 8 and abs(fit["sheet"] - 1) < 0.05
+    row = mismatch.case_rows([(case, result)])[0]
+    assert row[0] == case.name and row[1] == 4

@@ -300,6 +300,12 @@ def test_capture_reference_refuses_a_loaded_mat_and_replaces_an_empty_ones(small
     assert not np.array_equal(daemon.monitor.reference, before)                 # a new frame: new noise
     assert np.array_equal(np.array(saved["volts"], dtype=float), daemon.monitor.reference)
     assert saved["layout"] == "grid-4x4"
+    fit = done["contact_fit"]                    # the virtual mat's 1 ohm cm^2 contacts on its 8.7 mS saline sheet
+    print(fit["contact_over_nominal"], fit["misfit_nominal"], fit["misfit"])
+    assert fit["accepted"] and saved["contact_fit"] == fit
+    assert 0.005 < fit["contact_over_nominal"][1] < 0.015 and fit["misfit"] < fit["misfit_nominal"]
+    in_use = daemon.monitor.model.for_reference(daemon.monitor.reference)
+    assert in_use.contact_fit.summary() == fit and in_use.setup.fitted_contact_ohm_m2 is None    # tracked only
 
 
 def test_calibrate_reports_progress_to_1_and_load_takes_its_file_into_use(small_mat, tmp_path):
@@ -356,6 +362,7 @@ def test_rebuild_model_reports_progress_and_replaces_the_model_when_built(small_
     assert daemon.model is not old and daemon.monitor.model is daemon.model
     assert daemon.model.setup.key() == old.setup.key()
     assert [p.name for p in (tmp_path / "models").iterdir()] == [f"model-{old.setup.key()}.npz"]
+    assert daemon.monitor.model.for_reference(daemon.monitor.reference).contact_fit.accepted   # fitted anew
     assert rebuilt["pixels"] == [16, 16] and daemon.maps == 1
 
 

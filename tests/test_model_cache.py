@@ -22,8 +22,11 @@ def test_key_changes_with_every_input():
             ModelSetup(LAYOUT, default_protocol(LAYOUT), ReconstructionOptions(noise=NoiseModel(2e-3))).key(),
             ModelSetup(LAYOUT, default_protocol(LAYOUT), density=2.0).key(),
             ModelSetup(LAYOUT, default_protocol(LAYOUT), pixels=(20, 20)).key(),
-            ModelSetup(LAYOUT, default_protocol(LAYOUT), contact_impedance_ohm_m2=1e-3).key()}
-    assert len(keys) == 8
+            ModelSetup(LAYOUT, default_protocol(LAYOUT), contact_impedance_ohm_m2=1e-3).key(),
+            ModelSetup(LAYOUT, default_protocol(LAYOUT), fitted_contact_ohm_m2=(1e-6,) * 16).key()}
+    assert len(keys) == 9
+    # whether frames are imaged with a fitted model changes nothing built: fitted models have keys of their own
+    assert SETUP.key() == ModelSetup(LAYOUT, default_protocol(LAYOUT), contact_fit="relinearise").key()
     assert SETUP.key() == ModelSetup(get_layout("circular-16"), default_protocol(LAYOUT)).key()
 
 

@@ -29,6 +29,8 @@ grounded (its unknown removed), which makes the system positive definite.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -43,6 +45,8 @@ DEFAULT_CONTACT_IMPEDANCE_OHM_M2 = 1e-4
 saline at the thesis's 17.5 kHz; refined by calibration against measurements."""
 
 _MM2_PER_M2 = 1e6
+_LOCAL_MASS = (np.full((3, 3), 1.0) + np.eye(3)) / 12.0
+"""A linear triangle's mass matrix over its area."""
 
 
 def triangle_gradients(mesh: Mesh) -> np.ndarray:
@@ -63,14 +67,36 @@ def unit_stiffness(mesh: Mesh) -> np.ndarray:
 
 def _face_mass(mesh: Mesh, conductance_per_mm2: np.ndarray, size: int) -> sp.coo_matrix:
     """Sum over electrode faces of (1/z) * mass matrix, on the first unknowns of a size x size system."""
+    rows, cols, data = _face_entries(mesh, conductance_per_mm2, np.arange(mesh.n_nodes))
+    return sp.coo_matrix((data, (rows, cols)), shape=(size, size))
+
+
+def _face_entries(mesh: Mesh, conductance_per_mm2: np.ndarray, unknown_of_node: np.ndarray):
+    """Rows, columns and values of (1/z) * mass over every electrode face, nodes numbered by ``unknown_of_node``."""
     on_face = np.flatnonzero(mesh.contact >= 0)
-    local = (np.full((3, 3), 1.0) + np.eye(3)) / 12.0
-    tri = mesh.triangles[on_face]
+    tri = unknown_of_node[mesh.triangles[on_face]]
     scale = mesh.areas_mm2[on_face] * conductance_per_mm2[mesh.contact[on_face]]
     rows = np.repeat(tri, 3, axis=1).ravel()
     cols = np.tile(tri, (1, 3)).ravel()
-    data = (scale[:, None, None] * local[None]).ravel()
-    return sp.coo_matrix((data, (rows, cols)), shape=(size, size))
+    return rows, cols, (scale[:, None, None] * _LOCAL_MASS[None]).ravel()
+
+
+def face_mass_matrices(mesh: Mesh, n_electrodes: int) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """For each electrode, its face's nodes (sorted) and the mass matrix over them, mm^2.
+
+    The face term of the system is this matrix over z (ohm mm^2) acting on u - U_l, so
+    it is what differentiates the readings by each contact impedance.
+    """
+    out = []
+    for l in range(n_electrodes):
+        faces = np.flatnonzero(mesh.contact == l)
+        nodes = np.unique(mesh.triangles[faces])
+        local = np.searchsorted(nodes, mesh.triangles[faces])
+        mass = np.zeros((len(nodes), len(nodes)))
+        np.add.at(mass, (np.repeat(local, 3, axis=1).ravel(), np.tile(local, (1, 3)).ravel()),
+                  (mesh.areas_mm2[faces, None, None] * _LOCAL_MASS[None]).ravel())
+        out.append((nodes, mass))
+    return tuple(out)
 
 
 def build_fem_model(layout: Layout, mesh: Mesh | None = None, *, density: float = 1.0,
@@ -95,11 +121,7 @@ def build_fem_model(layout: Layout, mesh: Mesh | None = None, *, density: float 
     """
     mesh = mesh if mesh is not None else mesh_layout(layout, density)
     n_nodes, n_el = mesh.n_nodes, layout.n_electrodes
-    z = np.broadcast_to(np.asarray(contact_impedance_ohm_m2, dtype=float), (n_el,))
-    if not np.all(np.isfinite(z) & (z > 0)):
-        bad = int(np.flatnonzero(~(np.isfinite(z) & (z > 0)))[0])
-        raise ModelInputInvalid(f"contact impedance of electrode {bad + 1} must be positive and finite, "
-                                f"got {float(z[bad])} ohm m^2")
+    z = _checked_contact(contact_impedance_ohm_m2, n_el)
     face_of_node, contact_nodes = _face_nodes(mesh, n_el)
 
     # Unknowns: v on every node, then U for electrodes 1..L; the last is grounded.
@@ -116,6 +138,58 @@ def build_fem_model(layout: Layout, mesh: Mesh | None = None, *, density: float 
     return with_fill_reducing_order(ForwardModel(
         "fem", system, electrodes, mesh.centroids_mm, mesh.areas_mm2, np.zeros(mesh.n_triangles, dtype=bool),
         node_map, mesh.nodes, tri, local, contact_nodes))
+
+
+def with_contact_impedance(model: ForwardModel, mesh: Mesh, contact_impedance_ohm_m2: float | np.ndarray
+                           ) -> ForwardModel:
+    """``model``, built by :func:`build_fem_model` on ``mesh``, at other contact impedances.
+
+    Contact impedance enters only the faces' mass terms, which act on the face nodes'
+    own offset unknowns; they are re-assembled onto the model's fixed sparsity pattern
+    and numbering, so no ordering or factorisation is needed to make the new model
+    (a fit that tries many contact impedances pays only for its solves).
+
+    Raises
+    ------
+    ModelInputInvalid
+        Not a finite-element model of ``mesh``, or a contact impedance not positive and finite.
+    """
+    if model.kind != "fem" or len(model.nodes_mm) != mesh.n_nodes or model.n_elements != mesh.n_triangles:
+        raise ModelInputInvalid("contact impedance can only be changed on a finite-element model of the given mesh")
+    z = _checked_contact(contact_impedance_ohm_m2, model.n_electrodes)
+    system = model.system
+    rows, cols, data = _face_entries(mesh, 1.0 / (z * _MM2_PER_M2), _own_unknowns(model))
+    pattern = np.repeat(np.arange(system.n, dtype=np.int64), np.diff(system.indptr)) * system.n + system.indices
+    keys = rows * system.n + cols
+    slot = np.searchsorted(pattern, keys)
+    if not np.array_equal(pattern[np.minimum(slot, len(pattern) - 1)], keys):
+        raise ModelInputInvalid("the mesh's electrode faces do not match the model's sparsity pattern")
+    fixed = np.bincount(slot, weights=data, minlength=system.nnz)
+    return dataclasses.replace(model, system=dataclasses.replace(system, fixed=fixed))
+
+
+def _own_unknowns(model: ForwardModel) -> np.ndarray:
+    """The unknown holding each node's own potential (its offset from its electrode on a face)."""
+    node_map = sp.csr_matrix(model.node_map)
+    electrode_unknowns = sp.csc_matrix(model.electrodes).indices
+    rows = np.repeat(np.arange(node_map.shape[0]), np.diff(node_map.indptr))
+    own = ~np.isin(node_map.indices, electrode_unknowns)
+    unknowns = np.full(node_map.shape[0], -1, dtype=np.int64)
+    unknowns[rows[own]] = node_map.indices[own]
+    return unknowns
+
+
+def _checked_contact(contact_impedance_ohm_m2, n_electrodes: int) -> np.ndarray:
+    z = np.asarray(contact_impedance_ohm_m2, dtype=float)
+    if z.ndim > 1 or (z.ndim == 1 and len(z) != n_electrodes):
+        raise ModelInputInvalid(f"contact impedance needs one value or one per electrode ({n_electrodes}), "
+                                f"got shape {z.shape}")
+    z = np.broadcast_to(z, (n_electrodes,))
+    if not np.all(np.isfinite(z) & (z > 0)):
+        bad = int(np.flatnonzero(~(np.isfinite(z) & (z > 0)))[0])
+        raise ModelInputInvalid(f"contact impedance of electrode {bad + 1} must be positive and finite, "
+                                f"got {float(z[bad])} ohm m^2")
+    return z
 
 
 def _face_nodes(mesh: Mesh, n_electrodes: int) -> tuple[np.ndarray, tuple]:

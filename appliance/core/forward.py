@@ -126,12 +126,16 @@ class ElectrodeFields:
 
     def readings(self, protocol: Protocol, current_a: float = 1.0) -> np.ndarray:
         """The protocol's readings V(meas+) - V(meas-) in volts for ``current_a``; shape (n_readings,)."""
-        if protocol.n_electrodes != self.transfer.shape[0]:
-            raise ProtocolInvalid(f"protocol {protocol.name!r} is for {protocol.n_electrodes} electrodes, the "
-                                  f"model has {self.transfer.shape[0]}")
-        a, b, c, d = (protocol.readings - 1).T
-        z = self.transfer
-        return current_a * (z[c, a] - z[c, b] - z[d, a] + z[d, b])
+        return transfer_readings(self.transfer, protocol, current_a)
+
+
+def transfer_readings(transfer: np.ndarray, protocol: Protocol, current_a: float = 1.0) -> np.ndarray:
+    """The protocol's readings from the transfer impedances (n_electrodes, n_electrodes), volts."""
+    if protocol.n_electrodes != transfer.shape[0]:
+        raise ProtocolInvalid(f"protocol {protocol.name!r} is for {protocol.n_electrodes} electrodes, the "
+                              f"model has {transfer.shape[0]}")
+    a, b, c, d = (protocol.readings - 1).T
+    return current_a * (transfer[c, a] - transfer[c, b] - transfer[d, a] + transfer[d, b])
 
 
 def _pairs(drives, n_electrodes: int) -> np.ndarray:

@@ -92,7 +92,10 @@ def _calibration(config: MonitorConfig, source, model, cache_dir: Path, say):
 
 
 def virtual_calibration_path(cache_dir: Path, model) -> Path:
-    return Path(cache_dir) / f"virtual-pressure-{model.setup.layout.name}-{model.setup.options.algorithm}.json"
+    """Where the virtual mat's calibration is kept: one per layout and algorithm, and apart for a model fitted to
+    its references, whose images (and so curve) differ from the nominal model's."""
+    fitted = "-fitted" if model.setup.contact_fit_mode == "relinearise" else ""
+    return Path(cache_dir) / f"virtual-pressure-{model.setup.layout.name}-{model.setup.options.algorithm}{fitted}.json"
 
 
 def _notifiers(config: MonitorConfig, dead_letters: Path) -> list:

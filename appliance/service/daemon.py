@@ -35,10 +35,10 @@ from appliance.alerts.events import Event, as_event
 from appliance.alerts.notifiers import Notifier
 from appliance.alerts.pipeline import AlertPipeline, FrameAlerts, technical_alarms
 from appliance.core.pressure import KPA_PER_MMHG
-from appliance.errors import ApplianceError, ConfigError, DataFileInvalid
+from appliance.errors import ApplianceError, ConfigError, DataFileInvalid, ReconstructionError
 from appliance.service.config import MonitorConfig
 from appliance.service.live import LiveChannel, map_mmhg
-from appliance.service.monitor import Monitor
+from appliance.service.monitor import Monitor, reference_state
 from appliance.service.systemd import SystemdNotifier
 
 log = logging.getLogger(__name__)
@@ -118,11 +118,14 @@ class MonitorDaemon:
         if state is not None and reference is not None and self._restore(state, reference):
             return
         frame = self.source.reference()
-        self.monitor.take_reference(frame)
-        self.store.save_state("reference", {"layout": self.model.setup.layout.name,
-                                            "volts": [None if not np.isfinite(v) else float(v) for v in frame.volts],
-                                            "temperature_c": frame.temperature_c}, 0.0)
-        self.say("took the empty-mat reference")
+        try:
+            fit = self.monitor.take_reference(frame)
+        except ReconstructionError as exc:          # kept, so every frame raises the technical alarm it earns
+            self.monitor.reference = np.asarray(frame.volts, dtype=float)
+            self.monitor.reference_temperature_c, fit = frame.temperature_c, None
+            self.say(f"the empty-mat reference does not fit the model: {exc}")
+        self.store.save_state("reference", reference_state(self.model, frame, fit), 0.0)
+        self.say("took the empty-mat reference" + ("" if fit is None else f"; fitted {fit.describe()}"))
 
     def _restore(self, state: dict, reference: dict) -> bool:
         volts = np.array([np.nan if v is None else v for v in reference.get("volts", [])], dtype=float)
@@ -134,9 +137,12 @@ class MonitorDaemon:
         except (DataFileInvalid, ConfigError, KeyError, TypeError, ValueError) as exc:
             self.say(f"the saved alert state cannot be continued ({exc}): starting afresh")
             return False
+        try:
+            self.monitor.set_reference(volts, reference.get("temperature_c"))    # the same fit as when it was taken
+        except ReconstructionError as exc:
+            self.say(f"the saved reference does not fit the model ({exc}): starting afresh")
+            return False
         self.pipeline = pipeline
-        self.monitor.reference = volts
-        self.monitor.reference_temperature_c = reference.get("temperature_c")
         if pipeline.last_time_s is not None:
             self.resumed_from_s = pipeline.last_time_s
             self.source.resume_after(pipeline.last_time_s)

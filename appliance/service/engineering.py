@@ -42,7 +42,7 @@ from appliance.drivers.scan import UNUSABLE
 from appliance.errors import ConfigError
 from appliance.files import write_atomic
 from appliance.service.board_source import BoardSource
-from appliance.service.monitor import Monitor
+from appliance.service.monitor import Monitor, reference_state
 from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.loads import empty_mat
 
@@ -387,13 +387,13 @@ class EngineeringTasks:
             raise ConfigError(f"the mat is loaded: it reads {peak / KPA_PER_MMHG:.0f} mmHg at its peak, at or above "
                               f"the {threshold / KPA_PER_MMHG:.0f} mmHg alert threshold; clear the mat and capture "
                               "again (the reference is unchanged)")
-        monitor.take_reference(frame)
-        daemon.store.save_state("reference", {"layout": daemon.model.setup.layout.name,
-                                              "volts": [float(v) if np.isfinite(v) else None for v in frame.volts],
-                                              "temperature_c": frame.temperature_c}, now)
+        report(0.6, "the mat is empty; fitting the contacts and the sheet to it")
+        fit = monitor.take_reference(frame, lambda step, share: report(0.6 + 0.4 * share, f"relinearising: {step}"))
+        daemon.store.save_state("reference", reference_state(daemon.model, frame, fit), now)
         report(1.0, "reference replaced")
         return {"usable": int(np.isfinite(frame.volts).sum()), "readings": len(frame.volts),
-                "temperature_c": frame.temperature_c, "peak_mmhg_before": peak / KPA_PER_MMHG}
+                "temperature_c": frame.temperature_c, "peak_mmhg_before": peak / KPA_PER_MMHG,
+                "contact_fit": None if fit is None else fit.summary()}
 
     def calibrate(self, _now: float, args: dict, report: Report) -> dict:
         """The pressure calibration procedure on the simulated mat on the bench (a copy of the virtual bed's
@@ -425,6 +425,7 @@ class EngineeringTasks:
         started = time.perf_counter()
         model = build_model(setup, lambda step, share: report(share, f"building the model: {step}"))
         save_model(model, model_path(setup, self.cache_dir))
+        model.cache_dir = self.cache_dir                      # where the models fitted to references go
         self._replace_monitor(model, self.daemon.monitor.calibration)
         return {"layout": setup.layout.name, "pixels": list(model.reconstructor.grid.shape),
                 "readings": len(setup.protocol), "seconds": round(time.perf_counter() - started, 2)}
@@ -455,7 +456,8 @@ class EngineeringTasks:
         """A monitor for ``model`` and ``calibration`` (checked to fit) with the running one's reference."""
         old = self.daemon.monitor
         fresh = Monitor(old.acquire, model, calibration)
-        fresh.reference, fresh.reference_temperature_c = old.reference, old.reference_temperature_c
+        if old.reference is not None:
+            fresh.set_reference(old.reference, old.reference_temperature_c)     # a new model is fitted to it now
         fresh.conditions = old.conditions
         self.daemon.model, self.daemon.monitor = model, fresh
 

@@ -63,6 +63,14 @@ def alarm_worthy(frame) -> tuple[TechnicalCondition, ...]:
     return conditions
 
 
+def reference_state(model, frame, fit) -> dict:
+    """What the store keeps of an empty-mat reference: its readings and temperature, and the contact fit
+    made to it (for an engineer; a restart fits the same readings again)."""
+    return {"layout": model.setup.layout.name,
+            "volts": [None if not np.isfinite(v) else float(v) for v in frame.volts],
+            "temperature_c": frame.temperature_c, "contact_fit": None if fit is None else fit.summary()}
+
+
 class Monitor:
     """Pressure maps from ``acquire()`` frames (``.volts``, ``.temperature_c``, ``.time_s``).
 
@@ -84,14 +92,33 @@ class Monitor:
         self.reference_temperature_c: float | None = None
         self.conditions: tuple = ()         # the alarm-worthy technical conditions of the last frame acquired
 
-    def take_reference(self, frame=None) -> None:
-        """The empty mat (``frame``, or the next one acquired): every map is a change from it."""
+    def take_reference(self, frame=None, progress=None):
+        """The empty mat (``frame``, or the next one acquired): every map is a change from it.
+        Returns the contact fit made to it, as :meth:`set_reference`."""
         frame = frame if frame is not None else self.acquire()
         if not np.isfinite(frame.volts).any():
             raise ConfigError("the reference frame has no usable reading")
-        self.reference = np.asarray(frame.volts, dtype=float)
-        self.reference_temperature_c = frame.temperature_c
+        return self.set_reference(frame.volts, frame.temperature_c, progress)
+
+    def set_reference(self, volts, temperature_c: float | None, progress=None):
+        """Image every frame against ``volts``, the empty mat at ``temperature_c``.
+
+        The model is fitted to the reference here (each electrode's contact and the
+        sheet's conductance, then relinearised: ``ReconstructionModel.for_reference``),
+        so the cost falls now and not on the next frame. Returns the fit (None where the
+        setup does not fit contacts).
+
+        Raises
+        ------
+        ReconstructionError
+            The readings do not fit the model (another mat, reversed leads); the reference
+            is left as it was.
+        """
+        volts = np.asarray(volts, dtype=float)
+        fitted = self.model.for_reference(volts, progress)
+        self.reference, self.reference_temperature_c = volts, temperature_c
         self.loaded = None                                   # a full pass first, as after any new reference
+        return fitted.contact_fit
 
     def next_map(self) -> PressureMap:
         """Acquire one frame and turn it into a pressure map."""
