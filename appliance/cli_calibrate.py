@@ -201,9 +201,9 @@ def _opened_source(args, layout, protocol):
     else:
         from appliance.drivers.profile import board_profile
         from appliance.service.virtual_bed import VirtualBedSource
-        from appliance.sim.frontend import VIRTUAL_MAT_BOARD
+        from appliance.sim.frontend import virtual_board
 
-        table = table or VIRTUAL_MAT_BOARD          # unless told otherwise, a board the virtual mat suits
+        table = table or virtual_board(layout)      # unless told otherwise, the board that reads such a mat
         source = VirtualBedSource(layout, empty_mat(layout), protocol, seed=args.seed, profile=board_profile(table),
                                   density=args.density)
         place = source.place

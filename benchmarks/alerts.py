@@ -4,7 +4,7 @@ the monitor costs at 1 frame per second.
     python benchmarks/alerts.py        # writes benchmarks/alerts.md and alerts.png (about 10 min)
 
 Everything runs through the monitor daemon that ``appliance run`` starts
-(:func:`appliance.service.assemble.assemble`) on the grid-8x16 virtual bed, with
+(:func:`appliance.service.assemble.assemble`) on the default virtual bed (grid-16x32), with
 the default alert settings unless a table says otherwise.
 
 * Alarms per simulated patient-day: scenarios where the patient is cared for as
@@ -194,8 +194,9 @@ def main() -> None:
     report = f"""# Alerts: false alarms, detection delay, cost
 
 Made by `python benchmarks/alerts.py` on {machine()}.
-grid-8x16 virtual bed (900 x 1900 mm, 128 electrodes), one-step GREIT maps through the virtual mat's
-factory calibration, default alert settings (32 mmHg, Reswick-Rogers, alarm at dose 1, turn every 2 h,
+grid-16x32 virtual bed (900 x 1900 mm, 512 electrodes, read through the parallel board), one-step
+Gauss-Newton maps on 30 mm pixels through the virtual mat's calibration made from people's maps, default
+alert settings (32 mmHg, Reswick-Rogers, alarm at dose 1, turn every 2 h,
 escalation after 15 min), one map per simulated minute unless said otherwise.
 
 ## Alarms per simulated patient-day, patients cared for as the guidelines ask
@@ -224,10 +225,9 @@ How to read it: the dose grows as the tolerance curve says for the pressure each
 delay follows the difference between the two peak columns. The Reswick-Rogers curve is steep between
 32 and 70 mmHg: a few mmHg too high or too low move the crossing by an hour or more. The Linder-Ganz
 sigmoid tolerates these pressures indefinitely once past its first hours, so neither the monitor nor the
-truth crosses it. The bed's pixels are 56 mm and its electrodes 112 mm apart: a heel (about 50 mm) is
-spread over several pixels. Read through the main curve (fitted to 135-225 mm loads) a 55 mmHg heel mapped
-at 15 mmHg and was never seen; the foot end now has its own curve from 50 mm loads, which reads the two
-heels, whose blurred images overlap, high: the monitor alarms early there.
+truth crosses it. The bed's pixels are 30 mm and its electrodes 60 mm apart, and its calibration was made
+from people's maps (benchmarks/bed.md): a heel (about 50 mm) is read near its true peak, no longer blurred
+over a 112 mm electrode spacing.
 
 ## CPU and memory at 1 frame per second
 

@@ -42,7 +42,7 @@ from report import machine, median_seconds, pyplot, save_figure, table  # noqa: 
 
 HERE = Path(__file__).parent
 COMMAND = "python benchmarks/simulator.py"
-BED = "grid-8x16"
+BED = "grid-16x32"
 FRAMES = 8
 WINDOWS = {"supine-still": (600.0, "still"), "restless": (297.0, "one 2 s shift in the window"),
            "turn-schedule": (7201.0, "turning: every frame moves")}

@@ -15,6 +15,7 @@ def load(name):
     try:
         spec = importlib.util.spec_from_file_location(f"bench_{name}", BENCHMARKS / f"{name}.py")
         module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module             # its dataclasses look themselves up there
         spec.loader.exec_module(module)
         return module
     finally:
@@ -102,3 +103,57 @@ def test_mismatch_benchmark_runs_a_small_case(monkeypatch):
     assert fit["accepted"] and fit["determined"] >= 8 and abs(fit["sheet"] - 1) < 0.05
     row = mismatch.case_rows([(case, result)])[0]
     assert row[0] == case.name and row[1] == 4
+
+
+def test_bed_benchmark_spots_sites_tilts_and_nights():
+    bed = load("bed")
+    from appliance.core.layouts import get_layout
+    from appliance.core.pixels import pixel_grid
+
+    truth = np.zeros((30, 64))
+    truth[14:16, 2:4] = [[60.0, 50.0], [45.0, 38.0]]       # the head
+    truth[12:18, 24:34] = 30.0                               # the back, under 32 mmHg: no spot
+    truth[10:12, 58:60] = 41.0                               # a heel
+    truth[18:20, 58:60] = 35.0                               # a heel under 40 mmHg at its peak: no spot
+    read = np.zeros_like(truth)
+    read[15, 4] = 45.0                                       # the head read one pixel off, 25 % low
+    spots = bed.spots_of(truth, read, 4, 1)
+    spots = sorted(spots, key=lambda s: s.site)
+    assert [(s.site, s.true_mmhg, s.read_mmhg, s.seen) for s in spots] == [("head", 60.0, 45.0, True),
+                                                                         ("heels", 41.0, 0.0, False)]
+    assert spots[0].error == -0.25
+    summary = bed.summary(spots)
+    assert summary["spots"] == 2 and summary["seen"] == 0.5 and summary["median_abs_error"] == 0.625
+
+    grid = pixel_grid(get_layout("grid-8x16"), 16, 34)
+    coarse = np.arange(16 * 34, dtype=float).reshape(16, 34)
+    fine = bed.on_pixels(coarse, grid, (30, 64))
+    assert fine.shape == (30, 64) and fine.max() == coarse.max() and fine[0, 0] == 0.0
+
+    supine = np.zeros((30, 64)); supine[14:16, 20:40] = 40.0
+    right = np.zeros((30, 64)); right[8:10, 20:40] = 40.0
+    left = np.zeros((30, 64)); left[20:22, 20:40] = 40.0
+    maps = {(4, 1): (supine, supine), (4, 4): (right, right), (4, 6): (right, left)}     # 6 read to the wrong side
+    assert bed.tilts_told_apart(maps) == (1, 2)
+
+    loaded = np.zeros((30, 64)); loaded[14:16, 30:32] = 80.0
+    maps = {(s, 1): (loaded, np.zeros_like(loaded)) for s in bed.HELD_OUT}
+    alarms = bed.night_alarms([(1, 8.0)], maps, bed.HELD_OUT[0], 0, pixel_grid(get_layout("grid-16x32")))
+    assert alarms and alarms[0][0] < 8 * 3600, "80 mmHg for 8 h alarms"
+    assert bed.night_alarms([(1, 8.0)], maps, bed.HELD_OUT[0], 1, pixel_grid(get_layout("grid-16x32"))) == []
+
+
+@pytest.mark.slow
+def test_the_default_bed_sees_a_person_it_was_never_calibrated_on(bed_monitoring):
+    """The appliance's own model and shipped calibration, through the parallel board, on S11's 17 postures
+    (S11 is in no fit): the bed benchmark's must-hold figures, on one person."""
+    bed = load("bed")
+    model, calibration = bed_monitoring
+    assert calibration.notes["kind"] == "maps", "the package's calibration, made from people's maps"
+    assert not [name for name in calibration.notes["maps"] if name.startswith(tuple(f"S{s}/" for s in bed.HELD_OUT))]
+    spots, maps, _ = bed.read_held_out(model, calibration, bed.RecordedMat(bed.Mat(model.setup.layout.name)),
+                                       subjects=(11,))
+    summary = bed.summary(spots)
+    assert summary["spots"] >= 40
+    assert summary["seen"] >= 0.95 and summary["median_abs_error"] <= 0.25, summary
+    assert bed.tilts_told_apart(maps) == (2, 2)

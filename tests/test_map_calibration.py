@@ -92,7 +92,7 @@ def test_the_virtual_mat_takes_the_shipped_calibration_that_fits_it(bed, tmp_pat
     monkeypatch.setattr(virtual_bed, "shipped_calibration", lambda name: made if name == BED.name else None)
     calibration, fresh = source.calibration(model, tmp_path / "virtual.json")
     assert not fresh and calibration.notes["maps"] == ["S1/1#" + made.notes["maps"][0].split("#")[1]]
-    assert load_pressure_calibration(tmp_path / "virtual.json").notes["setup"] == model.setup.key()
+    assert load_pressure_calibration(tmp_path / "virtual.json").notes["setup"] == model.setup.image_key()
     assert source.calibration(model, tmp_path / "virtual.json")[1] is False
 
     stiffer = VirtualBedSource(BED, empty_mat(BED), model.setup.protocol,

@@ -104,15 +104,22 @@ class ModelSetup:
     def key(self) -> str:
         """SHA-256 (hex) of the setup, the file format and the package version (not ``contact_fit``, which
         builds nothing: a fitted model has its contacts in its own key)."""
-        description = {
+        description = {**self._images(), "format": FORMAT_VERSION, "version": appliance.__version__}
+        return hashlib.sha256(json.dumps(description, sort_keys=True).encode()).hexdigest()
+
+    def image_key(self) -> str:
+        """SHA-256 (hex) of what the setup's images follow from, and nothing else: a pressure calibration
+        fitted to them holds as long as this does, whatever file format the model is cached in."""
+        return hashlib.sha256(json.dumps(self._images(), sort_keys=True).encode()).hexdigest()
+
+    def _images(self) -> dict:
+        return {
             "layout": layout_to_toml(self.layout),
             "protocol": hashlib.sha256(np.ascontiguousarray(self.protocol.readings, dtype=np.int64)).hexdigest(),
             "options": dataclasses.asdict(self.options),
             "density": self.density, "pixels": self.pixels, "contact": self.contact_impedance_ohm_m2,
             "fitted": None if self.fitted_contact_ohm_m2 is None else [float(z) for z in self.fitted_contact_ohm_m2],
-            "format": FORMAT_VERSION, "version": appliance.__version__,
         }
-        return hashlib.sha256(json.dumps(description, sort_keys=True).encode()).hexdigest()
 
     def __post_init__(self):
         if self.contact_fit not in (None, *CONTACT_FIT_MODES):

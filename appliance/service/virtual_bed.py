@@ -100,11 +100,12 @@ class VirtualBedSource:
 
     def fits(self, calibration: PressureCalibration, model: ReconstructionModel) -> bool:
         """Whether ``calibration`` was made on this virtual mat for ``model``'s reconstruction."""
-        return calibration.notes.get("setup") == model.setup.key() and calibration.notes.get("mat") == self.mat_key()
+        return calibration.notes.get("setup") == model.setup.image_key() and \
+            calibration.notes.get("mat") == self.mat_key()
 
     def stamped(self, calibration: PressureCalibration, model: ReconstructionModel) -> PressureCalibration:
         """``calibration`` (made on this virtual mat) marked with what it fits, for :meth:`fits`."""
-        return dataclasses.replace(calibration, notes={**calibration.notes, "setup": model.setup.key(),
+        return dataclasses.replace(calibration, notes={**calibration.notes, "setup": model.setup.image_key(),
                                                        "mat": self.mat_key()})
 
     def calibration(self, model: ReconstructionModel, path: Path, *,
