@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 
 from appliance.alerts.alarms import AlarmCondition, AlarmEngine, AlarmEvent, Escalation
 from appliance.alerts.dose import MAX_DT_S, DoseMap, custom_curve, tolerance_curve
-from appliance.alerts.regions import RegionTracker, zone_mask
-from appliance.alerts.turns import DEFAULT_INTERVAL_S, TurnClock, TurnEvent
+from appliance.alerts.regions import RegionTracker
+from appliance.alerts.turns import DEFAULT_INTERVAL_S, TurnEvent, turn_clock_for
 from appliance.core.pixels import PixelGrid
 from appliance.core.pressure_map import HIGH_PRESSURE_KPA, PressureMap
 
@@ -77,8 +77,7 @@ class AlertPipeline:
             self.curve = tolerance_curve(settings.curve, floor_kpa=settings.threshold_kpa)
         self.regions = RegionTracker(grid, threshold_kpa=settings.threshold_kpa)
         self.dose = DoseMap(grid.shape, self.curve, recovery=settings.recovery)
-        self.turns = TurnClock(interval_s=settings.turn_interval_s, at_risk_kpa=settings.threshold_kpa,
-                               ignore=zone_mask(grid, "heel"))
+        self.turns = turn_clock_for(grid, interval_s=settings.turn_interval_s, at_risk_kpa=settings.threshold_kpa)
         self.engine = AlarmEngine()
         self.last_time_s: float | None = None
         self.clinical: dict[str, tuple[AlarmCondition, str | None]] = {}   # the last map's clinical conditions
@@ -145,8 +144,7 @@ class AlertPipeline:
         dose = {**state["dose"], "curve": pipeline.curve.name, "recovery": settings.recovery,
                 "relief_kpa": pipeline.dose.relief_kpa}
         pipeline.dose = DoseMap.from_state(dose, pipeline.curve)
-        pipeline.turns = TurnClock.from_state(state["turns"], interval_s=settings.turn_interval_s,
-                                              at_risk_kpa=settings.threshold_kpa, ignore=pipeline.turns.ignore)
+        pipeline.turns.restore(state["turns"])
         pipeline.engine = AlarmEngine.from_state(state["alarms"])
         pipeline.last_time_s = state["last_time_s"]
         pipeline.clinical = {c["key"]: (AlarmCondition.from_dict(c), detail) for c, detail in state.get("clinical", [])}
