@@ -55,6 +55,22 @@ def test_a_moving_scene_is_solved_again_only_when_it_moves():
     assert bed.solves == 2
 
 
+def test_a_mat_brought_back_to_a_moment_remembers_its_loading_as_if_read_all_along():
+    def bed():
+        return VirtualBed(get_layout("grid-8x16"), load_scene("turn-schedule"), density=0.25, mechanics_merge=5)
+
+    times = [0.0, 60.0, 600.0, 7200.0, 7210.0, 7800.0]          # lying down, then turned 30 degrees at 7200 s
+    continuous = bed()
+    for t in times:
+        continuous.transfer_ohm(t)
+    resumed, fresh = bed(), bed()
+    resumed.remember(times)
+    later = [continuous.transfer_ohm(8400.0), resumed.transfer_ohm(8400.0), fresh.transfer_ohm(8400.0)]
+    scale = np.abs(later[0]).max()
+    assert np.abs(later[1] - later[0]).max() < 1e-9 * scale
+    assert np.abs(later[2] - later[0]).max() > 1e-6 * scale    # freshly loaded, the play sits elsewhere
+
+
 def test_a_portrait_scene_is_turned_onto_a_landscape_bed_and_a_wrong_size_is_refused():
     scene = load_scene("supine-still")          # head to foot along its y
     bed = VirtualBed(get_layout("grid-8x16"), scene, density=0.25, mechanics_merge=5)

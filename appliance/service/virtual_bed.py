@@ -14,9 +14,11 @@ import hashlib
 import json
 import os
 import threading
-from importlib import resources
 from collections.abc import Callable
+from importlib import resources
 from pathlib import Path
+
+import numpy as np
 
 from appliance.calibration import calibration_loads, pressure_calibration
 from appliance.core.layouts import Layout
@@ -72,9 +74,12 @@ class VirtualBedSource:
         return self.front_end.time_s <= self.scene.duration_s and self.pace.wait(stop)
 
     def resume_after(self, time_s: float) -> None:
-        """Carry on with the frame after scene time ``time_s`` (the last one recorded before a restart)."""
+        """Carry on with the frame after scene time ``time_s`` (the last one recorded before a restart), on
+        the mat as the frames up to it left it."""
         self.start_scene()
-        self.front_end.time_s = time_s + self.front_end.frame_interval_s
+        interval = self.front_end.frame_interval_s
+        self.bed.remember(np.arange(0.0, time_s + interval / 2, interval))
+        self.front_end.time_s = time_s + interval
 
     def reference(self):
         """The empty-mat reference the daemon takes on a fresh start."""

@@ -121,6 +121,34 @@ class VirtualBed:
                 not self.scene.changes(min(self._last[0], t), max(self._last[0], t)):
             self.reuses += 1
             return self._transfer
+        conductance, pitch_mm = self._mat_at(t, temperature)
+        start = time.perf_counter()
+        sigma = conductance_on_model(self.model, conductance, pitch_mm)
+        if self._block is not None:
+            self._transfer = self._block.transfer(sigma)
+        else:
+            self._transfer = solve_electrodes(self.model, sigma).transfer
+        self.seconds["transfer"] += time.perf_counter() - start
+        self._last = (t, temperature)
+        self.solves += 1
+        return self._transfer
+
+    def remember(self, times_s) -> None:
+        """Leave the mat's memory (its frictional play) where frames at ``times_s`` would have left it: a
+        monitor restarting mid-scene finds the mat as it was, not freshly loaded. Only the times after the
+        scene changed are solved, since the same load again leaves the memory as it is; no readings. The
+        empty mat the scene starts from has none (its play closes at zero load)."""
+        self.state, last = None, None
+        for t in times_s:
+            t = min(max(t, 0.0), self.scene.duration_s)
+            if last is None or self.scene.changes(min(last, t), max(last, t)):
+                self._mat_at(t, self.temperature(t))
+            last = t
+        self._transfer = None
+
+    def _mat_at(self, t: float, temperature: float) -> tuple[np.ndarray, float]:
+        """The sheet's conductance under the scene at ``t`` on the mechanics' grid, and its pitch (mm); the
+        mat's memory moves on."""
         start = time.perf_counter()
         field = self.field_at(t)
         platen = getattr(self.scene, "platen", None)
@@ -131,18 +159,9 @@ class VirtualBed:
             platen = None if platen is None else _merged_mask(platen, self.mechanics_merge)
         scene_done = time.perf_counter()
         conductance, _, self.state = sheet_conductance(self.params, field, self.state, temperature, platen=platen)
-        sigma = conductance_on_model(self.model, conductance, field.pitch_mm)
-        mechanics_done = time.perf_counter()
-        if self._block is not None:
-            self._transfer = self._block.transfer(sigma)
-        else:
-            self._transfer = solve_electrodes(self.model, sigma).transfer
         self.seconds["scene"] += scene_done - start
-        self.seconds["mechanics"] += mechanics_done - scene_done
-        self.seconds["transfer"] += time.perf_counter() - mechanics_done
-        self._last = (t, temperature)
-        self.solves += 1
-        return self._transfer
+        self.seconds["mechanics"] += time.perf_counter() - scene_done
+        return conductance, field.pitch_mm
 
 
 def _merged_mask(mask: np.ndarray, factor: int) -> np.ndarray:
