@@ -61,9 +61,9 @@ PITCH_MM = 2.0
 """The mechanics grid: 50 x 50 cells on the thesis's mat, finer than the spreading length."""
 
 # Fitted by benchmarks/sensor_model.py with the mat's parameters (sensor_model.md).
-THESIS_FRONT_END_FLOOR = 0.02219
-THESIS_DRIFT_C_PER_STEP = 0.1380
-THESIS_DRIFT_TIME_CONSTANT_STEPS = 2.301
+THESIS_FRONT_END_FLOOR = 0.01734
+THESIS_DRIFT_C_PER_STEP = 0.1992
+THESIS_DRIFT_TIME_CONSTANT_STEPS = 1.552
 
 
 class LoadTestRow(NamedTuple):
