@@ -410,7 +410,7 @@ def nights(maps: dict, grid) -> dict:
 # ---------------------------------------------------------------------------
 # The designs tried
 
-THESIS_STIFFNESS = 1.183       # the thesis sensor's foundation (appliance.sim.mechanics.DEFAULT_PARAMETERS)
+THESIS_STIFFNESS = 1.183       # the thesis sensor's foundation as first fitted to its load tests
 TODAY = Mat("grid-8x16", THESIS_STIFFNESS, "local", "serial")
 M8, M12, M16, M20 = Mat("grid-8x16"), Mat("grid-12x24"), Mat("grid-16x32"), Mat("grid-20x40")
 CHOSEN = "grid-16x32"

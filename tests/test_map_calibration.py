@@ -98,3 +98,14 @@ def test_the_virtual_mat_takes_the_shipped_calibration_that_fits_it(bed, tmp_pat
     stiffer = VirtualBedSource(BED, empty_mat(BED), model.setup.protocol,
                                params=source.bed.params.__class__(foundation_kpa_per_mm=20.0))
     assert not stiffer.fits(made, model), "another mat's calibration does not fit"
+
+
+def test_the_shipped_bed_calibration_was_made_on_the_default_bed_mat():
+    """The package's calibration is keyed on what the virtual bed's readings follow from: a change to the bed
+    mat's mechanics (or to how they are described) would leave it unused and the bed calibrated anew."""
+    from appliance.core.protocols import default_protocol
+    from appliance.service.virtual_bed import shipped_calibration
+
+    layout = get_layout("grid-16x32")
+    source = VirtualBedSource(layout, empty_mat(layout), default_protocol(layout))
+    assert shipped_calibration(layout.name).notes["mat"] == source.mat_key()

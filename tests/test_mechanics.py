@@ -1,4 +1,4 @@
-"""The mat's mechanics: deflection, volume, spreading, the base, temperature, the play, bad input."""
+"""The mat's mechanics: deflection, volume, spreading, the base, temperature, the play, the seating, bad input."""
 
 import dataclasses
 
@@ -14,7 +14,9 @@ from appliance.sim.mechanics import (
     DEFAULT_PARAMETERS,
     conductance_on_model,
     membrane_operator,
+    reservoir_volume_mm3,
     sheet_conductance,
+    surface_sink_mm,
 )
 
 PITCH_MM = 2.0
@@ -43,18 +45,71 @@ def test_deflection_grows_with_pressure(platen):
     assert np.all(np.diff(peaks) > 0), f"peak deflections {np.round(peaks, 3)} mm do not grow with pressure"
 
 
+@pytest.mark.parametrize("reservoir", [(0.0, np.inf), (DEFAULT_PARAMETERS.reservoir_mm3_per_kpa, np.inf),
+                                       (DEFAULT_PARAMETERS.reservoir_mm3_per_kpa, 500.0), (1e5, 1e4)])
 @pytest.mark.parametrize("fields", [
     [square(5.0)],
     [square(20.0, side_mm=10.0, x_mm=20.0, y_mm=70.0)],
     [EMPTY.with_square_load(25, 25, 20, 8).with_square_load(70, 60, 30, 3)],
     [square(2.0), square(40.0), square(1.0)],
 ])
-def test_volume_is_conserved(fields):
+def test_volume_is_conserved(fields, reservoir):
+    """What the membrane displaces from the sheet is what the reservoir takes at the liquid's pressure
+    (nothing in a rigid cell)."""
+    compliance, capacity = reservoir
+    params = dataclasses.replace(DEFAULT_PARAMETERS, reservoir_mm3_per_kpa=compliance, reservoir_capacity_mm3=capacity)
     state = None
     for field in fields:
         platen = field.pressure_kpa >= 0.5 * field.peak_kpa
-        _, w, state = sheet_conductance(DEFAULT_PARAMETERS, field, state, platen=platen)
-        assert abs(w.sum()) <= 1e-9 * np.abs(w).sum(), f"net displaced volume {w.sum() * PITCH_MM**2:.3g} mm^3"
+        _, w, state = sheet_conductance(params, field, state, platen=platen)
+        displaced = w.sum() * PITCH_MM**2
+        taken = reservoir_volume_mm3(params, state.liquid_pressure_kpa)
+        assert taken <= capacity
+        assert state.liquid_pressure_kpa > 0
+        assert abs(displaced - taken) <= 1e-9 * np.abs(w).sum() * PITCH_MM**2, \
+            f"displaced {displaced:.6g} mm^3, the reservoir took {taken:.6g} mm^3"
+
+
+def test_a_reservoir_takes_liquid_the_membrane_would_lift():
+    """The more the cell's margins give, the less the unloaded membrane lifts, at a lower liquid pressure."""
+    lifts, pressures = [], []
+    for reservoir in (0.0, 1e3, 1e4, 1e6):
+        params = dataclasses.replace(NO_PLAY, reservoir_mm3_per_kpa=reservoir, reservoir_capacity_mm3=np.inf)
+        _, w, state = sheet_conductance(params, square(5.0), platen=platen_of())
+        lifts.append(-w.min())
+        pressures.append(state.liquid_pressure_kpa)
+    assert np.all(np.diff(lifts) < 0) and np.all(np.diff(pressures) < 0), f"lifts {lifts} mm at {pressures} kPa"
+    assert lifts[-1] < 0.1 * lifts[0]
+
+
+def test_a_full_reservoir_takes_no_more():
+    """Its compliance near rest, its capacity beyond: a load that fills it lifts the membrane as a rigid
+    cell would for the rest of its volume."""
+    full = dataclasses.replace(NO_PLAY, reservoir_mm3_per_kpa=1e6, reservoir_capacity_mm3=300.0)
+    volume, rate = reservoir_volume_mm3(full, 1e-6, slope=True)
+    assert volume == pytest.approx(1.0, rel=1e-2) and rate == pytest.approx(1e6, rel=1e-2)
+    assert reservoir_volume_mm3(full, 50.0) == pytest.approx(300.0, rel=1e-4)
+    assert reservoir_volume_mm3(full, -50.0) == pytest.approx(-300.0, rel=1e-4)
+    _, w, state = sheet_conductance(full, square(10.0), platen=platen_of())
+    assert w.sum() * PITCH_MM**2 == pytest.approx(300.0, rel=1e-2), "the reservoir is full"
+    assert w.min() < 0, "the rest lifts"
+
+
+def test_without_a_reservoir_or_seating_the_mat_is_what_it_was_before_them():
+    """A sealed sheet (no reservoir) behaves alike whatever capacity it is given, and its description
+    (what a virtual mat's calibration is keyed on) leaves out the reservoir and the seating it does not have."""
+    sealed = dataclasses.replace(NO_PLAY, reservoir_mm3_per_kpa=0.0, reservoir_capacity_mm3=np.inf, seating_mm=0.0)
+    other = dataclasses.replace(sealed, reservoir_capacity_mm3=500.0, seating_kpa=3.0)
+    fields = [square(5.0), square(20.0, side_mm=10.0, x_mm=20.0, y_mm=70.0), square(1.0)]
+    state = other_state = None
+    for field in fields:
+        g, w, state = sheet_conductance(sealed, field, state)
+        g2, w2, other_state = sheet_conductance(other, field, other_state)
+        assert np.array_equal(g, g2) and np.array_equal(w, w2)
+        assert abs(w.sum()) <= 1e-9 * np.abs(w).sum(), "a sealed sheet keeps its volume"
+    assert sealed.description() == other.description()
+    assert not {"reservoir_mm3_per_kpa", "reservoir_capacity_mm3", "seating_mm", "seating_kpa"} & set(sealed.description())
+    assert DEFAULT_PARAMETERS.description() == dataclasses.asdict(DEFAULT_PARAMETERS)
 
 
 def test_a_load_spreads_beyond_its_footprint_and_lifts_the_rest():
@@ -69,7 +124,7 @@ def test_a_load_spreads_beyond_its_footprint_and_lifts_the_rest():
 
 @pytest.mark.parametrize("side_mm", [10.0, 30.0, 60.0])
 def test_deflection_never_reaches_the_base(side_mm):
-    soft = dataclasses.replace(DEFAULT_PARAMETERS, foundation_kpa_per_mm=0.1, tension_n_per_m=5.0)
+    soft = dataclasses.replace(DEFAULT_PARAMETERS, foundation_kpa_per_mm=0.001, tension_n_per_m=5.0)
     for params in (DEFAULT_PARAMETERS, soft):
         g, w, _ = sheet_conductance(params, square(params.max_pressure_kpa, side_mm), platen=platen_of(side_mm))
         assert w.max() < params.rest_depth_mm, f"deflection {w.max():.4f} mm reaches the {params.rest_depth_mm} mm base"
@@ -98,6 +153,20 @@ def test_play_makes_falling_pressure_read_deeper_and_returns_to_rest():
     assert np.all(down > up), f"decreasing {np.round(down, 4)} mm not above increasing {np.round(up, 4)} mm"
     assert np.all(down - up < 0.05 * up), "the play is slight"
     assert peaks[-1] == 0.0 and not state.effective_pressure_kpa.any(), "back at zero pressure the mat is at rest"
+
+
+def test_the_seating_adds_to_a_contact_sink_but_moves_no_liquid():
+    """What a platen sinks into the surface shows on a gauge, not in the liquid."""
+    pressures = np.array([0.0, 0.05, 0.1, 0.5, 2.0, 20.0])
+    sink = surface_sink_mm(DEFAULT_PARAMETERS, pressures)
+    assert sink[0] == 0.0 and np.all(np.diff(sink) > 0)
+    assert sink[-1] == pytest.approx(DEFAULT_PARAMETERS.seating_mm, rel=1e-9)
+    assert sink[3] > 0.99 * DEFAULT_PARAMETERS.seating_mm, "closed by the thesis's lightest weights"
+    unseated = dataclasses.replace(DEFAULT_PARAMETERS, seating_mm=0.0)
+    assert not surface_sink_mm(unseated, pressures).any()
+    g, w, _ = sheet_conductance(DEFAULT_PARAMETERS, square(2.0), platen=platen_of())
+    g0, w0, _ = sheet_conductance(unseated, square(2.0), platen=platen_of())
+    assert np.array_equal(g, g0) and np.array_equal(w, w0)
 
 
 @pytest.mark.parametrize(("before", "after"), [(False, False), (True, True), (False, True), (True, False)])
@@ -131,6 +200,11 @@ def test_a_warm_start_from_a_deep_press_gives_the_cold_answer(monkeypatch, befor
     ({"hysteresis": 1.0}, "hysteresis must be in [0, 1)"),
     ({"slack_mm": -0.1}, "slack_mm must not be negative"),
     ({"contact_mm": 10.0}, "must be below rest_depth_mm"),
+    ({"reservoir_mm3_per_kpa": -1.0}, "reservoir_mm3_per_kpa must not be negative"),
+    ({"seating_mm": -0.1}, "seating_mm must not be negative"),
+    ({"seating_kpa": 0.0}, "seating_kpa must be positive"),
+    ({"reservoir_capacity_mm3": 0.0}, "reservoir_capacity_mm3 must be positive"),
+    ({"reservoir_capacity_mm3": float("nan")}, "reservoir_capacity_mm3 must be finite"),
 ])
 def test_bad_parameters_are_refused(change, message):
     with pytest.raises(ModelInputInvalid, match=message.replace("[", r"\[").replace(")", r"\)")):

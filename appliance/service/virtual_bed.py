@@ -99,7 +99,7 @@ class VirtualBedSource:
 
     def mat_key(self) -> str:
         """SHA-256 of what the virtual mat's readings follow from: its mechanics, mesh and front end."""
-        description = {"mat": dataclasses.asdict(self.bed.params), "density": self.bed.density,
+        description = {"mat": self.bed.params.description(), "density": self.bed.density,
                        "front_end": repr(self.front_end.chain.profile), "current_a": self.front_end.chain.current_a}
         return hashlib.sha256(json.dumps(description, sort_keys=True, default=str).encode()).hexdigest()
 

@@ -29,6 +29,7 @@ field is turned to the layout when their sides are swapped.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 
@@ -49,14 +50,16 @@ SOLVERS = ("block", "fields")
 
 BED_MAT_PARAMETERS = MatParameters(rest_depth_mm=6.951, conductivity_s_per_m=1.25, temperature_coefficient_per_c=0.02,
                                    tension_n_per_m=71.08, foundation_kpa_per_mm=10.0, slack_mm=1.806,
-                                   contact_mm=0.05, hysteresis=0.004465, max_pressure_kpa=50.0)
+                                   contact_mm=0.05, hysteresis=0.004465, max_pressure_kpa=50.0,
+                                   reservoir_mm3_per_kpa=0.0, reservoir_capacity_mm3=math.inf, seating_mm=0.0)
 """The bed mat: the liquid, membrane and slack of the thesis's sensor as first fitted to its load tests, on
 a foundation about eight times stiffer (a denser foam under the liquid: the thesis's chapter 7, "tailoring
-the response to the pressure range"). On the thesis's foundation a body's pelvis bottoms the liquid out
+the response to the pressure range"). On that first fit's foundation a body's pelvis bottoms the liquid out
 above about 7.5 kPa (56 mmHg), so no reconstruction can tell 60 mmHg from 250; on this one 40 kPa (300
 mmHg, above the highest interface pressures PmatData records) still leaves a sixth of the depth, and
 10 mmHg thins it by about 15 %. Its own values, so that refitting the thesis's sensor leaves the bed as
-designed."""
+designed: a sealed sheet that keeps its volume (no reservoir) and no seating, the bed mat as it was
+designed before the thesis's sensor needed them."""
 
 
 def mat_parameters_for(layout: Layout) -> MatParameters:
