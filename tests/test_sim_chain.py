@@ -114,7 +114,7 @@ def test_the_parallel_shortcut_saturates_where_the_scan_does():
 def test_the_parallel_shortcut_matches_the_scan_on_the_bed_for_a_subset_of_steps():
     from appliance.core.fem import build_fem_model
     from appliance.core.protocols import Protocol
-    from appliance.sim.mechanics import DEFAULT_PARAMETERS as mat
+    from appliance.sim.bed import BED_MAT_PARAMETERS as mat
     from appliance.sim.transfer import TransferSolver
 
     layout = get_layout("grid-16x32")
