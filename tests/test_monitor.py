@@ -112,6 +112,23 @@ def test_a_moving_patient_is_solved_again_every_frame_and_mapped(bed_monitoring)
     assert totals[-1] > totals[0] + 10.0, "the patient lying down is read as they settle"
 
 
+def test_the_frame_a_patient_lies_down_in_is_read_whole_and_then_finely_around_them(bed_monitoring):
+    model, calibration = bed_monitoring
+    source = VirtualBedSource(BED, load_scene("supine-unturned"), model.setup.protocol, frame_interval_s=60.0)
+    passes = []
+
+    def acquire(loaded=None):
+        passes.append(loaded)
+        return source.acquire(loaded=loaded)
+
+    monitor = Monitor(acquire, model, calibration, adaptive=source.adaptive)
+    monitor.take_reference(source.empty_reference())
+    maps = [monitor.next_map() for _ in range(3)]                 # the empty mat at 0 s, lying down by 60 s
+    assert source.adaptive and not maps[0].regions
+    assert passes[:2] == [None, None] and len(passes[2]) > 0      # whole, whole, then finely around the body
+    assert len(maps[1].regions) <= 2 * len(maps[2].regions)      # no scattered peaks from the empty mat's readings
+
+
 def test_an_electrode_lost_mid_run_is_a_technical_alarm_and_monitoring_goes_on(small_mat):
     from appliance.alerts.pipeline import AlertPipeline, technical_alarms
 

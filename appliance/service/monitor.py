@@ -77,7 +77,9 @@ class Monitor:
     ``iterate`` defaults to the calibration's own setting: a curve fitted to
     iterated images does not hold for one-step images, nor the other way round.
     With ``adaptive`` the front end reads finely only around the electrodes the last
-    map found a body on: ``acquire(loaded=...)``, None for a full pass (the first frame).
+    map found a body on: ``acquire(loaded=...)``, None for a full pass (the first frame,
+    and after an empty map: the frame a patient lies down in is read whole, not from
+    the empty mat's held fine readings, which made one frame of scattered false peaks).
     """
 
     def __init__(self, acquire: Callable, model: ReconstructionModel, calibration: PressureCalibration, *,
@@ -135,5 +137,5 @@ class Monitor:
         result = pressure_map(image, self.calibration, grid, time_s=getattr(frame, "time_s", time.monotonic()),
                               temperature_c=frame.temperature_c, usable_readings=info["usable_readings"])
         if self.adaptive:
-            self.loaded = loaded_electrodes(result.pressure_kpa, grid, self.model.setup.layout.centroids_mm())
+            self.loaded = loaded_electrodes(result.pressure_kpa, grid, self.model.setup.layout.centroids_mm()) or None
         return result
