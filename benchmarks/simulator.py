@@ -257,8 +257,8 @@ one-minute load average was {load_before:.1f} at its start and {os.getloadavg()[
 
 A frame is `VirtualFrontEnd.acquire()`: the bed's transfer impedances at the frame's scene time
 (`VirtualBed.transfer_ohm`: scene -> mat mechanics -> sheet conductance -> forward model) and the
-whole-frame analogue chain on them, frames 1 s of scene time apart. Bed: {BED} (128 electrodes,
-1900 x 900 mm) at VirtualBed's defaults (density {default[0]:g}, mechanics_merge {default[1]});
+whole-frame analogue chain on them, frames 1 s of scene time apart. Bed: {BED} ({default_bed.n_electrodes} electrodes,
+{" x ".join(f"{side:g}" for side in get_layout(BED).sheet.size_mm)} mm) at VirtualBed's defaults (density {default[0]:g}, mechanics_merge {default[1]});
 grid-4x4 is the thesis's 100 mm mat with a soft 30 mm weight sliding 30 mm over 20 s, for reference.
 
 * **cache**: the bed's own; it re-solves only when the scene or the temperature changed. "no" forces a
