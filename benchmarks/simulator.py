@@ -29,7 +29,7 @@ from appliance.core.forward import factorise, solve_electrodes
 from appliance.core.layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.drivers.profile import board_profile
-from appliance.sim.bed import VirtualBed
+from appliance.sim.bed import VirtualBed, mat_parameters_for
 from appliance.sim.body import MatGrid
 from appliance.sim.field import PressureField
 from appliance.sim.frontend import VirtualFrontEnd
@@ -247,6 +247,8 @@ def main() -> None:
                          + [f"elements moved > {tol:g} (of {default_bed.model.n_elements})" for tol in TOLERANCES],
                          change_rows)
     cost_table = table([f"on the default bed ({default_bed.model.system.n} unknowns)", "ms"], cost_rows)
+    mat = mat_parameters_for(get_layout(BED))
+    spreading_mm = (mat.tension_n_per_m / mat.foundation_kpa_per_mm) ** 0.5
     verdict = (f"density {chosen[0]:g}, mechanics_merge {chosen[1]}" if chosen else "none of the levels")
     matches = chosen == default
     text = f"""# Simulator: virtual-bed frames per second, and the detail a bed needs
@@ -316,8 +318,9 @@ are per moving frame (the mean of three frames into turn-schedule's first turn, 
 
 At full mechanics detail the mechanics is most of a moving frame, and the mesh's density changes the
 frame's time little while it changes the error much; merging the scene's cells makes the mechanics
-cheap but errs by more than the front end's accuracy, since the membrane's spreading length
-(sqrt(T / k), 8 mm, less where a load stiffens the foundation) is already below a 10 mm cell. The
+cheap, and merged by five it errs by more than the front end's accuracy, since the membrane's spreading
+length (sqrt(T / k), {spreading_mm:.1f} mm on the bed's mat, less where a load stiffens the foundation) is
+already below a 10 mm cell. The
 cheapest level whose worst error stays below the front end's accuracy is **{verdict}**; VirtualBed's
 defaults are density {default[0]:g}, mechanics_merge {default[1]}{" (the same)" if matches else " (NOT the same: revisit)"}.
 
