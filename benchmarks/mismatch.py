@@ -196,11 +196,10 @@ def virtual_mat(layout, protocol) -> list:
     """The monitor's own path on the virtual grid-4x4 mat (near-ideal contacts on saline): calibrated with the
     default loads, then square loads of 9 to 25 cm^2 anywhere at 2 to 20 kPa, imaged iterated as the monitor
     does, with the nominal linearisation (``track``) and relinearised at the fit."""
-    from appliance.calibration import Load, calibration_loads, pressure_calibration
-    from appliance.core.pressure_map import peak_region, pressure_map
+    from appliance.calibration import calibration_loads, pressure_calibration
     from appliance.sim.bed import VirtualBed
     from appliance.sim.frontend import VirtualFrontEnd
-    from appliance.sim.loads import empty_mat, placer
+    from appliance.sim.loads import empty_mat, placer, square_loads_read_back
 
     rows = []
     for mode in ("track", "relinearise"):
@@ -209,24 +208,9 @@ def virtual_mat(layout, protocol) -> list:
         front, place = VirtualFrontEnd(bed, protocol, seed=1), placer(bed)
         calibration = pressure_calibration(front.acquire, place, model, calibration_loads(layout))
         for area in (9, 16, 25):
-            place(None)
-            reference = front.acquire().volts
-            rng = np.random.default_rng(area)
-            side = 10 * np.sqrt(area)
-            peaks, centres = [], []
-            for _ in range(10):
-                x, y = rng.uniform(side / 2, 100 - side / 2, 2)
-                load = Load(float(x), float(y), side, float(rng.uniform(2, 20)))
-                place(load)
-                frame = front.acquire()
-                image, info = model.reconstruct(frame.volts, reference, iterate="always")
-                kpa = pressure_map(image, calibration, model.reconstructor.grid, time_s=frame.time_s,
-                                   usable_readings=info["usable_readings"])
-                region = peak_region(kpa.pressure_kpa, model.reconstructor.grid)
-                peaks.append(abs(kpa.peak_kpa / load.pressure_kpa - 1))
-                centres.append(np.hypot(region.x_mm - load.x_mm, region.y_mm - load.y_mm))
-            rows.append([mode, area, f"{np.median(peaks):.0%}", f"{np.median(centres):.1f}",
-                         f"{np.sum(np.array(centres) > 5)}"])
+            peaks, centres = square_loads_read_back(model, calibration, front, place, area, seed=area)
+            rows.append([mode, area, f"{np.median(np.abs(peaks)):.0%}", f"{np.median(centres):.1f}",
+                         f"{np.sum(centres > 5)}"])
             print(rows[-1], flush=True)
     return rows
 

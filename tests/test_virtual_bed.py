@@ -9,7 +9,7 @@ from appliance.core.frames import load_calibration
 from appliance.core.layouts import get_layout
 from appliance.core.model_cache import ModelSetup, cached_model
 from appliance.core.pressure import layout_fingerprint
-from appliance.core.pressure_map import loaded_regions, peak_region, pressure_map
+from appliance.core.pressure_map import loaded_regions
 from appliance.core.protocols import default_protocol
 from appliance.drivers import open_board
 from appliance.drivers.frontend import open_front_end
@@ -18,7 +18,7 @@ from appliance.errors import ConfigError, ModelInputInvalid
 from appliance.sim.bed import VirtualBed
 from appliance.sim.field import PressureField
 from appliance.sim.frontend import VIRTUAL_MAT_BOARD, VirtualFrontEnd
-from appliance.sim.loads import StaticScene, empty_mat, placer, square_load_scene
+from appliance.sim.loads import StaticScene, empty_mat, placer, square_load_scene, square_loads_read_back
 from appliance.sim.scenes import load_scene
 
 GRID = get_layout("grid-4x4")
@@ -171,24 +171,8 @@ def test_pressure_calibration_reports_progress_and_is_tied_to_its_layout(calibra
 @pytest.mark.parametrize("area_cm2", [9, 16, 25])
 def test_square_loads_anywhere_read_their_peak_within_20_percent_and_centre_within_3_mm(calibrated, area_cm2):
     model, bed, front, calibration, _ = calibrated
-    place = placer(bed)
-    place(None)
-    reference = front.acquire().volts
-    rng = np.random.default_rng(area_cm2)
-    side = 10 * np.sqrt(area_cm2)
-    peak_errors, centre_errors = [], []
-    for _ in range(10):
-        x, y = rng.uniform(side / 2, 100 - side / 2, 2)          # anywhere, edges included
-        load = Load(float(x), float(y), side, float(rng.uniform(2, 20)))
-        place(load)
-        frame = front.acquire()
-        image, info = model.reconstruct(frame.volts, reference, iterate="always")
-        kpa = pressure_map(image, calibration, model.reconstructor.grid, time_s=frame.time_s,
-                           usable_readings=info["usable_readings"])
-        region = peak_region(kpa.pressure_kpa, model.reconstructor.grid)
-        peak_errors.append(kpa.peak_kpa / load.pressure_kpa - 1)
-        centre_errors.append(np.hypot(region.x_mm - load.x_mm, region.y_mm - load.y_mm))
-    place(None)
+    peak_errors, centre_errors = square_loads_read_back(model, calibration, front, placer(bed), area_cm2,
+                                                        seed=area_cm2)
     assert np.median(np.abs(peak_errors)) <= 0.20
     assert np.median(centre_errors) <= 3.0
 

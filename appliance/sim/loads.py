@@ -11,6 +11,8 @@ weight, on a rigid platen as the thesis's weights were, and one with the map pla
 
 from __future__ import annotations
 
+import numpy as np
+
 from appliance.calibration import Load, MapLoad
 from appliance.sim.body import MatGrid
 from appliance.sim.field import PressureField
@@ -72,3 +74,31 @@ def placer(bed):
                                             pitch))
 
     return place
+
+
+def square_loads_read_back(model, calibration, front, place, area_cm2: float, *, count: int = 10,
+                           seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Peak errors (read / true - 1) and centre errors (mm) of ``count`` square loads of ``area_cm2`` placed
+    anywhere on the mat, edges included, at 2 to 20 kPa, each read by ``front`` and imaged iterated as the
+    monitor does against the empty mat read first: how well a small mat's chain locates and weighs a load."""
+    from appliance.core.pressure_map import peak_region, pressure_map
+
+    width, height = model.setup.layout.sheet.size_mm
+    grid = model.reconstructor.grid
+    place(None)
+    reference = front.acquire().volts
+    rng = np.random.default_rng(seed)
+    side = 10 * np.sqrt(area_cm2)
+    peak_errors, centre_errors = [], []
+    for _ in range(count):
+        x, y = rng.uniform((side / 2, side / 2), (width - side / 2, height - side / 2))
+        load = Load(float(x), float(y), side, float(rng.uniform(2, 20)))
+        place(load)
+        frame = front.acquire()
+        image, info = model.reconstruct(frame.volts, reference, iterate="always")
+        kpa = pressure_map(image, calibration, grid, time_s=frame.time_s, usable_readings=info["usable_readings"])
+        region = peak_region(kpa.pressure_kpa, grid)
+        peak_errors.append(kpa.peak_kpa / load.pressure_kpa - 1)
+        centre_errors.append(np.hypot(region.x_mm - load.x_mm, region.y_mm - load.y_mm))
+    place(None)
+    return np.array(peak_errors), np.array(centre_errors)
