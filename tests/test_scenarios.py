@@ -88,7 +88,7 @@ def test_an_electrode_lost_mid_run_is_a_technical_alarm_and_monitoring_goes_on(t
 
 def test_sim_run_writes_every_event_as_a_json_line(tmp_path, bed_monitoring, model_cache, capsys):
     out = tmp_path / "events.jsonl"
-    assert main(["sim", "run", "--scenario", "supine-unturned", "--hours", "7", "--out", str(out),
+    assert main(["sim", "run", "--scenario", "supine-unturned", "--hours", "9", "--out", str(out),
                  "--acknowledge-after-min", "5", "--cache-dir", str(model_cache)]) == 0
     lines = [json.loads(line) for line in out.read_text().splitlines()]
     assert all({"time_s", "type", "kind", "priority", "region"} <= set(line) for line in lines)
@@ -98,7 +98,7 @@ def test_sim_run_writes_every_event_as_a_json_line(tmp_path, bed_monitoring, mod
     assert [line["kind"] for line in sacral] == ["raised", "acknowledged"]      # answered before escalation
     assert sacral[1]["user"] == "simulated-nurse" and sacral[1]["time_s"] - sacral[0]["time_s"] == 5 * MINUTE
     assert sacral[0]["region"] == "sacrum" and sacral[0]["priority"] == "medium"
-    assert "421 frames (7 simulated h)" in capsys.readouterr().err
+    assert "541 frames (9 simulated h)" in capsys.readouterr().err
 
 
 def test_sim_run_refuses_hours_beyond_the_scenario_and_writes_nothing(tmp_path, capsys):
