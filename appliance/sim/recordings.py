@@ -23,6 +23,13 @@ from occiput to heel. Pressure goes as 1/pitch^2: +/-2.5 mm is about +/-18 % in
 kPa. At 28.5 mm the recording is 912 x 1824 mm; on a 900 mm mat 6 mm of each edge
 column (well under 1 % of the counts) falls off before the force is scaled.
 
+Left and right: a recording lies as the scenes do, columns towards the patient's left
+(:mod:`appliance.sim.body`). PmatData's columns run the other way: in both curled postures
+of S1, S4 and S6 the knees, which point to the side a patient lies on, lie towards the
+columns the dataset's side names (right fetal: legs centred 2 to 9 columns further towards
+the last column than the trunk), so its maps are mirrored on reading. PoPu's run our way
+(``left2``: legs 4.6 columns towards the last one).
+
 PoPu (Tactilus, 64 x 27) values are taken as mmHg, which the repository does not
 state. ``POPU_SENSEL_MM`` = 31.75 mm (1.25 in) +/- 2 mm, inferred the same way
 (occiput row 3 to heel row ~59.5 for the 190 cm volunteer: 32 mm per row). Read
@@ -176,6 +183,7 @@ def pmat_scene(pmat_dir, subject: int, posture: int, grid: MatGrid = BED_GRID,
     weight_kg, height_cm = pmat_subject(root / "subject-info-i.csv", subject)
     path = root / f"S{subject}" / f"{posture}.txt"
     counts, report = clean_pmat_frames(read_pmat_frames(path), str(path))
+    counts = counts[:, :, ::-1]                       # its columns run to the patient's right
     placed = _on_mat(resample_onto(counts, sensel_mm, grid), grid, path)
     kept = placed.sum(axis=(1, 2)) * grid.pitch_mm**2 / (counts.sum(axis=(1, 2)) * sensel_mm**2)
     frames = placed * (weight_kg * G_M_S2 / force_n(placed, grid.pitch_mm))[:, None, None]
