@@ -1,125 +1,136 @@
-"""The turn clock on the virtual bed's patients, read as the monitor reads them: turns found, shifts and
-skin checks ignored."""
+"""The turn clock on postures and sites: what is a turn, what is not, and reminders that never go quiet."""
 
-import functools
+import json
 
-import numpy as np
 import pytest
 
-from appliance.alerts.turns import TurnClock, turn_clock_for
-from appliance.core.layouts import get_layout
-from appliance.core.pressure_map import PressureMap
+from appliance.alerts.turns import TurnClock
+from appliance.core.pressure_map import HIGH_PRESSURE_KPA
 from appliance.errors import ConfigError
-from appliance.service.config import MonitorConfig
-from appliance.service.monitor import Monitor
-from appliance.service.virtual_bed import VirtualBedSource
-from appliance.sim.scenes import load_scene
 
-BED = get_layout(MonitorConfig().layout)                 # the default bed, which bed_monitoring models
+MIN = 60.0
+LOADED = {"sacrum": 6.0, "heel-left": 7.0, "heel-right": 7.0, "occiput": 5.0}
 
 
-def bed_clock(**settings):
-    """The turn clock as the pipeline builds it on the bed: the heels' own movements are no turn, nor is a peak
-    moving to the next pixel."""
-    from appliance.core.pixels import pixel_grid
-
-    return turn_clock_for(pixel_grid(BED), **settings)
-
-
-@pytest.fixture(scope="module")
-def maps(bed_monitoring):
-    """``maps(name, t)``: the monitor's pressure map of scenario ``name`` at scene time ``t`` (cached)."""
-    model, calibration = bed_monitoring
-    monitors = {}
-
-    @functools.lru_cache(maxsize=None)
-    def map_at(name, t):
-        if name not in monitors:
-            source = VirtualBedSource(BED, load_scene(name), model.setup.protocol, seed=3)
-            monitor = Monitor(source.acquire, model, calibration)
-            monitor.take_reference(source.empty_reference())
-            monitors[name] = (source, monitor)
-        source, monitor = monitors[name]
-        source.front_end.time_s = float(t)
-        return monitor.next_map()
-
-    return map_at
+def run(clock, frames, alarmed=frozenset()):
+    """Feed (minute, posture, peaks) frames; the events in order."""
+    events = []
+    for minute, posture, peaks in frames:
+        events += clock.update(minute * MIN, posture, peaks, alarmed)
+    return events
 
 
-def run(clock, maps, name, times):
-    return [event for t in times for event in clock.update(maps(name, t))]
+def lying(posture, minutes, peaks=LOADED, start=0):
+    return [(start + m, posture, peaks) for m in range(minutes)]
 
 
-def test_a_30_degree_turn_restarts_the_clock_dated_from_when_it_began(maps):
-    clock = bed_clock()                             # supine, turned left at 7200 s over 20 s
-    events = run(clock, maps, "turn-schedule", np.arange(0.0, 7600.0, 10.0))
-    kinds = [(e.kind, e.time_s) for e in events]
-    assert kinds[0][0] == "repositioned" and kinds[0][1] <= 30.0   # lying down starts the clock
-    turned = [e for e in events[1:] if e.kind == "repositioned"]
-    assert len(turned) == 1 and 7200.0 <= turned[0].time_s <= 7230.0 and turned[0].relieved_share > 0.1
-    assert ("turn-due", kinds[0][1] + 7200.0) in kinds             # due two hours after lying down
-    assert clock.due_in_s(7590.0) == pytest.approx(turned[0].time_s + 7200.0 - 7590.0)
+def kinds(events):
+    return [e.kind for e in events]
 
 
-def test_shifts_of_a_few_centimetres_are_not_turns(maps):
-    clock = bed_clock()
-    events = run(clock, maps, "restless", np.arange(0.0, 3600.0, 10.0))
-    assert [e.kind for e in events] == ["repositioned"]            # only lying down
+def test_lying_down_starts_the_clock_and_is_no_turn():
+    clock = TurnClock()
+    events = run(clock, [(0, "out-of-bed", {}), (1, "out-of-bed", {})] + lying("supine", 5, start=2))
+    assert kinds(events) == ["lay-down"]
+    assert events[0].time_s == 2 * MIN and clock.last_turn_s == 2 * MIN
 
 
-def test_a_brief_lift_shorter_than_the_settling_time_does_not_count(maps):
-    clock = bed_clock(settle_s=60.0)
-    lying = maps("supine-still", 3600.0).pressure_kpa
-    maps = [(t, lying) for t in range(0, 600, 10)] + [(t, np.zeros_like(lying)) for t in range(600, 640, 10)] \
-        + [(t, lying) for t in range(640, 900, 10)]
-    events = [e for t, kpa in maps for e in clock.update(PressureMap(float(t), kpa, [], None, 0))]
-    assert [(e.kind, e.time_s) for e in events] == [("repositioned", 0.0)]
+def test_a_change_of_side_is_a_turn_dated_from_when_it_began_and_tilt_wavering_is_not():
+    clock = TurnClock()
+    frames = lying("supine", 30) + lying("left-30", 10, start=30) + \
+        [(40 + m, "left-60" if m % 2 else "left-30", LOADED) for m in range(20)]
+    events = run(clock, frames)
+    assert kinds(events) == ["lay-down", "repositioned"]
+    assert events[1].time_s == 30 * MIN and (events[1].previous, events[1].posture) == ("supine", "left-30")
 
 
-def test_leaving_the_bed_stops_the_clock_and_coming_back_starts_it(maps):
-    clock = bed_clock()                            # out of bed at 3600 s, back at 4500 s
-    events = run(clock, maps, "leaves-bed", np.arange(0.0, 4400.0, 10.0))
-    assert [e.kind for e in events if e.kind != "turn-due"] == ["repositioned", "bed-empty"]
-    assert 3600.0 <= events[-1].time_s <= 3700.0 and clock.bed_empty and clock.due_in_s(4400.0) is None
-    back = run(clock, maps, "leaves-bed", np.arange(4400.0, 4800.0, 10.0))
-    assert [e.kind for e in back] == ["repositioned"] and 4500.0 <= back[0].time_s <= 4560.0
+def test_a_restless_patient_whose_sites_stay_loaded_is_never_turned():
+    clock = TurnClock()
+    shaky = [(m, "supine", {**LOADED, "sacrum": 5.0 + (m % 3) * 0.4}) for m in range(8 * 60)]
+    assert kinds(run(clock, shaky)) == ["lay-down"]
+    assert clock.reminder(8 * 60 * MIN) == ("overdue", 1 + int((8 * 60 - 120 - 30) // 30))
 
 
-def test_the_clock_carries_on_after_a_restart_mid_turn(maps):
-    times = np.arange(7000.0, 7400.0, 10.0)
-    whole = bed_clock()
-    run(whole, maps, "turn-schedule", [0.0, 30.0, 60.0, 100.0])
-    restarted = bed_clock().restore(whole.state())
-    first = run(whole, maps, "turn-schedule", times)
-    cut = 24                                                        # mid-turn, the new posture not yet settled
-    before = run(restarted, maps, "turn-schedule", times[:cut])
-    restarted = bed_clock().restore(restarted.state())
-    after = run(restarted, maps, "turn-schedule", times[cut:])
-    assert before + after == first and restarted.last_turn_s == whole.last_turn_s
+def test_offloading_most_sites_at_risk_in_the_same_posture_is_a_turn_but_a_brief_lift_is_not():
+    clock = TurnClock()
+    floated = {"occiput": 5.0}                                # sacrum and both heels relieved
+    events = run(clock, lying("supine", 20) + [(20, "supine", floated)] + lying("supine", 20, start=21)
+                 + lying("supine", 5, peaks=floated, start=41))
+    assert kinds(events) == ["lay-down", "repositioned"]
+    assert events[1].time_s == 41 * MIN and "heel-left" in events[1].how and "sacrum" in events[1].how
 
 
-def test_bad_settings_are_refused_by_name():
-    with pytest.raises(ConfigError, match="interval 0"):
-        TurnClock(interval_s=0)
-    with pytest.raises(ConfigError, match="relieved share 1.5"):
-        TurnClock(relieved_share=1.5)
+def test_sitting_up_for_a_meal_is_no_turn_and_the_clock_runs_on():
+    clock = TurnClock()
+    events = run(clock, lying("supine", 60) + lying("inclined", 30, start=60) + lying("supine", 30, start=90))
+    assert kinds(events) == ["lay-down"] and clock.last_turn_s == 0.0
 
 
-def test_a_peak_moved_to_the_next_pixel_is_no_relief_but_one_moved_beyond_reach_is():
-    clock = TurnClock(reach_px=1, settle_s=0.0)
-    lying = np.zeros((20, 10))
-    lying[10, 5] = 8.0                                           # a narrow peak, 60 mmHg
-    clock.update(PressureMap(0.0, lying, [], None, 0))
-    assert clock.relieved(np.roll(lying, 1, axis=0)) == 0.0
-    assert clock.relieved(np.roll(lying, 2, axis=0)) == 1.0
-    assert TurnClock(settle_s=0.0).relieved(lying) == 0.0        # no posture held yet
+def test_coming_back_to_bed_on_the_other_side_after_a_meal_is_a_turn():
+    clock = TurnClock()
+    events = run(clock, lying("right-30", 60) + lying("sitting-edge", 20, start=60) + lying("left-30", 5, start=80))
+    assert kinds(events) == ["lay-down", "repositioned"] and events[1].time_s == 80 * MIN
 
 
-def test_the_reach_spans_a_shift_of_a_few_centimetres_on_the_grids_pixels():
-    from appliance.alerts.turns import SHIFT_MM
-    from appliance.core.pixels import pixel_grid
+def test_a_short_absence_changes_nothing_and_a_long_one_empties_the_bed():
+    clock = TurnClock()
+    short = run(clock, lying("supine", 30) + [(30 + m, "out-of-bed", {}) for m in range(5)] + lying("supine", 5, start=35))
+    assert kinds(short) == ["lay-down"] and clock.last_turn_s == 0.0
+    long = run(clock, [(40 + m, "out-of-bed", {}) for m in range(30)] + lying("supine", 5, start=70))
+    assert kinds(long) == ["bed-empty", "lay-down"]
+    assert long[0].time_s == 40 * MIN and long[1].time_s == 70 * MIN and clock.last_turn_s == 70 * MIN
 
-    for rows, reach in ((16, 0), (30, 1), (60, 2)):                 # 56, 30 and 15 mm pixels
-        grid = pixel_grid(BED, rows=rows)
-        assert turn_clock_for(grid).reach_px == reach
-        assert (reach + 1) * min(grid.pixel_mm) > SHIFT_MM >= reach * min(grid.pixel_mm)
+
+def test_reminders_are_due_then_overdue_and_repeat_until_a_turn():
+    clock = TurnClock(interval_s=120 * MIN, grace_s=30 * MIN, repeat_s=30 * MIN)
+    run(clock, lying("supine", 2))
+    assert clock.reminder(119 * MIN) is None
+    assert clock.reminder(120 * MIN) == ("due", 0) and clock.reminder(149 * MIN) == ("due", 0)
+    assert clock.reminder(150 * MIN) == ("overdue", 1) and clock.reminder(180 * MIN) == ("overdue", 2)
+    clock.record(181 * MIN, "nurse jo", LOADED)
+    assert clock.reminder(182 * MIN) is None and clock.due_in_s(181 * MIN) == 120 * MIN
+
+
+def test_a_turn_recorded_by_hand_names_who_and_reports_an_alarmed_site_still_loaded():
+    clock = TurnClock()
+    run(clock, lying("supine", 3))
+    events = clock.record(10 * MIN, "nurse jo", {"heel-left": 7.0, "sacrum": 1.0},
+                          alarmed=frozenset({"heel-left", "sacrum"}))
+    assert [(e.kind, e.user, e.site) for e in events] == [("recorded", "nurse jo", None),
+                                                           ("still-loaded", None, "heel-left")]
+    with pytest.raises(ConfigError, match="needs the name"):
+        clock.record(11 * MIN, "  ", {})
+
+
+def test_a_seen_turn_reports_the_alarmed_sites_it_left_loaded():
+    clock = TurnClock()
+    events = run(clock, lying("supine", 10) + lying("left-30", 3, peaks={"heel-left": 7.0, "trochanter-left": 9.0},
+                                                    start=10), alarmed=frozenset({"heel-left", "sacrum"}))
+    assert [(e.kind, e.site) for e in events][1:] == [("repositioned", None), ("still-loaded", "heel-left")]
+
+
+def test_the_clock_carries_on_after_a_restart():
+    frames = lying("supine", 30) + lying("left-30", 1, start=30)
+    whole = TurnClock()
+    expected = run(whole, frames + lying("left-30", 5, start=31))
+    clock = TurnClock()
+    got = run(clock, frames)
+    clock = TurnClock().restore(json.loads(json.dumps(clock.state())))
+    got += run(clock, lying("left-30", 5, start=31))
+    assert got == expected
+
+
+@pytest.mark.parametrize("settings", [{"interval_s": 0}, {"repeat_s": -1}, {"grace_s": -5},
+                                      {"at_risk_kpa": 0}])
+def test_bad_settings_are_refused(settings):
+    with pytest.raises(ConfigError, match="turn clock"):
+        TurnClock(**settings)
+
+
+def test_an_unknown_posture_is_refused_by_name():
+    with pytest.raises(ConfigError, match="unknown posture 'sideways'"):
+        TurnClock().update(0.0, "sideways", {})
+
+
+def test_the_at_risk_threshold_is_the_alarm_threshold():
+    assert TurnClock().at_risk_kpa == HIGH_PRESSURE_KPA

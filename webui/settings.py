@@ -33,7 +33,10 @@ GROUPS = {"alerts": "patient", "monitor": "bed"}
 """The settings file's tables by the form that changes them."""
 LABELS = {"threshold_mmhg": "Pressure threshold (mmHg)", "curve": "Tolerance curve",
           "alarm_dose": "Alarm at dose (share of tolerance)", "recovery": "Dose recovery off load",
+          "relief_min": "Offloaded this long relieves a site (min)",
           "turn_interval_min": "Turn interval (min)",
+          "turn_grace_min": "A due turn is overdue after (min)",
+          "reminder_repeat_min": "Repeat an overdue reminder every (min)",
           "escalate_after_min": "Escalate an unacknowledged alarm after (min)",
           "bed_id": "Bed id", "layout": "Mat layout"}
 CHOICES = {"curve": tuple(BUILT_IN_CURVES), "recovery": tuple(RECOVERY_MODES), "layout": BUILTIN_NAMES}

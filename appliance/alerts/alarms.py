@@ -265,6 +265,17 @@ class AlarmEngine:
             events.append(self._event(now_s, "audio-paused", alarm, user=user, message=message))
         return self._record(events)
 
+    def end_category(self, now_s: float, category: str, user: str) -> list[AlarmEvent]:
+        """End every alarm of ``category`` at once, acknowledged or not: a patient discharged or replaced
+        takes their clinical alarms with them (the new patient's start afresh)."""
+        user = _require_user(user)
+        if category not in CATEGORIES:
+            raise ConfigError(f"category {category!r} is not one of {CATEGORIES}")
+        events = self._advance(now_s)
+        for alarm in sorted((a for a in self._alarms.values() if a.category == category), key=lambda a: a.alarm_id):
+            events.append(self._end(now_s, alarm, user=user))
+        return self._record(events)
+
     # --- queries ---------------------------------------------------------
 
     def alarms(self, category: str | None = None) -> list[Alarm]:

@@ -284,3 +284,52 @@ class DoseMap:
                 raise DataFileInvalid(f"dose state {key!r} is not a {dose_map.shape} grid of finite values >= 0")
         dose_map._dose, dose_map._relieved_s = dose, relieved
         return dose_map
+
+
+class SiteDose:
+    """Pressure-time dose per named tissue site: a :class:`DoseMap` with one cell per site.
+
+    Keyed by the site's name, not by where its load lies on the mat or which region of
+    the map holds it, so a site keeps its dose when the patient slides, when two loaded
+    regions merge or one splits, and when the map's segmentation loses it for a frame:
+    only ``relief_s`` below the relief pressure clears it, as for a pixel. A site not
+    located in a frame is unloaded in that frame.
+    """
+
+    def __init__(self, sites: Sequence[str], curve: ToleranceCurve, **relief):
+        self.sites = tuple(sites)
+        self._index = {site: i for i, site in enumerate(self.sites)}
+        self.cells = DoseMap((1, len(self.sites)), curve, **relief)
+
+    def update(self, peaks_kpa: dict[str, float], dt_s: float) -> None:
+        """Add one frame held for ``dt_s`` with each located site's peak pressure."""
+        row = np.zeros((1, len(self.sites)))
+        for site, kpa in peaks_kpa.items():
+            if site not in self._index:
+                raise ValueError(f"site {site!r} is not one of the sites dosed here")
+            row[0, self._index[site]] = kpa
+        self.cells.update(row, dt_s)
+
+    def doses(self) -> dict[str, float]:
+        """Each site's dose (1.0 = tolerance used up)."""
+        return dict(zip(self.sites, self.cells.dose[0].tolist()))
+
+    def relieved_s(self) -> dict[str, float]:
+        return dict(zip(self.sites, self.cells.relieved_s[0].tolist()))
+
+    def state(self) -> dict:
+        return {"sites": list(self.sites), "cells": self.cells.state()}
+
+    @classmethod
+    def from_state(cls, state: dict, curve: ToleranceCurve, **relief) -> SiteDose:
+        """The doses :meth:`state` saved, continued with ``curve`` and ``relief`` (settings may have changed
+        since; each site's used share of its tolerance carries over)."""
+        try:
+            sites, cells = list(state["sites"]), dict(state["cells"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DataFileInvalid(f"site dose state is incomplete or malformed: {exc!r}") from None
+        dose = cls(sites, curve, **relief)
+        cells.update({"curve": curve.name, "recovery": dose.cells.recovery, "relief_kpa": dose.cells.relief_kpa,
+                      "relief_s": dose.cells.relief_s})
+        dose.cells = DoseMap.from_state(cells, curve)
+        return dose

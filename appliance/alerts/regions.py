@@ -1,4 +1,4 @@
-"""Loaded regions with a stable identity across frames, and the bony prominence each lies over.
+"""Loaded regions with a stable identity across frames, for the screen and the history.
 
 A pressure-sore alert counts how long the same tissue has been loaded, so a
 region must keep its name while the patient breathes, sinks in or shifts a few
@@ -11,7 +11,9 @@ A split gives the id to the child with the largest overlap and new ids to the
 others (``split_from``); a merge keeps the oldest id and lists the absorbed ones
 (``merged``); both are reported on the frame where they happen. A region that
 vanishes is dropped and its id is never reused, so an alert raised on an id
-cannot be inherited by unrelated tissue.
+cannot be inherited by unrelated tissue. Alarms do not rest on regions (they are
+per tissue site, :mod:`appliance.alerts.pipeline`); a region is what the screen
+draws and the history charts, named by the site it holds.
 
 >>> from appliance.core.layouts import get_layout
 >>> from appliance.core.pixels import pixel_grid
@@ -19,8 +21,8 @@ cannot be inherited by unrelated tissue.
 >>> grid = pixel_grid(get_layout("grid-16x32"))
 >>> kpa = np.zeros(grid.shape); kpa[15, 60] = 6.0                   # a heel
 >>> tracker = RegionTracker(grid)
->>> [(r.id, r.zone) for r in tracker.update(PressureMap(0.0, kpa, [], None, 0))]
-[(1, 'heel')]
+>>> [(r.id, r.area_cm2) for r in tracker.update(PressureMap(0.0, kpa, [], None, 0))]
+[(1, 8.90625)]
 >>> kpa = np.roll(kpa, 2, axis=0)                                     # 60 mm across the bed
 >>> [(r.id, r.first_seen_s) for r in tracker.update(PressureMap(1.0, kpa, [], None, 0))]
 [(1, 0.0)]
@@ -39,29 +41,13 @@ from appliance.core.pressure_map import HIGH_PRESSURE_KPA, PressureMap, loaded_r
 MAX_JUMP_MM = 60.0
 """A little more than one bed pixel (56 mm), far less than the 190 mm between the heels."""
 
-BED_MIN_LENGTH_MM = 1500.0
-"""Mats at least this long carry a whole patient; smaller ones (the 100 mm test sensors) get no zones."""
-
-# Bands along the body, mm from the head end of the mat. From appliance/sim/body.py: a body of
-# height H lies centred on the 1900 mm mat, its sites at fractions s of H from the top of the head
-# (occiput 0.068, scapulae 0.19-0.225, sacrum 0.455, trochanters 0.50, heels 0.962), each spread
-# by its patch's semi-axis along the body. Over heights 155-190 cm these reach 70-340 (occiput),
-# 260-630 (scapulae), 800-1060 (sacrum, buttocks, trochanters) and 1630-1860 mm (heels); the gaps
-# hold the back, thighs and calves, which carry load but no bony prominence.
-ZONE_BANDS_MM = (("occiput", 0.0, 340.0), ("scapula", 340.0, 640.0), ("sacrum", 740.0, 1100.0),
-                 ("heel", 1600.0, float("inf")))
-
-TROCHANTER_OFFSET_MM = 140.0
-"""Off the mat's midline by more than this in the sacral band is a trochanter: in body.py the
-buttocks lie 108 mm and the loaded trochanter of a 30-degree tilt 175 mm off the body's axis
-(175 cm patient); the pixel maps of a tilted patient put its pelvic region 170 mm off."""
-
 
 @dataclass(frozen=True)
 class TrackedRegion:
     """A loaded region with its identity: ``first_seen_s`` is when its tissue was first loaded
     (a split child inherits its parent's, so a split on a blurred map does not restart the clock);
-    ``split_from`` and ``merged`` report this frame's split and merge."""
+    ``split_from`` and ``merged`` report this frame's split and merge; ``zone`` is the tissue site the alert
+    pipeline finds in it (None until named)."""
 
     id: int
     x_mm: float
@@ -74,36 +60,6 @@ class TrackedRegion:
     zone: str | None = None
     split_from: int | None = None
     merged: tuple[int, ...] = ()
-
-
-def anatomical_zone(x_mm: float, y_mm: float, mat_size_mm: tuple[float, float]) -> str | None:
-    """The bony prominence under a point of a bed-size mat, head at the start of its long side;
-    None on small mats and where no prominence lies.
-
-    The body lies along the mat's long side (x on the bed layouts) and its axis on the
-    mat's midline; ``mat_size_mm`` is (width along x, height along y).
-
-    >>> anatomical_zone(870.0, 450.0, (1900.0, 900.0)), anatomical_zone(950.0, 620.0, (1900.0, 900.0))
-    ('sacrum', 'trochanter')
-    >>> anatomical_zone(1200.0, 450.0, (1900.0, 900.0)), anatomical_zone(50.0, 50.0, (100.0, 100.0))
-    (None, None)
-    """
-    width, height = mat_size_mm
-    if max(width, height) < BED_MIN_LENGTH_MM:
-        return None
-    along, across, short = (x_mm, y_mm, height) if width >= height else (y_mm, x_mm, width)
-    for zone, start, end in ZONE_BANDS_MM:
-        if start <= along < end:
-            if zone == "sacrum" and abs(across - short / 2) > TROCHANTER_OFFSET_MM:
-                return "trochanter"
-            return zone
-    return None
-
-
-def zone_mask(grid: PixelGrid, zone: str) -> np.ndarray:
-    """Pixels (rows, cols) whose centre lies in ``zone``; none on a mat too small for zones."""
-    size = (grid.width_mm, grid.height_mm)
-    return np.array([anatomical_zone(x, y, size) == zone for x, y in grid.centres_mm]).reshape(grid.shape)
 
 
 class RegionTracker:
@@ -161,8 +117,7 @@ class RegionTracker:
                 ident, self.next_id = self.next_id, self.next_id + 1
                 first = prev[split_from[j]].first_seen_s if j in split_from else pressure_map.time_s
             out.append(TrackedRegion(ident, r.x_mm, r.y_mm, r.peak_kpa, r.mean_kpa, r.area_cm2, r.mask, first,
-                                     anatomical_zone(r.x_mm, r.y_mm, (self.grid.width_mm, self.grid.height_mm)),
-                                     prev[split_from[j]].id if j in split_from else None,
+                                     None, prev[split_from[j]].id if j in split_from else None,
                                      tuple(sorted(merged.get(j, ())))))
         self.regions = out
         return out
@@ -182,11 +137,9 @@ class RegionTracker:
             raise ValueError(f"tracker state of a {tuple(state['shape'])} grid for a {grid.shape} pixel grid")
         tracker = cls(grid, **options)
         tracker.next_id = int(state["next_id"])
-        size = (tracker.grid.width_mm, tracker.grid.height_mm)
         for r in state["regions"]:
             mask = np.zeros(grid.rows * grid.cols, bool)
             mask[np.asarray(r["mask"], dtype=int)] = True
             tracker.regions.append(TrackedRegion(int(r["id"]), r["x_mm"], r["y_mm"], r["peak_kpa"], r["mean_kpa"],
-                                                 r["area_cm2"], mask.reshape(grid.shape), r["first_seen_s"],
-                                                 anatomical_zone(r["x_mm"], r["y_mm"], size)))
+                                                 r["area_cm2"], mask.reshape(grid.shape), r["first_seen_s"]))
         return tracker

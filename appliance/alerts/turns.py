@@ -1,143 +1,199 @@
-"""The turn clock: repositioning detected from the pressure map, and the time to the next turn.
+"""The turn clock: repositionings seen in the body's posture and sites, and graded reminders when none comes.
 
-A turn is what relieves the skin that bore the load, so it is detected as that:
-of the load on the pixels at risk (at or above 32 mmHg) in the posture held since
-the last turn, the share now clearly relieved (below half of 32 mmHg). A restless
-patient shifts by 2 to 4 cm, which on pixels finer than that moves a narrow peak
-to the next pixel without relieving any skin, so a pixel counts as relieved only
-when the pixels within ``SHIFT_MM`` of it are relieved too (``reach_px``). Measured
-on the default bed's reconstructed maps (30 mm pixels, one pixel of reach): the
-virtual bed's 30-degree turns relieve 12 to 14 % of the load at risk, its restless
-shifts none (pixel by pixel they would be 25 to 46 % against up to 19 %); on
-grid-8x16's 56 mm pixels (no reach) turns relieved 40 to 50 %, shifts none. So
-the default threshold is 6 %. The new posture must hold for ``settle_s`` before
-it counts, so a brief lift for a skin check does not restart the clock; the turn
-is dated from when the relief began. On a bed the heels' pixels are left out
-(``ignore``): a restless patient moves the feet by a few centimetres, which
-relieves a heel-size contact without turning anyone.
+A repositioning is what moves the load off the tissue that bore it. It is seen as:
 
-Leaving the bed relieves everything and counts as the end of that posture; lying
-down again on an empty mat is a new posture, and the clock starts from it.
+- a change of lying posture group (back, left side, right side, front) held for ``settle_s``; a change of
+  tilt on the same side (30 to 60 degrees) is not one by itself, since the posture estimate may waver
+  between neighbouring tilts and the same side stays loaded;
+- or, in the same posture, the offloading of the sites at risk (those loaded at or above the threshold for
+  ``settle_s`` since the last turn): at least half of them below half the threshold for ``settle_s``, as
+  a pillow that floats the heels and a small tilt the posture estimate misses do. A restless patient
+  moves a few centimetres and the sites move with the body, so nothing is offloaded;
+- or a nurse recording a turn by hand (who and when).
+
+Not repositionings: lying down (the clock starts), sitting up (head of bed raised or sitting on the edge:
+the clock runs on, and the lying posture after it is compared with the one before, so a meal is no turn),
+and leaving the bed. The clock stops once the patient has been away for ``away_s`` (the relief time, after
+which the tissue has recovered) and starts again when they lie down; a shorter absence changes nothing.
+After a turn, each site that was alarmed and is still loaded is reported ("left heel still loaded").
+
+Reminders are graded: due at the interval (medium), overdue after ``grace_s`` (high, escalated), and
+repeated every ``repeat_s`` while overdue, each repeat a new alarm, until a turn is seen or recorded.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-from scipy.ndimage import maximum_filter
-
-from appliance.alerts.regions import zone_mask
-from appliance.core.pixels import PixelGrid
-from appliance.core.pressure_map import HIGH_PRESSURE_KPA, PressureMap
+from appliance.alerts.anatomy import LYING, check_posture, posture_group
+from appliance.alerts.dose import RELIEF_S
+from appliance.core.pressure_map import HIGH_PRESSURE_KPA
 from appliance.errors import ConfigError
 
-DEFAULT_INTERVAL_S = 2 * 3600.0       # the guidelines' default two-hourly turn
-RELIEVED_SHARE = 0.06
-SETTLE_S = 60.0
-SHIFT_MM = 30.0                       # what a restless patient's shift moves a peak by, and no turn
+DEFAULT_INTERVAL_S = 2 * 3600.0       # the guidelines' default two-hourly turn (EPUAP/NPIAP 2019)
+DEFAULT_GRACE_S = 30 * 60.0           # a reminder turns overdue half an hour after it fell due
+DEFAULT_REPEAT_S = 30 * 60.0          # and is repeated every half hour until a turn
+SETTLE_S = 60.0                       # a new posture must hold this long: a brief lift for a skin check is no turn
+OFFLOADED_SHARE = 0.5                 # share of the sites at risk that an offloading turn relieves
+TURN_KINDS = ("lay-down", "repositioned", "recorded", "still-loaded", "bed-empty")
 
 
 @dataclass(frozen=True)
 class TurnEvent:
-    """``repositioned`` (a new posture held; the clock restarts), ``bed-empty`` or ``turn-due``."""
+    """``lay-down`` (the clock starts), ``repositioned`` (seen: ``how`` is "posture" or "offloaded"),
+    ``recorded`` (by hand, by ``user``), ``still-loaded`` (``site``, after a turn) or ``bed-empty``."""
 
     time_s: float
     kind: str
-    relieved_share: float
-
-
-def turn_clock_for(grid: PixelGrid, **settings) -> "TurnClock":
-    """The turn clock for a mat's pixel grid: its heels left out, and the reach that a shift of ``SHIFT_MM``
-    spans on its pixels."""
-    return TurnClock(ignore=zone_mask(grid, "heel"), reach_px=int(SHIFT_MM // min(grid.pixel_mm)), **settings)
+    posture: str | None = None
+    previous: str | None = None
+    how: str = ""
+    site: str | None = None
+    user: str | None = None
 
 
 class TurnClock:
-    """Feed it every pressure map in time order; it says when the patient was turned and when a turn is due."""
+    """Feed it each frame's settled-or-not posture and site peaks in time order; it says when the patient was
+    turned and which reminder is owed."""
 
-    def __init__(self, *, interval_s: float = DEFAULT_INTERVAL_S, at_risk_kpa: float = HIGH_PRESSURE_KPA,
-                 relieved_share: float = RELIEVED_SHARE, settle_s: float = SETTLE_S, ignore: np.ndarray | None = None,
-                 reach_px: int = 0):
-        if not (interval_s > 0 and settle_s >= 0 and 0 < relieved_share <= 1 and at_risk_kpa > 0 and reach_px >= 0):
-            raise ConfigError(f"turn clock: interval {interval_s!r} s and at-risk pressure {at_risk_kpa!r} kPa must "
-                              f"be positive, settle time {settle_s!r} s and reach {reach_px!r} pixels not negative, "
-                              f"relieved share {relieved_share!r} in (0, 1]")
-        self.interval_s, self.at_risk_kpa = interval_s, at_risk_kpa
-        self.relieved_share, self.settle_s = relieved_share, settle_s
-        self.ignore = ignore         # pixels whose relief is no turn: a bed's heels, which a restless patient moves
-        self.reach_px = reach_px     # pixels around a relieved pixel that must be relieved too
-        self.posture: np.ndarray | None = None      # the map of the posture held since the last turn
-        self.last_turn_s: float | None = None
+    def __init__(self, *, interval_s: float = DEFAULT_INTERVAL_S, grace_s: float = DEFAULT_GRACE_S,
+                 repeat_s: float = DEFAULT_REPEAT_S, settle_s: float = SETTLE_S,
+                 at_risk_kpa: float = HIGH_PRESSURE_KPA, away_s: float = RELIEF_S):
+        if not (interval_s > 0 and grace_s >= 0 and repeat_s > 0 and settle_s >= 0 and at_risk_kpa > 0
+                and away_s >= 0):
+            raise ConfigError(f"turn clock: interval {interval_s!r} s, repeat {repeat_s!r} s and at-risk pressure "
+                              f"{at_risk_kpa!r} kPa must be positive; grace {grace_s!r} s, settle {settle_s!r} s "
+                              f"and away {away_s!r} s not negative")
+        self.interval_s, self.grace_s, self.repeat_s = interval_s, grace_s, repeat_s
+        self.settle_s, self.at_risk_kpa, self.away_s = settle_s, at_risk_kpa, away_s
+        self.posture: str | None = None             # the settled posture (None: nothing seen yet)
+        self.candidate: str | None = None           # a new posture waiting to settle, and since when
         self.candidate_since: float | None = None
-        self.due_announced = False
-        self.bed_empty = True
+        self.reference: str | None = None           # the lying posture the last turn (or lying down) left
+        self.last_turn_s: float | None = None       # when the clock started: None while the bed is empty
+        self.away_since: float | None = None
+        self.loaded_since: dict[str, float] = {}    # sites at or above the threshold, since when
+        self.at_risk: set[str] = set()              # sites loaded for settle_s since the last turn
+        self.offloaded_since: float | None = None
 
-    def relieved(self, pressure_kpa: np.ndarray) -> float:
-        """Share of the held posture's at-risk load that ``pressure_kpa`` relieves (0 when nothing was at risk)."""
-        if self.posture is None:
-            return 0.0
-        before = np.nan_to_num(self.posture)
-        at_risk = before >= self.at_risk_kpa
-        if self.ignore is not None:
-            at_risk &= ~self.ignore
-        if not at_risk.any():
-            return 0.0
-        now = np.nan_to_num(pressure_kpa)
-        if self.reach_px:
-            now = maximum_filter(now, size=2 * self.reach_px + 1, mode="nearest")
-        return float((before * (now < self.at_risk_kpa / 2))[at_risk].sum() / before[at_risk].sum())
-
-    def update(self, pressure_map: PressureMap) -> list[TurnEvent]:
-        """The events this map brings."""
-        now = pressure_map.time_s
-        kpa = pressure_map.pressure_kpa
-        occupied = bool((np.nan_to_num(kpa) >= self.at_risk_kpa).any())
-        events = []
-        if self.posture is None or not (np.nan_to_num(self.posture) >= self.at_risk_kpa).any():
-            changed, share = occupied, 1.0            # an empty posture ends when someone lies down
-        else:
-            share = self.relieved(kpa)
-            changed = share >= self.relieved_share
-        if not changed:
-            self.candidate_since = None
-        else:
-            if self.candidate_since is None:
-                self.candidate_since = now
-            if now - self.candidate_since >= self.settle_s:
-                self.posture = np.array(kpa, dtype=float)
-                if occupied:
-                    self.last_turn_s = self.candidate_since
-                    self.due_announced = False
-                    events.append(TurnEvent(self.candidate_since, "repositioned", share))
-                else:
-                    self.last_turn_s = None
-                    events.append(TurnEvent(self.candidate_since, "bed-empty", share))
-                self.bed_empty = not occupied
-                self.candidate_since = None
-        if self.last_turn_s is not None and not self.due_announced and self.due_in_s(now) <= 0:
-            self.due_announced = True
-            events.append(TurnEvent(self.last_turn_s + self.interval_s, "turn-due", 0.0))
-        return events
+    @property
+    def bed_empty(self) -> bool:
+        return self.last_turn_s is None
 
     def due_in_s(self, now_s: float) -> float | None:
         """Seconds until the next turn is due (negative when overdue); None while the bed is empty."""
         return None if self.last_turn_s is None else self.last_turn_s + self.interval_s - now_s
 
+    def reminder(self, now_s: float) -> tuple[str, int] | None:
+        """``("due", 0)``, ``("overdue", n)`` for the n-th overdue reminder, or None."""
+        due = self.due_in_s(now_s)
+        if due is None or due > 0:
+            return None
+        late = -due - self.grace_s
+        return ("due", 0) if late < 0 else ("overdue", 1 + int(late // self.repeat_s))
+
+    def update(self, now_s: float, posture: str, peaks: dict[str, float],
+               alarmed: frozenset[str] = frozenset()) -> list[TurnEvent]:
+        """The events this frame brings: ``posture`` as estimated now, ``peaks`` the kPa at each located site,
+        ``alarmed`` the sites with a pressure alarm open (reported if a turn leaves them loaded)."""
+        check_posture(posture)
+        loaded = {s for s, kpa in peaks.items() if kpa >= self.at_risk_kpa}
+        self.loaded_since = {s: self.loaded_since.get(s, now_s) for s in loaded}
+        events = self._settle(now_s, posture)
+        if self.posture in LYING and self.last_turn_s is not None and not events:
+            events = self._offloading(now_s, peaks)
+        if self.posture == "out-of-bed" and self.last_turn_s is not None and self.away_since is not None \
+                and now_s - self.away_since >= self.away_s:
+            self.last_turn_s = self.reference = None
+            self.at_risk.clear()
+            events.append(TurnEvent(self.away_since, "bed-empty", "out-of-bed"))
+        self.at_risk |= {s for s, since in self.loaded_since.items() if now_s - since >= self.settle_s}
+        if any(e.kind in ("repositioned", "recorded") for e in events):
+            events += self._still_loaded(now_s, loaded, alarmed)
+        return events
+
+    def record(self, now_s: float, user: str, peaks: dict[str, float],
+               alarmed: frozenset[str] = frozenset()) -> list[TurnEvent]:
+        """A turn a nurse records by hand: the clock restarts now, whatever the map shows."""
+        if not isinstance(user, str) or not user.strip():
+            raise ConfigError("a turn recorded by hand needs the name of who turned the patient")
+        self._turned(now_s)
+        if self.posture in LYING:
+            self.reference = self.posture
+        loaded = {s for s, kpa in peaks.items() if kpa >= self.at_risk_kpa}
+        return [TurnEvent(now_s, "recorded", self.posture, how="by hand", user=user.strip()),
+                *self._still_loaded(now_s, loaded, alarmed)]
+
+    def _settle(self, now_s: float, posture: str) -> list[TurnEvent]:
+        """Hold a new posture for ``settle_s``, then act on the change, dated from when it began."""
+        if posture == self.posture:
+            self.candidate = self.candidate_since = None
+            return []
+        if posture != self.candidate:
+            self.candidate, self.candidate_since = posture, now_s
+        if now_s - self.candidate_since < self.settle_s:
+            return []
+        since, previous = self.candidate_since, self.posture
+        self.posture, self.candidate, self.candidate_since = posture, None, None
+        if posture == "out-of-bed":
+            self.away_since = since
+            return []
+        self.away_since = None
+        if self.last_turn_s is None:                               # into an empty bed: the clock starts
+            self._turned(since)
+            self.reference = posture if posture in LYING else None
+            return [TurnEvent(since, "lay-down", posture, previous)]
+        if posture not in LYING:                                    # sitting up: the clock runs on
+            return []
+        if self.reference is None:
+            self.reference = posture
+            return []
+        if posture_group(posture) == posture_group(self.reference):
+            return []
+        before = self.reference
+        self._turned(since)
+        self.reference = posture
+        return [TurnEvent(since, "repositioned", posture, before, "posture")]
+
+    def _offloading(self, now_s: float, peaks: dict[str, float]) -> list[TurnEvent]:
+        """A turn in the same posture: most of the sites at risk below half the threshold for ``settle_s``."""
+        if not self.at_risk:
+            self.offloaded_since = None
+            return []
+        relieved = [s for s in self.at_risk if peaks.get(s, 0.0) < self.at_risk_kpa / 2]
+        if len(relieved) < OFFLOADED_SHARE * len(self.at_risk):
+            self.offloaded_since = None
+            return []
+        if self.offloaded_since is None:
+            self.offloaded_since = now_s
+        if now_s - self.offloaded_since < self.settle_s:
+            return []
+        since = self.offloaded_since
+        self._turned(since)
+        return [TurnEvent(since, "repositioned", self.posture, self.posture,
+                          f"offloaded {', '.join(sorted(relieved))}")]
+
+    def _turned(self, time_s: float) -> None:
+        self.last_turn_s = time_s
+        self.at_risk.clear()
+        self.offloaded_since = None
+        self.loaded_since = {s: max(since, time_s) for s, since in self.loaded_since.items()}
+
+    def _still_loaded(self, now_s: float, loaded: set[str], alarmed: frozenset[str]) -> list[TurnEvent]:
+        return [TurnEvent(now_s, "still-loaded", self.posture, site=s) for s in sorted(alarmed & loaded)]
+
     def state(self) -> dict:
         """Everything needed to carry on after a restart, as plain JSON types."""
-        return {"posture": None if self.posture is None else np.where(np.isnan(self.posture), None,
-                                                                      self.posture).tolist(),
-                "last_turn_s": self.last_turn_s, "candidate_since": self.candidate_since,
-                "due_announced": self.due_announced, "bed_empty": self.bed_empty}
+        return {"posture": self.posture, "candidate": self.candidate, "candidate_since": self.candidate_since,
+                "reference": self.reference, "last_turn_s": self.last_turn_s, "away_since": self.away_since,
+                "loaded_since": dict(self.loaded_since), "at_risk": sorted(self.at_risk),
+                "offloaded_since": self.offloaded_since}
 
-    def restore(self, state: dict) -> "TurnClock":
+    def restore(self, state: dict) -> TurnClock:
         """This clock (new, with its settings) carrying on from :meth:`state`."""
-        clock = self
-        posture = state.get("posture")
-        clock.posture = None if posture is None else np.array(posture, dtype=float)
-        clock.last_turn_s = state.get("last_turn_s")
-        clock.candidate_since = state.get("candidate_since")
-        clock.due_announced = bool(state.get("due_announced", False))
-        clock.bed_empty = bool(state.get("bed_empty", True))
-        return clock
+        for name in ("posture", "candidate", "candidate_since", "reference", "last_turn_s", "away_since",
+                     "offloaded_since"):
+            setattr(self, name, state.get(name))
+        self.loaded_since = {str(s): float(t) for s, t in (state.get("loaded_since") or {}).items()}
+        self.at_risk = set(state.get("at_risk") or ())
+        return self

@@ -4,7 +4,7 @@ A :class:`PressureMap` is what the core hands on for each frame: pressure in kPa
 per pixel with the regions at or above 32 mmHg, the time and the liquid's
 temperature.
 
-A region is a connected set of pixels at or above a threshold (32 mmHg, 4.3 kPa,
+A region is a connected set of pixels at or above a threshold (32 mmHg, 4.27 kPa,
 the capillary closing pressure the clinical literature uses, unless told
 otherwise). Its centre is the pressure-weighted centroid of its pixels, which
 places a load between pixel centres; its area counts whole pixels.
@@ -27,7 +27,10 @@ from scipy import ndimage
 from appliance.core.pixels import PixelGrid
 from appliance.core.pressure import KPA_PER_MMHG, PressureCalibration
 
-HIGH_PRESSURE_KPA = 4.3          # 32 mmHg
+HIGH_PRESSURE_MMHG = 32.0
+"""Where tissue counts as loaded: capillary closing pressure (Landis 1930), the threshold of the pressure-mapping
+literature and of every alarm default here (clinical-anchors.md)."""
+HIGH_PRESSURE_KPA = HIGH_PRESSURE_MMHG * KPA_PER_MMHG
 FOOTPRINT_SHARE = 0.3            # a load's footprint on a blurred map: where it reads 30 % of its peak
 
 

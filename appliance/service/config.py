@@ -189,8 +189,9 @@ def config_from_mapping(data: dict, base: Path | None = None) -> MonitorConfig:
 
 def _alerts(table: dict) -> AlertSettings:
     where = "[alerts]"
-    _only(table, {"threshold_mmhg", "curve", "curve_points", "alarm_dose", "recovery", "turn_interval_min",
-                  "escalate_after_min", "escalation_channel"}, where)
+    _only(table, {"threshold_mmhg", "curve", "curve_points", "alarm_dose", "recovery", "relief_min",
+                  "turn_interval_min", "turn_grace_min", "reminder_repeat_min", "escalate_after_min",
+                  "escalation_channel"}, where)
     if "curve" in table and "curve_points" in table:
         raise ConfigError(f"{where}: give curve or curve_points, not both")
     points = None
@@ -203,14 +204,23 @@ def _alerts(table: dict) -> AlertSettings:
         name = curve.name
     else:
         name = _choice(table, "curve", tuple(BUILT_IN_CURVES), "reswick-rogers", where)
+    d = AlertSettings()                                  # the one definition of each clinical default
+
+    def minutes(key: str, default_s: float, low: float, high: float) -> float:
+        return 60.0 * _number(table, key, default_s / 60.0, where, low=low, high=high)
+
     return AlertSettings(
-        threshold_kpa=_number(table, "threshold_mmhg", 32.0, where, low=10.0, high=200.0) * KPA_PER_MMHG,
+        threshold_kpa=_number(table, "threshold_mmhg", d.threshold_kpa / KPA_PER_MMHG, where, low=10.0,
+                              high=200.0) * KPA_PER_MMHG,
         curve=name, curve_points=points,
-        alarm_dose=_number(table, "alarm_dose", 1.0, where, low=0.05, high=5.0),
-        recovery=_choice(table, "recovery", RECOVERY_MODES, "reset", where),
-        turn_interval_s=60.0 * _number(table, "turn_interval_min", 120.0, where, low=15.0, high=720.0),
-        escalate_after_s=60.0 * _number(table, "escalate_after_min", 15.0, where, low=1.0, high=240.0),
-        escalation_channel=_text(table, "escalation_channel", "ward-station", where))
+        alarm_dose=_number(table, "alarm_dose", d.alarm_dose, where, low=0.05, high=5.0),
+        recovery=_choice(table, "recovery", RECOVERY_MODES, d.recovery, where),
+        relief_s=minutes("relief_min", d.relief_s, 1.0, 240.0),
+        turn_interval_s=minutes("turn_interval_min", d.turn_interval_s, 15.0, 720.0),
+        turn_grace_s=minutes("turn_grace_min", d.turn_grace_s, 0.0, 240.0),
+        reminder_repeat_s=minutes("reminder_repeat_min", d.reminder_repeat_s, 5.0, 240.0),
+        escalate_after_s=minutes("escalate_after_min", d.escalate_after_s, 1.0, 240.0),
+        escalation_channel=_text(table, "escalation_channel", d.escalation_channel, where))
 
 
 def _store(table: dict) -> StoreSettings:

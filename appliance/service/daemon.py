@@ -31,7 +31,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from appliance.alerts.events import Event, as_event
+from appliance.alerts.anatomy import SITES as SITE_NAMES, site_words
+from appliance.alerts.episodes import Episode
+from appliance.alerts.events import Event
 from appliance.alerts.notifiers import Notifier
 from appliance.alerts.pipeline import AlertPipeline, FrameAlerts, technical_alarms
 from appliance.core.pressure import KPA_PER_MMHG
@@ -61,6 +63,7 @@ def ward_summary(snapshot: dict) -> dict:
             "peak_mmhg": None if pressure_map is None else pressure_map["peak_kpa"] / KPA_PER_MMHG,
             "regions": [{"zone": r["zone"], "peak_mmhg": r["peak_mmhg"], "dose": r["dose"]}
                         for r in snapshot.get("regions", [])],
+            "posture": snapshot.get("posture"), "patient": snapshot.get("patient"),
             "turn": {"due_in_s": snapshot["turn"]["due_in_s"]},
             "alarms": [{k: a[k] for k in ("alarm_id", "key", "priority", "state", "message", "acknowledged_by")}
                        for a in snapshot["alarms"]],
@@ -93,7 +96,9 @@ class MonitorDaemon:
         self.resumed_from_s: float | None = None
         self._ready = False
         self.commands: dict[str, CommandHandler] = {"acknowledge": self._acknowledge,
-                                                     "pause-audio": self._pause_audio}
+                                                     "pause-audio": self._pause_audio,
+                                                     "record-turn": self._record_turn,
+                                                     "admit": self._admit, "discharge": self._discharge}
 
     def add_commands(self, handlers: dict[str, CommandHandler]) -> None:
         """More commands the queue may carry (settings, engineering), by kind."""
@@ -209,7 +214,7 @@ class MonitorDaemon:
             self.maps += 1
             now = pressure_map.time_s
             alerts = self.pipeline.update(pressure_map, technical)
-        events += [as_event(e) for e in alerts.turn_events + alerts.alarm_events]
+        events += [self.pipeline.record(e) for e in alerts.turn_events + alerts.alarm_events]
         snapshot = self._snapshot(now, pressure_map, alerts)
         if pressure_map is not None:
             self.store.record_map(now, np.nan_to_num(pressure_map.pressure_kpa), snapshot["regions"])
@@ -249,12 +254,28 @@ class MonitorDaemon:
         return events, outcomes
 
     def _acknowledge(self, now: float, args: dict, user: str, _id: int) -> tuple[list[Event], str]:
-        done = [as_event(e) for e in self.pipeline.engine.acknowledge(now, int(args["alarm_id"]), user)]
+        done = [self.pipeline.record(e) for e in self.pipeline.engine.acknowledge(now, int(args["alarm_id"]), user)]
         return done, f"{len(done)} event(s)"
 
     def _pause_audio(self, now: float, args: dict, user: str, _id: int) -> tuple[list[Event], str]:
-        done = [as_event(e) for e in self.pipeline.engine.pause_audio(now, user, float(args["duration_s"]))]
+        done = [self.pipeline.record(e) for e in self.pipeline.engine.pause_audio(now, user, float(args["duration_s"]))]
         return done, f"{len(done)} event(s)"
+
+    def _record_turn(self, now: float, args: dict, user: str, _id: int) -> tuple[list[Event], str]:
+        """A turn done by hand: by ``user``, or by the nurse named in ``args["by"]`` when another enters it."""
+        done = [self.pipeline.record(e) for e in self.pipeline.record_turn(now, str(args.get("by") or user))]
+        return done, "turn recorded"
+
+    def _admit(self, now: float, args: dict, user: str, _id: int) -> tuple[list[Event], str]:
+        """A new patient: the last one's episode closes, and doses and the turn clock start afresh."""
+        episode = Episode(patient_id=args.get("patient_id"), admitted_s=now, admitted_by=user, name=args.get("name"),
+                          braden=args.get("braden"), bed_exit_alert=bool(args.get("bed_exit_alert", False)),
+                          **({"bed_exit_after_s": args["bed_exit_after_s"]} if "bed_exit_after_s" in args else {}))
+        return self.pipeline.admit(now, episode), f"admitted {episode.patient_id}"
+
+    def _discharge(self, now: float, args: dict, user: str, _id: int) -> tuple[list[Event], str]:
+        done = self.pipeline.discharge(now, user)
+        return done, f"discharged {done[-1].patient}"
 
     def _tell(self, events: list[Event], now: float) -> None:
         for event in events:
@@ -275,6 +296,12 @@ class MonitorDaemon:
                        "last_fault": self.last_fault, "source": self.config.source},
             "turn": {"last_turn_s": turns.last_turn_s, "due_in_s": turns.due_in_s(now), "bed_empty": turns.bed_empty,
                      "interval_s": turns.interval_s},
+            "posture": self.pipeline.posture,
+            "patient": None if self.pipeline.episode is None else
+            {k: getattr(self.pipeline.episode, k) for k in ("patient_id", "name", "braden", "bed_exit_alert")},
+            "sites": [{"site": s.site, "words": site_words(s.site) if s.site in SITE_NAMES else s.site,
+                       "x_mm": s.x_mm, "y_mm": s.y_mm, "peak_mmhg": s.peak_kpa / KPA_PER_MMHG,
+                       "dose": alerts.site_doses.get(s.site)} for s in self.pipeline.sites],
             "alarms": [{"alarm_id": a.alarm_id, "key": a.key, "category": a.category, "priority": a.priority,
                         "state": a.state, "message": a.message, "raised_s": a.raised_s,
                         "acknowledged_by": a.acknowledged_by,
@@ -286,9 +313,9 @@ class MonitorDaemon:
             g = self.grid
             snapshot["map"] = {"mmhg": map_mmhg(pressure_map.pressure_kpa), "pixel_mm": list(g.pixel_mm),
                                "peak_kpa": pressure_map.peak_kpa, "usable_readings": pressure_map.usable_readings}
-            snapshot["regions"] = [{"id": r.id, "zone": r.zone, "peak_mmhg": r.peak_kpa / KPA_PER_MMHG,
+            snapshot["regions"] = [{"id": r.id, "zone": site_words(r.zone) if r.zone in SITE_NAMES else r.zone, "peak_mmhg": r.peak_kpa / KPA_PER_MMHG,
                                     "area_cm2": r.area_cm2, "x_mm": r.x_mm, "y_mm": r.y_mm, "since_s": r.first_seen_s,
-                                    "dose": alerts.region_doses.get(r.id)}
+                                    "dose": alerts.site_doses.get(r.zone) if r.zone else None}
                                    for r in self.pipeline.tracked]
         return snapshot
 

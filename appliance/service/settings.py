@@ -50,7 +50,8 @@ ALERT_STATE = "alerts"
 RESTART_NOTE = "applies when the monitor restarts"
 
 PATIENT_FIELDS = {"threshold_mmhg": "threshold_kpa", "curve": "curve", "alarm_dose": "alarm_dose",
-                  "recovery": "recovery", "turn_interval_min": "turn_interval_s",
+                  "recovery": "recovery", "relief_min": "relief_s", "turn_interval_min": "turn_interval_s",
+                  "turn_grace_min": "turn_grace_s", "reminder_repeat_min": "reminder_repeat_s",
                   "escalate_after_min": "escalate_after_s"}
 """Patient settings (keys of the configuration's ``[alerts]``) and the AlertSettings field each sets."""
 BED_KEYS = ("bed_id", "layout")
@@ -99,7 +100,10 @@ def settings_values(config: MonitorConfig) -> dict:
     a = config.alerts
     return {"alerts": {"threshold_mmhg": round(a.threshold_kpa / KPA_PER_MMHG, 6), "curve": a.curve,
                        "alarm_dose": a.alarm_dose, "recovery": a.recovery,
+                       "relief_min": round(a.relief_s / 60, 6),
                        "turn_interval_min": round(a.turn_interval_s / 60, 6),
+                       "turn_grace_min": round(a.turn_grace_s / 60, 6),
+                       "reminder_repeat_min": round(a.reminder_repeat_s / 60, 6),
                        "escalate_after_min": round(a.escalate_after_s / 60, 6)},
             "monitor": {"bed_id": config.bed_id, "layout": config.layout}}
 

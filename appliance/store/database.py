@@ -225,14 +225,28 @@ class Store:
 
     def events_since(self, t: float) -> list[dict]:
         """Events at or after ``t`` in the order logged: the columns, plus the extra fields kept in ``detail``."""
+        return self._events("time_s >= ?", (t,))
+
+    def _events(self, where: str, args: tuple) -> list[dict]:
         out = []
         for row in self._conn().execute(
-                f"SELECT {', '.join(EVENT_COLUMNS)}, detail FROM events WHERE time_s >= ? ORDER BY time_s, id",
-                (t,)):
+                f"SELECT {', '.join(EVENT_COLUMNS)}, detail FROM events WHERE {where} ORDER BY time_s, id", args):
             event = dict(zip(EVENT_COLUMNS, row[:-1]))
             event.update(json.loads(row[-1]))
             out.append(event)
         return out
+
+    def episodes(self) -> list[dict]:
+        """Every admission and discharge in the log, oldest first: ``time_s``, ``kind``, ``patient``, ``user``,
+        ``message``."""
+        rows = self._conn().execute(
+            "SELECT time_s, kind, json_extract(detail, '$.patient'), user, message FROM events"
+            " WHERE json_extract(detail, '$.type') = 'episode' ORDER BY time_s, id")
+        return [dict(zip(("time_s", "kind", "patient", "user", "message"), row)) for row in rows]
+
+    def patient_events(self, patient: str) -> list[dict]:
+        """Every event logged under one patient's identifier, oldest first: their history after discharge."""
+        return self._events("json_extract(detail, '$.patient') = ?", (patient,))
 
     # Pressure history: down-sampled, not fsynced per map.
 
