@@ -7,12 +7,18 @@ simulated mat and prints one CSV row per pressure on stdout.
 daemon ``appliance run`` starts) on a simulated clock, as fast as the machine
 goes, and writes every event as one JSON object per line::
 
-    {"time_s": 22920.0, "type": "alarm", "kind": "raised", "priority": "medium",
-     "category": "clinical", "key": "pressure:sacrum:2", "region": "sacrum",
-     "region_id": 2, "alarm_id": 1, "message": "...", "user": null, "channel": null}
+    {"time_s": 29400.0, "type": "alarm", "kind": "raised", "priority": "medium",
+     "category": "clinical", "key": "pressure:sacrum", "site": "sacrum", "posture": "supine",
+     "x_mm": 861.3, "y_mm": 452.5, "alarm_id": 1, "message": "...", "user": null, "channel": null,
+     "patient": null}
 
 ``--acknowledge-after-min`` plays a nurse who acknowledges each alarm that long
 after it is raised, so the record shows acknowledgements and what they end.
+
+``appliance sim replay`` feeds a scenario's true maps (its own pressure field
+averaged over the monitor's pixels, :mod:`appliance.sim.true_maps`) straight into
+the alert layer, with no mat and no reconstruction, and writes the same records:
+the alert logic checked on true maps, e.g. recorded PmatData nights.
 
 ``appliance sim map`` puts pressure maps (CSV in mmHg) on the virtual bed and
 writes the maps the appliance reconstructs from them (:mod:`appliance.cli_map`).
@@ -55,6 +61,17 @@ def add_parsers(sub) -> None:
                    help="where the run's store is kept (default: a fresh temporary folder, removed afterwards)")
     p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
     p.set_defaults(run=_run)
+
+    p = sim.add_parser("replay", help="a scenario's true maps straight into the alert layer (no mat, no "
+                                      "reconstruction), events to JSON lines")
+    p.add_argument("--scenario", required=True, help="a built-in scenario's name or a scenario .toml file")
+    p.add_argument("--hours", type=float, default=None, help="simulated hours to replay (default: all of it)")
+    p.add_argument("--out", required=True, type=Path, help="the event record (JSON lines)")
+    p.add_argument("--interval", type=float, default=60.0, help="simulated seconds between maps (default 60)")
+    p.add_argument("--config", type=Path, default=None, help="the monitor's TOML configuration (alert settings)")
+    p.add_argument("--layout", default=None, help="mat layout whose pixels the maps are averaged over "
+                                                  "(default grid-16x32)")
+    p.set_defaults(run=_replay)
 
     from appliance.cli_map import add_parser as add_map_parser
 
@@ -132,4 +149,41 @@ def _run(args) -> int:
     simulated_h = max(done - 1, 0) * args.interval / 3600
     print(f"{args.scenario}: {done} frames ({simulated_h:g} simulated h) in {elapsed:.1f} s "
           f"({done / max(elapsed, 1e-9):.0f} frames/s); {summary}; written to {args.out}", file=sys.stderr)
+    return 0
+
+
+def _replay(args) -> int:
+    import json
+
+    import numpy as np
+
+    from appliance.alerts.pipeline import AlertPipeline
+    from appliance.cli_run import monitor_config
+    from appliance.core.layouts import get_layout
+    from appliance.core.pixels import pixel_grid
+    from appliance.errors import ConfigError
+    from appliance.sim.scenes import load_scene
+    from appliance.sim.true_maps import true_map
+
+    if not args.interval > 0 or (args.hours is not None and not args.hours > 0):
+        raise ConfigError("--hours and --interval must be positive")
+    scene = load_scene(args.scenario)
+    end_s = scene.duration_s if args.hours is None else args.hours * 3600
+    if end_s > scene.duration_s:
+        raise ConfigError(f"scenario {args.scenario} lasts {scene.duration_s / 3600:g} h; --hours {args.hours:g} "
+                          "is longer")
+    config = monitor_config(args, data_dir=Path("."))
+    grid = pixel_grid(get_layout(config.layout))
+    pipeline = AlertPipeline(grid, config.alerts)
+    times = np.arange(0.0, end_s + 1e-9, args.interval)
+    written = 0
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    with args.out.open("w", encoding="utf-8") as out:
+        for t in times:
+            frame = pipeline.update(true_map(scene, min(float(t), scene.duration_s - 1e-6), grid))
+            for event in frame.turn_events + frame.alarm_events:
+                out.write(json.dumps(pipeline.record(event).to_dict()) + "\n")
+                written += 1
+    print(f"{args.scenario}: {len(times)} true maps ({(len(times) - 1) * args.interval / 3600:g} h) on "
+          f"{config.layout}; {written} events written to {args.out}", file=sys.stderr)
     return 0

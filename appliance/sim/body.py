@@ -67,11 +67,11 @@ class Subject:
 
     def __post_init__(self):
         for name in ("weight_kg", "height_cm"):
-            if not (_is_number(getattr(self, name)) and getattr(self, name) > 0):
+            if not (is_number(getattr(self, name)) and getattr(self, name) > 0):
                 raise ModelInputInvalid(f"subject {name} must be a positive number, got {getattr(self, name)!r}")
 
 
-def _is_number(value) -> bool:
+def is_number(value) -> bool:
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) \
         and bool(np.isfinite(value))
 
@@ -86,7 +86,7 @@ class MatGrid:
 
     def __post_init__(self):
         for name in ("width_mm", "height_mm", "pitch_mm"):
-            if not (_is_number(getattr(self, name)) and getattr(self, name) > 0):
+            if not (is_number(getattr(self, name)) and getattr(self, name) > 0):
                 raise ModelInputInvalid(f"mat {name} must be a positive number, got {getattr(self, name)!r}")
         if min(self.shape) < 1:
             raise ModelInputInvalid(f"a {self.pitch_mm:g} mm pitch leaves no cell on a "
@@ -120,7 +120,7 @@ class Placement:
             raise ModelInputInvalid(f"unknown posture {self.posture!r}: use one of {', '.join(POSTURES)}")
         for name in ("x_mm", "y_mm", "rotation_deg"):
             value = getattr(self, name)
-            if not (_is_number(value) or (value is None and name != "rotation_deg")):
+            if not (is_number(value) or (value is None and name != "rotation_deg")):
                 raise ModelInputInvalid(f"placement {name} must be a finite number, got {value!r}")
 
     def on(self, grid: MatGrid, subject: Subject) -> Placement:

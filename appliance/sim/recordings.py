@@ -92,8 +92,10 @@ def force_n(pressure_kpa: np.ndarray, pitch_mm: float) -> np.ndarray:
     return np.asarray(pressure_kpa).sum(axis=(-2, -1)) * pitch_mm**2 * 1e-3
 
 
-def resample_onto(pressure: np.ndarray, pitch_mm: float, grid: MatGrid) -> np.ndarray:
-    """Maps (..., rows, cols) of ``pitch_mm`` cells placed centred on ``grid``, force kept cell by cell.
+def resample_onto(pressure: np.ndarray, pitch_mm: float, grid: MatGrid,
+                  shift_mm: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """Maps (..., rows, cols) of ``pitch_mm`` cells placed centred on ``grid`` (moved by ``shift_mm``, across
+    and along), force kept cell by cell.
 
     Force that falls outside the mat is lost; inside, the total is kept to rounding.
 
@@ -104,14 +106,15 @@ def resample_onto(pressure: np.ndarray, pitch_mm: float, grid: MatGrid) -> np.nd
     p = np.asarray(pressure, dtype=float)
     rows, cols = p.shape[-2:]
     out_rows, out_cols = grid.shape
-    wy = _overlaps((grid.height_mm - rows * pitch_mm) / 2 + np.arange(rows + 1) * pitch_mm,
-                   np.arange(out_rows + 1) * grid.pitch_mm)
-    wx = _overlaps((grid.width_mm - cols * pitch_mm) / 2 + np.arange(cols + 1) * pitch_mm,
-                   np.arange(out_cols + 1) * grid.pitch_mm)
+    dx, dy = shift_mm
+    wy = area_shares((grid.height_mm - rows * pitch_mm) / 2 + dy + np.arange(rows + 1) * pitch_mm,
+                     np.arange(out_rows + 1) * grid.pitch_mm)
+    wx = area_shares((grid.width_mm - cols * pitch_mm) / 2 + dx + np.arange(cols + 1) * pitch_mm,
+                     np.arange(out_cols + 1) * grid.pitch_mm)
     return wy @ p @ wx.T / grid.pitch_mm**2
 
 
-def _overlaps(src_edges: np.ndarray, dst_edges: np.ndarray) -> np.ndarray:
+def area_shares(src_edges: np.ndarray, dst_edges: np.ndarray) -> np.ndarray:
     """Length (mm) each destination interval shares with each source interval: (n_dst, n_src)."""
     low = np.maximum(dst_edges[:-1, None], src_edges[None, :-1])
     high = np.minimum(dst_edges[1:, None], src_edges[None, 1:])
@@ -177,18 +180,20 @@ def pmat_subject(info_path, subject: int) -> tuple[float, float]:
 
 
 def pmat_scene(pmat_dir, subject: int, posture: int, grid: MatGrid = BED_GRID,
-               sensel_mm: float = PMAT_SENSEL_MM) -> RecordedScene:
-    """PmatData experiment I, subject ``S<subject>``, posture file ``<posture>.txt``, at 1 Hz, in kPa."""
+               sensel_mm: float = PMAT_SENSEL_MM, shift_mm: tuple[float, float] = (0.0, 0.0)) -> RecordedScene:
+    """PmatData experiment I, subject ``S<subject>``, posture file ``<posture>.txt``, at 1 Hz, in kPa, centred on
+    the mat and moved by ``shift_mm`` (across, along)."""
     root = _existing_dir(pmat_dir, "PmatData") / "experiment-i"
     weight_kg, height_cm = pmat_subject(root / "subject-info-i.csv", subject)
     path = root / f"S{subject}" / f"{posture}.txt"
     counts, report = clean_pmat_frames(read_pmat_frames(path), str(path))
     counts = counts[:, :, ::-1]                       # its columns run to the patient's right
-    placed = _on_mat(resample_onto(counts, sensel_mm, grid), grid, path)
+    placed = _on_mat(resample_onto(counts, sensel_mm, grid, shift_mm), grid, path)
     kept = placed.sum(axis=(1, 2)) * grid.pitch_mm**2 / (counts.sum(axis=(1, 2)) * sensel_mm**2)
     frames = placed * (weight_kg * G_M_S2 / force_n(placed, grid.pitch_mm))[:, None, None]
     info = {"source": f"PmatData experiment-i S{subject}/{posture}.txt", "weight_kg": weight_kg,
-            "height_cm": height_cm, "sensel_mm": sensel_mm, "rate_hz": 1.0,
+            "height_cm": height_cm, "sensel_mm": sensel_mm, "rate_hz": 1.0, "posture_file": posture,
+            "shift_mm": list(shift_mm),
             "kpa_per_count": float(np.median(weight_kg * G_M_S2 / force_n(counts, sensel_mm))),
             "share_off_mat": float(1 - np.median(kept)), **report}
     return RecordedScene(frames, np.arange(len(frames), dtype=float), grid, info)

@@ -74,7 +74,8 @@ import numpy as np
 
 from appliance.core.toml_files import read_toml
 from appliance.errors import ConfigError, DataFileInvalid, ModelInputInvalid
-from appliance.sim.body import BED_GRID, POSTURES, SURFACES, MatGrid, Placement, Subject, body_field, check_sites
+from appliance.sim.body import (BED_GRID, POSTURES, SURFACES, MatGrid, Placement, Subject, is_number, body_field,
+                                check_sites)
 from appliance.sim.field import PressureField
 from appliance.sim.map_files import check_pitch_mm
 
@@ -91,9 +92,13 @@ SCENE_FIELDS = {"description", "width_mm", "height_mm", "pitch_mm", "weight_kg",
 RECORDED_SCENE_FIELDS = {"description", "width_mm", "height_mm", "pitch_mm", "duration_s"}
 FAULT_FIELDS = {"at_s", "electrode", "kind"}
 FAULT_KINDS = {"disconnect": False, "reconnect": True}
-RECORDING_FIELDS = {"pmatdata": {"source", "dir", "subject", "posture", "hold_s", "pitch_mm"},
+RECORDING_FIELDS = {"pmatdata": {"source", "dir", "subject", "posture", "hold_s", "pitch_mm", "shift_mm"},
                     "maps": {"source", "files", "pitch_mm", "each_s", "rate_hz", "hold_s"}}
 PMAT_POSTURES = range(1, 18)
+PMAT_POSTURE_FILES = {"supine": 1, "right-90": 2, "left-90": 3, "right-30": 4, "right-60": 5, "left-30": 6,
+                      "left-60": 7, "fetal-right": 13, "fetal-left": 14, "inclined": 15}
+"""PmatData experiment I's posture file for each posture the monitor names (file 15 is the head of the bed at
+30 degrees; 16 and 17 raise it to 45 and 60, and 8 to 12 are supine variants: star, arms crossed, knees up)."""
 
 
 @dataclass(frozen=True)
@@ -341,12 +346,24 @@ def _pmat_segment(segment: dict, where: str, folder: Path, grid: MatGrid):
     data_dir = folder / segment["dir"]
     if not data_dir.is_dir():
         raise ConfigError(f"{where}: dir {str(data_dir)!r} is not a folder (the PmatData data set)")
-    subject, posture = (_integer(segment, key, where) for key in ("subject", "posture"))
-    if posture not in PMAT_POSTURES:
-        raise ConfigError(f"{where}: posture must be 1 to 17, got {posture}")
+    subject = _integer(segment, "subject", where)
+    posture = segment.get("posture")
+    if isinstance(posture, str):
+        if posture not in PMAT_POSTURE_FILES:
+            raise ConfigError(f"{where}: unknown posture {posture!r}; PmatData has "
+                              f"{', '.join(PMAT_POSTURE_FILES)} (or a file number, 1 to 17)")
+        posture = PMAT_POSTURE_FILES[posture]
+    else:
+        posture = _integer(segment, "posture", where)
+        if posture not in PMAT_POSTURES:
+            raise ConfigError(f"{where}: posture must be a file number 1 to 17 or one of "
+                              f"{', '.join(PMAT_POSTURE_FILES)}, got {posture}")
+    shift = segment.get("shift_mm", [0.0, 0.0])
+    if not (isinstance(shift, list) and len(shift) == 2 and all(is_number(v) and abs(v) <= 300 for v in shift)):
+        raise ConfigError(f"{where}: shift_mm must be [across, along] in mm, each within 300, got {shift!r}")
     hold = _not_negative(segment, "hold_s", where, None)
     pitch = check_pitch_mm(segment.get("pitch_mm", PMAT_SENSEL_MM), f"{where}: pitch_mm")
-    return pmat_scene(data_dir, subject, posture, grid, sensel_mm=pitch), hold
+    return pmat_scene(data_dir, subject, posture, grid, sensel_mm=pitch, shift_mm=tuple(map(float, shift))), hold
 
 
 def _map_segment(segment: dict, where: str, folder: Path, grid: MatGrid):
