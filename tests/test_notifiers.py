@@ -23,12 +23,12 @@ from appliance.alerts.turns import TurnEvent
 from appliance.drivers.emulated.buses import BusTiming, EmulatedGPIOLines, GPIOBank
 from appliance.drivers.emulated.clock import SimulatedClock
 
-EVENT_FIELDS = {"time_s", "type", "kind", "priority", "category", "key", "region", "region_id", "alarm_id", "message",
-                "user", "channel"}
+EVENT_FIELDS = {"time_s", "type", "kind", "priority", "category", "key", "site", "posture", "x_mm", "y_mm", "alarm_id",
+                "message", "user", "channel", "patient"}
 
 
 def alarm(alarm_id=1, kind="raised", priority="high"):
-    return as_event(AlarmEvent(time_s=10.0 * alarm_id, kind=kind, alarm_id=alarm_id, key="pressure:sacrum:4",
+    return as_event(AlarmEvent(time_s=10.0 * alarm_id, kind=kind, alarm_id=alarm_id, key="pressure:sacrum",
                                category="clinical", priority=priority, message="Sacrum dose over limit"))
 
 
@@ -84,10 +84,11 @@ def test_alarm_arrives_with_qos1_and_documented_payload(broker, subscriber, tmp_
         assert (qos, retain) == (1, False)
         body = json.loads(payload)
         assert set(body) == EVENT_FIELDS
-        assert Event(**body) == event and (body["region"], body["region_id"]) == ("sacrum", 4)
-        notifier.notify(as_event(TurnEvent(time_s=5.0, kind="repositioned", relieved_share=0.4)))
+        assert Event(**body) == event and body["site"] == "sacrum"
+        notifier.notify(as_event(TurnEvent(time_s=5.0, kind="repositioned", posture="left-30", previous="supine",
+                                           how="posture")))
         _, qos, _, payload = subscriber.next("appliance/bed7/turn")
-        assert qos == 1 and json.loads(payload)["message"] == "repositioned: 40% of the at-risk load relieved"
+        assert qos == 1 and json.loads(payload)["message"] == "repositioned: on the back to left side, 30 degrees"
         assert wait_until(lambda: notifier.delivered == 2)
     finally:
         notifier.close()

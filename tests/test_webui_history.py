@@ -5,6 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from appliance.core.pressure_map import HIGH_PRESSURE_MMHG
 from appliance.alerts.events import Event
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.service.live import LiveChannel
@@ -13,7 +14,7 @@ from webui import create_app
 from webui.history import chart, load_history, region_series, summarise
 from webui_client import client_as, set_up
 
-DEFAULT_THRESHOLD = 4.3 / KPA_PER_MMHG          # 32.25 mmHg
+DEFAULT_THRESHOLD = HIGH_PRESSURE_MMHG
 SACRUM = [(0.0, 40.0, None), (600.0, 45.0, 0.1), (1200.0, 20.0, 0.2), (1800.0, 50.0, 0.4), (3000.0, 38.0, 0.6)]
 REGION_2 = [(1200.0, 33.0, 0.05), (1800.0, 31.0, 0.08)]
 MAP_TIMES = (0.0, 600.0, 1200.0, 1800.0, 2400.0, 3000.0)      # the sacrum is not loaded at 2400
@@ -42,15 +43,16 @@ def filled(app, tmp_path):
         store.record_events([
             {"time_s": 600.0, "type": "alarm", "kind": "raised", "alarm_id": 2, "key": "technical:front-end",
              "category": "technical", "priority": "medium", "message": "no frame from the front end"},
-            Event(900.0, "turn", "repositioned", message="repositioned: 40% of the at-risk load relieved"),
-            Event(1200.0, "alarm", "raised", "medium", "clinical", "pressure:sacrum:1", "sacrum", 1, 1,
-                  "sustained pressure at the sacrum: reposition the patient"),
-            Event(1500.0, "alarm", "acknowledged", "medium", "clinical", "pressure:sacrum:1", "sacrum", 1, 1,
-                  "sustained pressure at the sacrum", user="nurse.jones"),
+            Event(900.0, "turn", "repositioned", message="repositioned: on the back to left side, 30 degrees"),
+            Event(1200.0, "alarm", "raised", "medium", "clinical", "pressure:sacrum", "sacrum", alarm_id=1,
+                  message="sustained pressure at the sacrum: reposition the patient"),
+            Event(1500.0, "alarm", "acknowledged", "medium", "clinical", "pressure:sacrum", "sacrum", alarm_id=1,
+                  message="sustained pressure at the sacrum", user="nurse.jones"),
             Event(1800.0, "alarm", "ended", "medium", "technical", "technical:front-end", alarm_id=2),
-            Event(2000.0, "turn", "repositioned", message="repositioned: 35% of the at-risk load relieved"),
-            Event(2700.0, "turn", "turn-due", message="repositioning is due"),
-            Event(3300.0, "alarm", "ended", "medium", "clinical", "pressure:sacrum:1", "sacrum", 1, 1),
+            Event(2000.0, "turn", "repositioned", message="repositioned: left side, 30 degrees to on the back"),
+            Event(2700.0, "alarm", "raised", "medium", "clinical", "turn:due", alarm_id=3,
+                  message="repositioning is due"),
+            Event(3300.0, "alarm", "ended", "medium", "clinical", "pressure:sacrum", "sacrum", alarm_id=1),
         ])
     return app
 
@@ -101,11 +103,10 @@ def test_the_api_gives_each_regions_series_the_turns_and_the_alarms(filled, nurs
     assert sacrum["peak_mmhg"] == [p for _, p, _ in SACRUM]
     assert sacrum["dose"] == [d for _, _, d in SACRUM]
     assert (other["label"], other["times"], other["dose"]) == ("region 2", [1200.0, 1800.0], [0.05, 0.08])
-    assert [(e["time_s"], e["kind"]) for e in data["turns"]] == [(900.0, "repositioned"), (2000.0, "repositioned"),
-                                                                  (2700.0, "turn-due")]
+    assert [(e["time_s"], e["kind"]) for e in data["turns"]] == [(900.0, "repositioned"), (2000.0, "repositioned")]
     assert [(e["time_s"], e["kind"], e["alarm_id"]) for e in data["alarms"]] == [
         (600.0, "raised", 2), (1200.0, "raised", 1), (1500.0, "acknowledged", 1), (1800.0, "ended", 2),
-        (3300.0, "ended", 1)]
+        (2700.0, "raised", 3), (3300.0, "ended", 1)]
 
 
 def test_a_short_window_keeps_only_its_end(filled, nurse, tmp_path):
@@ -114,8 +115,8 @@ def test_a_short_window_keeps_only_its_end(filled, nurse, tmp_path):
     data = nurse.get("/api/history?hours=1").get_json()                # 900 s .. 4500 s
     assert (data["from_s"], data["to_s"]) == (900.0, 4500.0)
     assert data["regions"][0]["times"] == [1200.0, 1800.0, 3000.0]
-    assert [e["time_s"] for e in data["turns"]] == [900.0, 2000.0, 2700.0, 4500.0]
-    assert [e["time_s"] for e in data["alarms"]] == [1200.0, 1500.0, 1800.0, 3300.0]
+    assert [e["time_s"] for e in data["turns"]] == [900.0, 2000.0, 4500.0]
+    assert [e["time_s"] for e in data["alarms"]] == [1200.0, 1500.0, 1800.0, 2700.0, 3300.0]
 
 
 def test_the_summary_numbers(filled):
@@ -125,10 +126,11 @@ def test_the_summary_numbers(filled):
     assert (summary.turns, summary.turn_reminders) == (2, 1)
     assert summary.longest_without_turn_s == 1300.0                     # the last turn at 2000 s to the end
     sacrum, other = summary.regions
-    # at or above 32.25 mmHg from 0, 600, 1800 (to the next kept map, 600 s each) and 3000 (to the end, 300 s)
+    # at or above 32 mmHg from 0, 600, 1800 (to the next kept map, 600 s each) and 3000 (to the end, 300 s)
     assert (sacrum.peak_mmhg, sacrum.max_dose, sacrum.minutes_above) == (50.0, 0.6, 35.0)
     assert (other.peak_mmhg, other.max_dose, other.minutes_above) == (33.0, 0.08, 10.0)
-    (clinical,), (technical,) = summary.clinical, summary.technical
+    (clinical, reminder), (technical,) = summary.clinical, summary.technical
+    assert (reminder.key, reminder.ended_s) == ("turn:due", None)
     assert (clinical.alarm_id, clinical.priority, clinical.acknowledged_by) == (1, "medium", "nurse.jones")
     assert clinical.acknowledge_delay_s == 300.0 and clinical.ended_s == 3300.0
     assert (technical.key, technical.acknowledged_by, technical.acknowledge_delay_s) == ("technical:front-end",
@@ -170,10 +172,10 @@ def test_the_page_draws_one_chart_per_region_with_turns_and_alarms(filled, nurse
     assert page.count('<svg class="chart"') == 2
     assert "<figcaption>sacrum (region 1)</figcaption>" in page and "<figcaption>region 2</figcaption>" in page
     sacrum_chart, other_chart = page.split('<svg class="chart"')[1:]
-    assert sacrum_chart.count('class="marker turn"') == 3 == other_chart.count('class="marker turn"')
+    assert sacrum_chart.count('class="marker turn"') == 2 == other_chart.count('class="marker turn"')
     assert sacrum_chart.count('class="marker acknowledged"') == 1            # the sacrum's own alarm
     assert other_chart.count('class="marker acknowledged"') == 0
-    assert sacrum_chart.count('class="marker raised"') == 2                  # its alarm and the technical one
+    assert sacrum_chart.count('class="marker raised"') == 3          # its alarm, the technical one, the turn reminder
     assert 'class="threshold"' in sacrum_chart and 'class="dose-one"' in sacrum_chart
     assert "sustained pressure at the sacrum" in page and "repositioning is due" in page
 

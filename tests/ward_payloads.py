@@ -4,7 +4,7 @@ from appliance.alerts.alarms import AlarmEvent
 from appliance.alerts.events import as_event
 
 
-def alarm(alarm_id=1, kind="raised", priority="high", time_s=None, key="pressure:sacrum:4"):
+def alarm(alarm_id=1, kind="raised", priority="high", time_s=None, key="pressure:sacrum"):
     return as_event(AlarmEvent(time_s=10.0 * alarm_id if time_s is None else time_s, kind=kind, alarm_id=alarm_id,
                                key=key, category="clinical", priority=priority, message="Sacrum dose over limit"))
 
@@ -12,6 +12,6 @@ def alarm(alarm_id=1, kind="raised", priority="high", time_s=None, key="pressure
 def summary(bed_id, time_s=100.0, alarms=()):
     return {"bed_id": bed_id, "time_s": time_s, "peak_mmhg": 41.5,
             "regions": [{"zone": "sacrum", "peak_mmhg": 41.5, "dose": 0.3}], "turn": {"due_in_s": 3600.0},
-            "alarms": [{"alarm_id": i, "key": f"pressure:sacrum:{i}", "priority": p, "state": "active",
+            "alarms": [{"alarm_id": i, "key": "pressure:sacrum", "priority": p, "state": "active",
                         "message": "Sacrum dose over limit", "acknowledged_by": None} for i, p in alarms],
             "status": {"maps": 7, "faults": 0}}

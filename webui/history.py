@@ -25,6 +25,8 @@ from flask import Blueprint, abort, jsonify, render_template, request
 
 from appliance.alerts.alarms import PRIORITIES
 from appliance.alerts.pipeline import AlertSettings
+from appliance.alerts.anatomy import SITES, site_words
+from appliance.alerts.turns import TURN_KINDS as TURN_EVENT_KINDS
 from appliance.core.pressure import KPA_PER_MMHG
 from webui.alarms import clock, store
 from webui.live import snapshot
@@ -32,8 +34,10 @@ from webui.live import snapshot
 bp = Blueprint("history", __name__)
 
 DEFAULT_HOURS, MIN_HOURS, MAX_HOURS = 12.0, 1.0, 168.0
-TURN_KINDS = ("repositioned", "bed-empty", "turn-due")
-"""The turn clock's event kinds (``appliance.alerts.turns.TurnEvent``); a turn is ``repositioned``."""
+TURN_KINDS = TURN_EVENT_KINDS
+"""The turn clock's event kinds (``appliance.alerts.turns.TurnEvent``); a turn is ``repositioned`` (seen) or
+``recorded`` (by hand)."""
+TURNED = ("repositioned", "recorded")
 NO_HISTORY = "no history recorded yet"
 
 CHART_W, CHART_H = 760, 200
@@ -108,20 +112,23 @@ class RegionSeries:
     times: list[float]
     peak_mmhg: list[float]
     dose: list[float | None]
+    sites: tuple[str, ...] = ()
 
     @property
     def label(self) -> str:
-        return f"{self.zone} (region {self.region_id})" if self.zone else f"region {self.region_id}"
+        words = site_words(self.zone) if self.zone in SITES else self.zone
+        return f"{words} (region {self.region_id})" if self.zone else f"region {self.region_id}"
 
 
 def region_series(rows: list[dict]) -> list[RegionSeries]:
-    """The store's region rows grouped by region id, in id order; the zone is the latest one recorded."""
+    """The store's region rows grouped by region id, in id order; the zone is the latest site recorded in it,
+    ``sites`` every one (a region's alarms are its sites')."""
     grouped: dict[int, list[dict]] = {}
     for row in rows:
         grouped.setdefault(row["region_id"], []).append(row)
     return [RegionSeries(region_id, next((r["zone"] for r in reversed(samples) if r["zone"]), None),
                          [r["time_s"] for r in samples], [r["peak_mmhg"] for r in samples],
-                         [r["dose"] for r in samples])
+                         [r["dose"] for r in samples], tuple(sorted({r["zone"] for r in samples if r["zone"]})))
             for region_id, samples in sorted(grouped.items())]
 
 
@@ -207,13 +214,14 @@ class ShiftSummary:
 
 def summarise(history: History, threshold: float) -> ShiftSummary:
     """The shift summary of ``history`` against a pressure ``threshold`` in mmHg."""
-    turn_times = [e["time_s"] for e in history.turns if e["kind"] == "repositioned"]
+    turn_times = [e["time_s"] for e in history.turns if e["kind"] in TURNED]
     regions = [RegionSummary(s.label, max(s.peak_mmhg), max((d for d in s.dose if d is not None), default=None),
                              minutes_above(s, history.map_times, history.end_s, threshold))
                for s in region_series(history.regions)]
     alarms = alarm_records(history.alarms)
     return ShiftSummary(history.start_s, history.end_s, threshold, len(turn_times),
-                        sum(e["kind"] == "turn-due" for e in history.turns),
+                        sum(e["kind"] == "raised" and (e.get("key") or "").startswith("turn:")
+                            for e in history.alarms),
                         longest_without_turn_s(turn_times, history.start_s, history.end_s), regions,
                         [a for a in alarms if a.category != "technical"],
                         [a for a in alarms if a.category == "technical"])
@@ -270,7 +278,7 @@ def chart(series: RegionSeries, history: History, threshold: float) -> Chart:
     markers += [Marker(x(e["time_s"]), e["kind"], f"alarm {e['kind']}: {e.get('key')} {clock(e['time_s'])}"
                        + (f" by {e['user']}" if e.get("user") else ""))
                 for e in history.alarms
-                if e["kind"] in ("raised", "acknowledged") and e.get("region_id") in (None, series.region_id)]
+                if e["kind"] in ("raised", "acknowledged") and e.get("site") in (None, *series.sites)]
     dose_step = 0.25 if dose_top <= 1.5 else 0.5
     return Chart(
         series.label,

@@ -61,7 +61,7 @@ def ward_summary(snapshot: dict) -> dict:
     pressure_map = snapshot.get("map")
     return {"bed_id": snapshot["bed_id"], "time_s": snapshot["time_s"],
             "peak_mmhg": None if pressure_map is None else pressure_map["peak_kpa"] / KPA_PER_MMHG,
-            "regions": [{"zone": r["zone"], "peak_mmhg": r["peak_mmhg"], "dose": r["dose"]}
+            "regions": [{"zone": r["zone"], "words": r.get("words"), "peak_mmhg": r["peak_mmhg"], "dose": r["dose"]}
                         for r in snapshot.get("regions", [])],
             "posture": snapshot.get("posture"), "patient": snapshot.get("patient"),
             "turn": {"due_in_s": snapshot["turn"]["due_in_s"]},
@@ -313,7 +313,7 @@ class MonitorDaemon:
             g = self.grid
             snapshot["map"] = {"mmhg": map_mmhg(pressure_map.pressure_kpa), "pixel_mm": list(g.pixel_mm),
                                "peak_kpa": pressure_map.peak_kpa, "usable_readings": pressure_map.usable_readings}
-            snapshot["regions"] = [{"id": r.id, "zone": site_words(r.zone) if r.zone in SITE_NAMES else r.zone, "peak_mmhg": r.peak_kpa / KPA_PER_MMHG,
+            snapshot["regions"] = [{"id": r.id, "zone": r.zone, "words": site_words(r.zone) if r.zone in SITE_NAMES else r.zone, "peak_mmhg": r.peak_kpa / KPA_PER_MMHG,
                                     "area_cm2": r.area_cm2, "x_mm": r.x_mm, "y_mm": r.y_mm, "since_s": r.first_seen_s,
                                     "dose": alerts.site_doses.get(r.zone) if r.zone else None}
                                    for r in self.pipeline.tracked]

@@ -35,7 +35,7 @@ function draw(snapshot) {
     ctx.stroke();
     const tr = document.createElement("tr");
     const since = (snapshot.time_s - r.since_s) / 60;
-    for (const text of [r.zone || "region " + r.id, r.peak_mmhg.toFixed(0), since.toFixed(0) + " min",
+    for (const text of [r.words || r.zone || "region " + r.id, r.peak_mmhg.toFixed(0), since.toFixed(0) + " min",
                         r.dose === null ? "-" : Math.round(100 * r.dose) + " %"]) {
       const td = document.createElement("td"); td.textContent = text; tr.appendChild(td);
     }

@@ -35,7 +35,7 @@ function tile(bed) {
   facts.appendChild(turn);
   div.appendChild(facts);
   if (bed.regions.length) {
-    div.appendChild(element("p", "facts", bed.regions.map(r => `${r.zone || "region"} ${Math.round(100 * (r.dose || 0))} %`).join(" · ")));
+    div.appendChild(element("p", "facts", bed.regions.map(r => `${r.words || r.zone || "region"} ${Math.round(100 * (r.dose || 0))} %`).join(" · ")));
   }
   return div;
 }
