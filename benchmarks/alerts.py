@@ -1,21 +1,21 @@
-"""Alerts benchmark: false alarms on well-cared-for patients, detection delay against the true dose, and what
-the monitor costs at 1 frame per second.
+"""Alerts benchmark: posture, tissue sites and site alarms on held-out real bodies, reminders, and cost.
 
-    python benchmarks/alerts.py        # writes benchmarks/alerts.md and alerts.png (about 10 min)
+    python benchmarks/alerts.py        # writes benchmarks/alerts.md and alerts.png (about 15 min)
 
-Everything runs through the monitor daemon that ``appliance run`` starts
-(:func:`appliance.service.assemble.assemble`) on the default virtual bed (grid-16x32), with
-the default alert settings unless a table says otherwise.
+Everything is judged on PmatData subjects S4, S6 and S11, which neither the posture
+model, nor the site locator's geometry, nor the bed's pressure calibration was fitted
+on (they were fitted on S1-S3, S5, S7-S10).
 
-* Alarms per simulated patient-day: scenarios where the patient is cared for as
-  the guidelines ask (turned every 2 h), with three noise seeds, and a night
-  replayed from real PmatData recordings (S1, turned every 2 h between supine,
-  right 30 degrees and left 30 degrees). Any pressure alarm here is a false alarm.
-* Detection delay: the monitor sees a blurred, calibrated reconstruction; the
-  truth is the scene's own 10 mm pressure field. For each tolerance curve, the
-  time the monitor's region dose reaches a threshold is compared with the time
-  the true dose reaches it anywhere within 100 mm of that region's centre.
-  Positive: the monitor is late.
+* Posture: the shipped model on the held-out subjects' maps (benchmarks/posture.py
+  has the leave-one-subject-out study and the full confusion matrices).
+* Sites: the located sites against the hand labels (tests/data/site_labels), on the
+  true maps averaged over the monitor's 30 mm pixels and on the maps read through
+  the whole chain (virtual bed, parallel board, reconstruction, calibration).
+* Nights: held-out recordings held for hours (turned every 2 h through supine and
+  30 degree tilts; unturned supine; side-lying; a restless night of small shifts).
+  The truth is the dose rule applied to the true maps at the hand-labelled sites;
+  the alert layer is fed the true maps (``appliance sim replay``'s path) and the
+  maps read through the chain (``appliance sim run``'s path), one map a minute.
 * CPU and memory: ``appliance run`` in real time (1 frame/s) as a separate
   process, CPU time from /proc over 90 s after start-up, peak resident memory.
 """
@@ -29,122 +29,277 @@ import sys
 import tempfile
 import time
 from collections import Counter
+from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
-from appliance.alerts.dose import DoseMap, tolerance_curve
+from appliance.alerts.anatomy import body_view, posture_group, tilt_deg
+from appliance.alerts.dose import SiteDose, tolerance_curve
+from appliance.alerts.pipeline import AlertPipeline, AlertSettings
+from appliance.alerts.posture import default_posture_model
+from appliance.alerts.sites import locate_sites
+from appliance.core.layouts import get_layout
+from appliance.core.model_cache import cached_model, default_setup
 from appliance.core.pressure import KPA_PER_MMHG
-from appliance.service.assemble import assemble
-from appliance.service.config import config_from_mapping
+from appliance.core.pressure_map import PressureMap, loaded_regions
+from appliance.service.assemble import virtual_calibration_path
+from appliance.service.config import MonitorConfig
+from appliance.service.monitor import Monitor
+from appliance.service.virtual_bed import VirtualBedSource
+from appliance.sim.body import BED_GRID
+from appliance.sim.recordings import RecordedScene, pmat_scene
+from appliance.sim.scenes import PMAT_POSTURE_FILES, load_scene
+from appliance.sim.true_maps import on_pixels
 
 sys.path.insert(0, str(Path(__file__).parent))
 from report import machine, pyplot, table  # noqa: E402
+from site_labels import MATCH_MM, SUBJECTS, combine, labelled_spots, score, site_positions  # noqa: E402
 
 HERE = Path(__file__).parent
 PMAT = HERE.parent.parent / "shared" / "data" / "pmatdata"
+LAYOUT = get_layout(MonitorConfig().layout)
 MINUTE = 60.0
+HOUR = 3600.0
 DAY_S = 86400.0
-THRESHOLDS = (0.25, 0.5, 0.75, 1.0)
-NEIGHBOURHOOD_MM = 100.0
+POSTURE_OF_FILE = {1: "supine", 2: "right-90", 3: "left-90", 4: "right-30", 5: "right-60", 6: "left-30",
+                   7: "left-60", 8: "supine", 9: "supine", 10: "supine", 11: "supine", 12: "supine",
+                   13: "fetal-right", 14: "fetal-left", 15: "inclined", 16: "inclined", 17: "inclined"}
+LOADED_MMHG = 32.0
 
 
-def replay(scenario, *, hours, seed=0, alerts=None, watch=None):
-    """Events of ``scenario`` through the daemon, one map a minute; ``watch(daemon, map)`` sees each frame."""
-    with tempfile.TemporaryDirectory() as data:
-        config = config_from_mapping({"monitor": {"frame_interval_s": MINUTE, "data_dir": data},
-                                      "virtual": {"scenario": str(scenario), "speed": 0, "seed": seed},
-                                      "alerts": alerts or {}})
-        events = []
-        holder = {}
-        daemon = assemble(config, say=lambda text: None, on_event=events.append, live=False,
-                          on_map=(lambda m: watch(holder["daemon"], m)) if watch else None)
-        holder["daemon"] = daemon
-        start = time.perf_counter()
-        try:
-            frames = daemon.run(int(hours * 3600 / MINUTE) + 1)
-        finally:
-            daemon.close()
-        return events, frames, time.perf_counter() - start
+# ---------------------------------------------------------------------------
+# The held-out maps: the true one (on the monitor's pixels) and the one the chain reads
+
+@lru_cache(maxsize=None)
+def true_frame(subject: int, posture_file: int, shift: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """The middle frame of a recording (the one the labels were given on), 10 mm, scene frame, kPa."""
+    scene = pmat_scene(PMAT, subject, posture_file, BED_GRID, shift_mm=shift)
+    return scene.frames[len(scene.frames) // 2]
 
 
-def recorded_night(folder: Path) -> Path:
-    """PmatData S1 turned every 2 h for 12 h: supine, right 30, supine, left 30, supine, right 30."""
-    path = folder / "pmat-night.toml"
-    segments = "".join(f'[[recording]]\nsource = "pmatdata"\ndir = "{PMAT}"\nsubject = 1\nposture = {p}\n'
-                       f'hold_s = {7200 - 120}\n\n' for p in (1, 4, 1, 6, 1, 4))
-    path.write_text('[scene]\ndescription = "PmatData S1, q2h turns"\nduration_s = 43200\n\n' + segments)
-    return path
+class Chain:
+    """The default bed read through the whole chain, as ``appliance run`` builds it."""
+
+    def __init__(self, cache: Path):
+        self.model, _ = cached_model(default_setup(LAYOUT), cache)
+        source = VirtualBedSource(LAYOUT, load_scene("supine-still"), self.model.setup.protocol)
+        self.calibration, _ = source.calibration(self.model, virtual_calibration_path(cache, self.model))
+        self.grid = self.model.reconstructor.grid
+
+    def maps(self, scene, times_s, seed: int = 0):
+        """The monitor's map at each of ``times_s`` (one frame interval apart) of ``scene``."""
+        step = float(times_s[1] - times_s[0]) if len(times_s) > 1 else MINUTE
+        source = VirtualBedSource(LAYOUT, scene, self.model.setup.protocol, seed=seed, frame_interval_s=step)
+        monitor = Monitor(source.acquire, self.model, self.calibration)
+        monitor.take_reference(source.empty_reference())
+        for _ in times_s:
+            yield monitor.next_map()
 
 
-def false_alarms(folder: Path) -> tuple[str, list]:
-    runs = [("turned-every-2h", 24.0, seed) for seed in (0, 1, 2)]
-    if PMAT.is_dir():
-        runs.append((recorded_night(folder), 12.0, 0))
-    rows, timings = [], []
-    for scenario, hours, seed in runs:
-        events, frames, seconds = replay(scenario, hours=hours, seed=seed)
-        raised = Counter(e.key.split(":")[0] if e.key.startswith("pressure:") else e.key
-                         for e in events if e.kind == "raised")
-        turns = sum(e.kind == "repositioned" for e in events)
-        per_day = DAY_S / (hours * 3600)
-        name = "PmatData S1 night (recorded)" if isinstance(scenario, Path) else scenario
-        rows.append([name, seed, f"{hours:g}", f"{raised['pressure'] * per_day:.1f}",
-                     f"{raised['turn'] * per_day:.1f}",
-                     f"{sum(n for k, n in raised.items() if k.startswith('technical')) * per_day:.1f}",
-                     f"{turns} ({int(hours / 2)} turns + lying down)", f"{frames / seconds:.0f}"])
-        timings.append(seconds)
-    headers = ["scenario", "seed", "hours", "pressure alarms / day", "turn-due alarms / day",
-               "technical alarms / day", "repositionings detected", "frames/s"]
-    return table(headers, rows), rows
+def still_scene(frame: np.ndarray, seconds: float) -> RecordedScene:
+    return RecordedScene(frame[None], np.zeros(1), BED_GRID, {"source": "held frame"}, duration_s=seconds)
 
 
-def dose_series(scenario, curve, hours):
-    """Per frame: time, the monitor's region doses with centres, and the true dose field (layout orientation)."""
-    frames = []
-    state = {}
+# ---------------------------------------------------------------------------
+# Posture and sites on the held-out maps
 
-    def watch(daemon, pressure_map):
-        bed = daemon.source.bed
-        field = bed.field_at(pressure_map.time_s)
-        if "true" not in state:
-            state["true"] = DoseMap(field.pressure_kpa.shape, tolerance_curve(curve))
-            state["pitch"] = field.pitch_mm
-        else:
-            state["true"].update(field.pressure_kpa, pressure_map.time_s - state["t"])
-        state["t"] = pressure_map.time_s
-        state["bed"] = bed
-        regions = [(daemon.pipeline.dose.fraction(r.mask), r.x_mm, r.y_mm, r.zone, r.peak_kpa)
-                   for r in daemon.pipeline.tracked]
-        frames.append((pressure_map.time_s, regions, state["true"].dose.copy()))
+def posture_and_sites(chain: Chain) -> dict:
+    """Per held-out map: the posture estimated and the site agreement, on true and on read maps."""
+    model = default_posture_model()
+    spots = labelled_spots()
+    out = {"true": [], "read": []}
+    for subject in SUBJECTS:
+        for posture_file in range(1, 18):
+            frame = true_frame(subject, posture_file)
+            read = list(chain.maps(still_scene(frame, 5 * MINUTE), [0.0, MINUTE]))[-1].pressure_kpa
+            labelled = [s for s in spots if s.subject == subject and s.posture_file == posture_file]
+            for which, kpa in (("true", on_pixels(frame, BED_GRID.pitch_mm, chain.grid)), ("read", read)):
+                view = body_view(kpa, chain.grid)
+                estimate = model.classify(view).posture
+                located = [(r.site, r.along_mm, r.across_mm) for r in locate_sites(view, estimate)
+                           if r.site and r.peak_kpa >= LOADED_MMHG * KPA_PER_MMHG]
+                out[which].append((subject, posture_file, estimate, score(located, labelled)))
+    return out
 
-    events, _, _ = replay(scenario, hours=hours, alerts={"curve": curve}, watch=watch)
-    return frames, state["pitch"], state["bed"]
+
+def posture_rows(results) -> list[list]:
+    rows = []
+    for which, label in (("true", "true maps (30 mm pixels)"), ("read", "maps read through the chain")):
+        items = results[which]
+        truth = [POSTURE_OF_FILE[p] for _, p, _, _ in items]
+        guess = [g for _, _, g, _ in items]
+        groups = np.mean([posture_group(t) == posture_group(g) for t, g in zip(truth, guess)])
+        sides = [(t, g) for t, g in zip(truth, guess) if tilt_deg(t) is not None]
+        tilts = np.mean([tilt_deg(t) == tilt_deg(g) for t, g in sides])
+        exact = np.mean([t == g for t, g in zip(truth, guess)])
+        rows.append([label, len(items), f"{groups:.1%}", f"{tilts:.1%} of {len(sides)}", f"{exact:.1%}"])
+    return rows
 
 
-def detection_delays(scenario, curve, hours):
-    """For each threshold: monitor time, true time, zone, monitor peak and true peak (kPa) at the crossing.
+def site_rows(results) -> tuple[list[list], dict]:
+    rows, wrong = [], {}
+    for which, label in (("true", "true maps (30 mm pixels)"), ("read", "maps read through the chain")):
+        total = combine([a for *_, a in results[which]])
+        rows.append([label, total.located, f"{total.precision:.1%}", total.labelled, f"{total.recall:.1%}"])
+        wrong[which] = Counter(total.wrong)
+    return rows, wrong
 
-    Where the monitor never crosses, the truth is taken anywhere on the mat.
-    """
-    frames, pitch, bed = dose_series(scenario, curve, hours)
-    shape = frames[0][2].shape
-    yy, xx = np.mgrid[:shape[0], :shape[1]]
-    out = {}
-    for threshold in THRESHOLDS:
-        hit = next(((t, x, y, zone, peak) for t, regions, _ in frames for dose, x, y, zone, peak in regions
-                    if dose >= threshold), None)
-        if hit is None:
-            t_monitor, zone, peak, near = None, None, None, np.ones(shape, dtype=bool)
-        else:
-            t_monitor, x, y, zone, peak = hit
-            near = np.hypot((xx + 0.5) * pitch - x, (yy + 0.5) * pitch - y) <= NEIGHBOURHOOD_MM
-        t_true = next((t for t, _, true in frames if true[near].max() >= threshold), None)
-        at = t_monitor if t_monitor is not None else (t_true if t_true is not None else frames[-1][0])
-        true_peak = float(bed.field_at(at).pressure_kpa[near].max())
-        out[threshold] = (t_monitor, t_true, zone, peak, true_peak)
-    return out, frames
 
+# ---------------------------------------------------------------------------
+# Nights
+
+@dataclass(frozen=True)
+class Night:
+    name: str
+    subject: int
+    segments: tuple[tuple[int, float, tuple[float, float]], ...]     # (posture file, seconds, shift across/along)
+
+    @property
+    def duration_s(self) -> float:
+        return sum(s for _, s, _ in self.segments)
+
+    def segment_at(self, t_s: float) -> tuple[int, tuple[float, float]]:
+        start = 0.0
+        for posture_file, seconds, shift in self.segments:
+            if t_s < start + seconds:
+                return posture_file, shift
+            start += seconds
+        return self.segments[-1][0], self.segments[-1][2]
+
+    def scene(self) -> RecordedScene:
+        starts = np.cumsum([0.0] + [s for _, s, _ in self.segments[:-1]])
+        frames = np.stack([true_frame(self.subject, p, shift) for p, _, shift in self.segments])
+        return RecordedScene(frames, starts, BED_GRID, {"source": self.name}, duration_s=self.duration_s)
+
+
+def nights() -> list[Night]:
+    """Four nights for each held-out subject."""
+    out = []
+    for subject in SUBJECTS:
+        side = PMAT_POSTURE_FILES["left-90" if subject != 6 else "right-90"]
+        turned = tuple((PMAT_POSTURE_FILES[p], 2 * HOUR, (0.0, 0.0))
+                       for p in ("supine", "left-30", "supine", "right-30", "supine", "left-30"))
+        rng = np.random.default_rng(subject)
+        restless, t = [], 0.0
+        while t < 8 * HOUR:
+            seconds = float(rng.choice([5, 6, 7, 8, 9, 10])) * MINUTE
+            shift = (float(rng.uniform(-40, 40)), float(rng.uniform(-30, 30)))
+            restless.append((int(rng.choice([1, 8, 9])), min(seconds, 8 * HOUR - t), shift))
+            t += seconds
+        out += [Night("turned every 2 h (12 h)", subject, turned),
+                Night("unturned supine (8 h)", subject, ((1, 8 * HOUR, (0.0, 0.0)),)),
+                Night("side-lying (4 h)", subject, ((side, 4 * HOUR, (0.0, 0.0)),)),
+                Night("restless, small shifts (8 h)", subject, tuple(restless))]
+    return out
+
+
+def true_site_peaks(night: Night, t_s: float, kpa: np.ndarray, grid, spots) -> dict[str, float]:
+    """The true map's peak within MATCH_MM of each hand-labelled site of the posture held at ``t_s``."""
+    posture_file, (dx, dy) = night.segment_at(t_s)
+    view = body_view(kpa, grid)
+    rows, cols = view.shape
+    along = (np.arange(rows) + 0.5) * view.pitch_mm[0]
+    across = (np.arange(cols) + 0.5) * view.pitch_mm[1]
+    peaks = {}
+    for site, (a, c) in site_positions(spots, night.subject, posture_file).items():
+        near = np.hypot(along[:, None] - (a + dy), across[None, :] - (c + dx)) <= MATCH_MM
+        peaks[site] = float(view.kpa[near].max())
+    return peaks
+
+
+def truth_alarms(night: Night, times, true_maps, grid, spots, settings=AlertSettings()) -> dict[str, float]:
+    """When each labelled site's dose, by the alert layer's own rule, first reaches the alarm dose."""
+    curve = tolerance_curve(settings.curve, floor_kpa=settings.threshold_kpa)
+    dose = SiteDose(sorted({s.site for s in spots if s.site}), curve, recovery=settings.recovery,
+                    relief_s=settings.relief_s)
+    crossed, last = {}, None
+    for t, kpa in zip(times, true_maps):
+        peaks = true_site_peaks(night, t, kpa, grid, spots)
+        if last is not None:
+            dose.update(peaks, t - last)
+        last = t
+        for site, d in dose.doses().items():
+            if d >= settings.alarm_dose and site not in crossed:
+                crossed[site] = t
+    return crossed
+
+
+def layer_alarms(pressure_maps, grid) -> tuple[dict[str, float], list, list]:
+    """The alert layer on a sequence of maps: first raise time per site, reminder raises, turn events."""
+    pipeline = AlertPipeline(grid)
+    raised, reminders, turns = {}, [], []
+    for m in pressure_maps:
+        frame = pipeline.update(m)
+        for e in frame.alarm_events:
+            if e.kind == "raised" and e.key.startswith("pressure:"):
+                raised.setdefault(e.key.split(":", 1)[1], e.time_s)
+            elif e.kind == "raised" and e.key.startswith("turn:"):
+                reminders.append((e.time_s, e.key, e.priority))
+        turns += [(e.time_s, e.kind, e.posture) for e in frame.turn_events]
+    return raised, reminders, turns
+
+
+def run_night(night: Night, chain: Chain, spots) -> dict:
+    times = np.arange(0.0, night.duration_s, MINUTE)
+    scene = night.scene()
+    grid = chain.grid
+    true_maps = []
+    for t in times:
+        field = scene.pressure_at(float(t))
+        true_maps.append(on_pixels(field.pressure_kpa, field.pitch_mm, grid))
+    truth = truth_alarms(night, times, true_maps, grid, spots)
+    on_truth = layer_alarms((PressureMap(float(t), k, loaded_regions(k, grid), None, 0)
+                             for t, k in zip(times, true_maps)), grid)
+    read = list(chain.maps(scene, times, seed=night.subject))
+    on_chain = layer_alarms(read, grid)
+    return {"truth": truth, "true": on_truth, "chain": on_chain, "hours": night.duration_s / HOUR}
+
+
+def compare(truth: dict[str, float], raised: dict[str, float]) -> dict:
+    matched = {s: raised[s] - t for s, t in truth.items() if s in raised}
+    return {"truth": len(truth), "missed": sorted(set(truth) - set(raised)), "late_s": list(matched.values()),
+            "false": sorted(set(raised) - set(truth))}
+
+
+def night_rows(results: list[tuple[Night, dict]]) -> tuple[list[list], dict]:
+    rows = []
+    totals = {which: {"truth": 0, "missed": 0, "late_s": [], "false": 0, "hours": 0.0} for which in ("true", "chain")}
+    for night, r in results:
+        cells = [night.name, f"S{night.subject}", ", ".join(f"{s} {t / HOUR:.2f} h" for s, t in
+                                                            sorted(r["truth"].items(), key=lambda x: x[1])) or "none"]
+        for which in ("true", "chain"):
+            c = compare(r["truth"], r[which][0])
+            total = totals[which]
+            total["truth"] += c["truth"]
+            total["missed"] += len(c["missed"])
+            total["late_s"] += c["late_s"]
+            total["false"] += len(c["false"])
+            total["hours"] += r["hours"]
+            late = ", ".join(f"{x / 60:+.0f}" for x in c["late_s"]) or "-"
+            cells += [", ".join(c["missed"]) or "-", late, ", ".join(c["false"]) or "-"]
+        rows.append(cells)
+    return rows, totals
+
+
+def reminder_rows(results: list[tuple[Night, dict]]) -> list[list]:
+    rows = []
+    for night, r in results:
+        raised, reminders, turns = r["chain"]
+        due = [f"{t / HOUR:.2f}" for t, key, _ in reminders if key == "turn:due"]
+        overdue = [f"{t / HOUR:.2f}" for t, key, _ in reminders if key.startswith("turn:overdue")]
+        seen = sum(kind == "repositioned" for _, kind, _ in turns)
+        scheduled = sum(1 for a, b in zip(night.segments, night.segments[1:])
+                        if posture_group(POSTURE_OF_FILE[a[0]]) != posture_group(POSTURE_OF_FILE[b[0]]))
+        sacral = sum(1 for s in raised if s == "sacrum")
+        rows.append([night.name, f"S{night.subject}", f"{seen} of {scheduled}", ", ".join(due) or "-",
+                     ", ".join(overdue[:6]) + (" ..." if len(overdue) > 6 else "") or "-", sacral])
+    return rows
+
+
+# ---------------------------------------------------------------------------
+# Cost
 
 def cpu_and_memory(scenario: str, seconds: float = 90.0, settle_s: float = 20.0) -> dict:
     """``appliance run`` in real time: CPU share of one core after start-up, and peak resident memory."""
@@ -172,69 +327,122 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / 100.0      # utime + stime, clock ticks of 10 ms
 
 
+def per_frame_ms(chain: Chain, repeats: int = 200) -> dict:
+    """Median time of the posture estimate, the site locator and a whole alert-layer frame on a read map."""
+    frame = true_frame(4, 1)
+    kpa = list(chain.maps(still_scene(frame, 5 * MINUTE), [0.0, MINUTE]))[-1]
+    view = body_view(kpa.pressure_kpa, chain.grid)
+    model = default_posture_model()
+    pipeline = AlertPipeline(chain.grid)
+
+    def median_ms(fn) -> float:
+        samples = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            fn()
+            samples.append(time.perf_counter() - start)
+        return 1000 * float(np.median(samples))
+
+    clock = iter(range(10**9))
+    return {"posture": median_ms(lambda: model.classify(view)),
+            "sites": median_ms(lambda: locate_sites(view, "supine")),
+            "frame": median_ms(lambda: pipeline.update(PressureMap(60.0 * next(clock), kpa.pressure_kpa,
+                                                                   kpa.regions, None, 0)))}
+
+
+# ---------------------------------------------------------------------------
+
 def main() -> None:
-    with tempfile.TemporaryDirectory() as scratch:
-        alarms_table, _ = false_alarms(Path(scratch))
-    delay_rows, plots = [], {}
-    for scenario, hours in (("supine-unturned", 12.0), ("heel-only", 12.0)):
-        for curve in ("reswick-rogers", "linder-ganz"):
-            delays, frames = detection_delays(scenario, curve, hours)
-            plots[scenario, curve] = frames
-            for threshold, (t_monitor, t_true, zone, peak, true_peak) in delays.items():
-                monitor_text = "never" if t_monitor is None else f"{t_monitor / 3600:.2f}"
-                true_text = "never" if t_true is None else f"{t_true / 3600:.2f}"
-                delay = "-" if t_true is None or t_monitor is None else f"{(t_monitor - t_true) / 60:+.0f}"
-                peak_text = "-" if peak is None else f"{peak / KPA_PER_MMHG:.0f}"
-                delay_rows.append([scenario, curve, f"{threshold:g}", zone or "-", monitor_text, true_text, delay,
-                                   peak_text, f"{true_peak / KPA_PER_MMHG:.0f}"])
+    cache = Path(tempfile.gettempdir()) / "appliance-bench-cache"
+    chain = Chain(cache)
+    spots = labelled_spots()
+    started = time.perf_counter()
+    sites = posture_and_sites(chain)
+    results = [(night, run_night(night, chain, spots)) for night in nights()]
+    rows, totals = night_rows(results)
+    frame_ms = per_frame_ms(chain)
     usage = {name: cpu_and_memory(name) for name in ("supine-still", "restless")}
-    _plot(plots)
-    usage_rows = [[name, f"{u['cpu_share']:.1%}", f"{u['rss_mb']:.0f}", f"{u['peak_mb']:.0f}"]
-                  for name, u in usage.items()]
-    report = f"""# Alerts: false alarms, detection delay, cost
+    _plot(results)
+    s_rows, wrong = site_rows(sites)
+    summary = []
+    for which, label in (("true", "the true maps"), ("chain", "the whole chain")):
+        t = totals[which]
+        late = np.median(t["late_s"]) / 60 if t["late_s"] else float("nan")
+        summary.append([label, t["truth"], t["missed"], f"{late:+.0f}",
+                        f"{max((abs(x) for x in t['late_s']), default=0) / 60:.0f}",
+                        t["false"], f"{t['false'] / (t['hours'] / 24):.2f}"])
+    wrong_text = "; ".join(f"{n} x {a} where the labels say {b}" for (a, b), n in wrong["read"].most_common(8))
+    report = f"""# Alerts: posture, tissue sites and site alarms on held-out bodies; reminders; cost
 
-Made by `python benchmarks/alerts.py` on {machine()}.
-grid-16x32 virtual bed (900 x 1900 mm, 512 electrodes, read through the parallel board), one-step
-Gauss-Newton maps on 30 mm pixels through the virtual mat's calibration made from people's maps, default
-alert settings (32 mmHg, Reswick-Rogers, alarm at dose 1, turn every 2 h,
-escalation after 15 min), one map per simulated minute unless said otherwise.
+Made by `python benchmarks/alerts.py` on {machine()} ({(time.perf_counter() - started) / 60:.0f} min).
+Default bed (grid-16x32, 900 x 1900 mm, read through the parallel board; one-step Gauss-Newton maps on
+30 mm pixels through the virtual mat's calibration made from people's maps) and default alert settings
+(32 mmHg, Reswick-Rogers, alarm at dose 1, relief after 15 min below 32 mmHg, turn every 2 h, overdue
+after 30 min more, repeated every 30 min). Every figure below is on PmatData subjects **S4, S6 and S11**,
+which the posture model, the site locator and the bed's calibration never saw (all three were fitted on
+S1-S3, S5, S7-S10).
 
-## Alarms per simulated patient-day, patients cared for as the guidelines ask
+## Posture on the held-out subjects
 
-{alarms_table}
+The shipped posture model on the middle frame of each of the 17 posture files of S4, S6 and S11 (51 maps).
+Groups: supine (with the head of the bed raised), left, right, prone or other; tilt: 30, 60 or 90 degrees
+among the side postures (curled counts as 90). The leave-one-subject-out study over all eleven subjects,
+the confusion matrices and the prone maps are in `benchmarks/posture.md` (`python benchmarks/posture.py`).
 
-A pressure alarm here would be a false alarm: the patient is turned every 2 h, well inside the tolerance.
-Turn-due alarms are the low-priority reminder the turn clock raises when a detected turn is 2 h old;
-on a schedule of exactly 2 h a reminder can fall due in the minute before the nurse turns the patient.
-"frames/s" is how fast the replay ran (simulated minutes per wall second).
+{table(["maps", "n", "group right", "tilt right", "posture right"], posture_rows(sites))}
 
-## Detection delay against the true dose
+## Sites against the hand labels
 
-Monitor: the first frame a tracked region's dose reaches the threshold. Truth: the first frame the dose of
-the scene's own 10 mm pressure field reaches it within {NEIGHBOURHOOD_MM:g} mm of that region's centre.
-Hours from the start of the night; delay in minutes (+ = the monitor is later than the truth, - = earlier).
-Peaks: the monitor's region and the true field within {NEIGHBOURHOOD_MM:g} mm of it, at the monitor's crossing
-(where the monitor never crosses: the true field's peak anywhere, at the truth's crossing).
+Located sites at or above 32 mmHg against the hand labels of the same 51 maps (`tests/data/site_labels`,
+named by eye on the 10 mm maps; `benchmarks/site_labels.py` scores them): "agree" is the share of
+located sites with a labelled spot of the same name within {MATCH_MM:g} mm; "found" the share of labelled
+sites at or above 32 mmHg with a located site of that name within {MATCH_MM:g} mm. The locator works on the
+posture the model estimated.
 
-{table(["scenario", "curve", "threshold (dose)", "zone", "monitor (h)", "truth (h)", "delay (min)",
-        "monitor peak (mmHg)", "true peak (mmHg)"], delay_rows)}
+{table(["maps", "sites located", "agree with the labels", "labelled sites", "found"], s_rows)}
 
-![monitor and true dose](alerts.png)
+Disagreements on the maps read: {wrong_text or "none"}.
 
-How to read it: the dose grows as the tolerance curve says for the pressure each map reads, so the
-delay follows the difference between the two peak columns. The Reswick-Rogers curve is steep between
-32 and 70 mmHg: a few mmHg too high or too low move the crossing by an hour or more. The Linder-Ganz
-sigmoid tolerates these pressures indefinitely once past its first hours, so neither the monitor nor the
-truth crosses it. The bed's pixels are 30 mm and its electrodes 60 mm apart, and its calibration was made
-from people's maps (benchmarks/bed.md): a heel (about 50 mm) is read near its true peak, no longer blurred
-over a 112 mm electrode spacing.
+## Site alarms over nights of held-out recordings
 
-## CPU and memory at 1 frame per second
+Each night holds the middle frame of held-out recordings for hours, one map a minute: turned every 2 h
+(supine, left 30, supine, right 30, supine, left 30: 12 h), unturned supine (8 h), side-lying at 90 degrees
+(4 h; S6 on the right side, the others on the left) and a restless night (8 h of supine variants, arms moved,
+shifted by up to 40 mm across and 30 mm along every 5 to 10 min, the sacrum never offloaded). **Truth**: the
+dose rule (the alert layer's own `SiteDose`, Reswick-Rogers, dose 1) applied to each hand-labelled site's
+peak within {MATCH_MM:g} mm on the true map averaged over the monitor's pixels. **True maps**: the alert layer
+(posture model, site locator, site doses) fed those true maps, as `appliance sim replay` does. **Chain**: the
+alert layer fed the maps read through the virtual bed, as `appliance sim run` does. Late in minutes (+ =
+after the truth); a false alarm is a site alarm where the truth has none.
+
+{table(["feeding", "true site alarms", "missed", "median late (min)", "worst late (min)", "false alarms",
+        "false per patient-day"], summary)}
+
+{table(["night", "subject", "true site alarms (h)", "true maps: missed", "late (min)", "false",
+        "chain: missed", "late (min)", "false"], rows)}
+
+![site doses of the unturned nights](alerts.png)
+
+## Turns and reminders through the chain
+
+Repositionings seen against the changes of posture group the night holds; reminders raised (hours from
+the start): due at the 2 h interval (medium), overdue 30 min later (high, escalated) and repeated every
+30 min until a turn; sacral alarms raised.
+
+{table(["night", "subject", "turns seen", "turn due (h)", "overdue (h)", "sacral alarms"],
+       reminder_rows(results))}
+
+## Cost
+
+Per frame on the bed's read map (median of 200): posture estimate {frame_ms['posture']:.2f} ms, site locator
+{frame_ms['sites']:.2f} ms, a whole alert-layer frame (posture, sites, doses, turns, regions, alarms)
+{frame_ms['frame']:.2f} ms.
 
 `appliance run --scenario NAME --interval 1 --speed 1` as its own process: CPU time from /proc over 90 s
 after 20 s of settling (share of one core), resident memory at the end and its peak.
 
-{table(["scenario", "CPU (one core)", "RSS (MB)", "peak RSS (MB)"], usage_rows)}
+{table(["scenario", "CPU (one core)", "RSS (MB)", "peak RSS (MB)"],
+       [[n, f"{u['cpu_share']:.1%}", f"{u['rss_mb']:.0f}", f"{u['peak_mb']:.0f}"] for n, u in usage.items()])}
 
 A still patient costs no re-solve of the virtual bed (its chain and the reconstruction only); a restless
 one re-solves the bed's mechanics at each shift, which is simulation cost a real mat does not have.
@@ -243,23 +451,23 @@ one re-solves the bed's mechanics at each shift, which is simulation cost a real
     print(report)
 
 
-def _plot(plots) -> None:
+def _plot(results) -> None:
     plt = pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
-    for ax, scenario in zip(axes, ("supine-unturned", "heel-only")):
-        for curve, style in (("reswick-rogers", "-"), ("linder-ganz", "--")):
-            frames = plots[scenario, curve]
-            hours = [t / 3600 for t, _, _ in frames]
-            monitor = [max((r[0] for r in regions), default=0.0) for _, regions, _ in frames]
-            truth = [true.max() for _, _, true in frames]
-            ax.plot(hours, monitor, style, color="tab:blue", label=f"monitor, {curve}")
-            ax.plot(hours, truth, style, color="tab:red", label=f"truth (peak), {curve}")
-        ax.axhline(1.0, color="grey", lw=0.8)
-        ax.set_title(scenario)
+    unturned = [(n, r) for n, r in results if n.name.startswith("unturned")]
+    fig, axes = plt.subplots(1, len(unturned), figsize=(4 * len(unturned), 3.5), sharey=True)
+    for ax, (night, r) in zip(np.atleast_1d(axes), unturned):
+        for which, style in (("true", "--"), ("chain", "-")):
+            raised = r[which][0]
+            for site, t in raised.items():
+                ax.axvline(t / HOUR, ls=style, color="tab:blue" if which == "chain" else "tab:green", lw=1)
+        for site, t in r["truth"].items():
+            ax.axvline(t / HOUR, color="tab:red", lw=2, alpha=0.5)
+            ax.text(t / HOUR, 0.9, site, rotation=90, fontsize=7, va="top")
+        ax.set_title(f"S{night.subject}, unturned supine")
+        ax.set_xlim(0, night.duration_s / HOUR)
         ax.set_xlabel("hours")
-        ax.set_ylim(0, 3)
-    axes[0].set_ylabel("dose (share of tolerance used)")
-    axes[0].legend(fontsize=7)
+        ax.set_yticks([])
+    np.atleast_1d(axes)[0].set_ylabel("site alarms: truth (red), true maps (green), chain (blue)")
     fig.tight_layout()
     fig.savefig(HERE / "alerts.png", dpi=100)
 

@@ -16,15 +16,14 @@ PMAT = Path(__file__).resolve().parents[2] / "shared" / "data" / "pmatdata"
 
 
 def replay(name, tmp_path, model_cache, hours=None, **monitor):
-    """Every event of scenario ``name`` through the daemon, and each frame's doses per tracked region."""
+    """Every event of scenario ``name`` through the daemon, and each frame's dose per site."""
     config = config_from_mapping({"monitor": {"frame_interval_s": MINUTE, "data_dir": str(tmp_path),
                                               "cache_dir": str(model_cache), **monitor},
                                   "virtual": {"scenario": name, "speed": 0}})
     events, frames = [], []
 
     def on_map(pressure_map):
-        frames.append((pressure_map.time_s, {r.id: daemon.pipeline.dose.fraction(r.mask) for r in
-                                             daemon.pipeline.tracked}, pressure_map))
+        frames.append((pressure_map.time_s, daemon.pipeline.dose.doses(), pressure_map))
 
     daemon = assemble(config, say=lambda text: None, on_event=events.append, on_map=on_map, live=False)
     duration = load_scene(name).duration_s if hours is None else hours * 3600
@@ -42,12 +41,12 @@ def raised(events, prefix=""):
 def test_supine_unturned_raises_the_sacral_alarm_in_the_frame_its_dose_crosses(tmp_path, bed_monitoring,
                                                                               model_cache):
     events, frames = replay("supine-unturned", tmp_path, model_cache)
-    sacral = raised(events, "pressure:sacrum:")
-    assert sacral and all(e.region == "sacrum" for e in sacral)
-    for alarm in sacral:
-        crossing = next(t for t, doses, _ in frames if doses.get(alarm.region_id, 0.0) >= 1.0)
-        assert alarm.time_s == crossing                        # within one frame: the very frame
+    sacral = raised(events, "pressure:sacrum")
+    assert len(sacral) == 1 and sacral[0].site == "sacrum" and sacral[0].posture == "supine"
+    crossing = next(t for t, doses, _ in frames if doses["sacrum"] >= 1.0)
+    assert sacral[0].time_s == crossing                        # within one frame: the very frame
     assert 2 * 3600 <= sacral[0].time_s <= 12 * 3600
+    assert 700 <= sacral[0].x_mm <= 1100 and 350 <= sacral[0].y_mm <= 550    # the pelvis, on the midline
     assert [e.kind for e in events if e.key == sacral[0].key] == ["raised", "escalated"]   # nobody answered
 
 
@@ -55,18 +54,19 @@ def test_turned_every_two_hours_for_a_day_raises_no_pressure_alarm(tmp_path, bed
     events, frames = replay("turned-every-2h", tmp_path, model_cache)
     assert frames[-1][0] == 24 * 3600
     assert not raised(events, "pressure:")
-    turns = [e for e in events if e.type == "turn" and e.kind == "repositioned"]
-    assert len(turns) == 12                                    # lying down, then 11 turns
-    assert not raised(events, "technical:")
+    turns = [e.kind for e in events if e.type == "turn" and e.kind in ("lay-down", "repositioned")]
+    assert turns == ["lay-down"] + ["repositioned"] * 11
+    assert not raised(events, "technical:") and not raised(events, "turn:overdue")
 
 
 def test_heels_alone_raise_a_heel_alarm(tmp_path, bed_monitoring, model_cache):
     events, frames = replay("heel-only", tmp_path, model_cache)
     heels = raised(events, "pressure:heel")
-    assert heels and {e.region for e in heels} == {"heel"}
-    assert not [e for e in raised(events, "pressure:") if e.region != "heel"]
-    crossing = next(t for t, doses, _ in frames if doses.get(heels[0].region_id, 0.0) >= 1.0)
-    assert heels[0].time_s == crossing <= 12 * 3600
+    assert {e.site for e in heels} == {"heel-left", "heel-right"}
+    assert not [e for e in raised(events, "pressure:") if not e.site.startswith("heel")]
+    for heel in heels:
+        crossing = next(t for t, doses, _ in frames if doses[heel.site] >= 1.0)
+        assert heel.time_s == crossing <= 12 * 3600
     assert not raised(events, "technical:")                    # a few saturated heel readings are no fault
 
 
@@ -91,13 +91,14 @@ def test_sim_run_writes_every_event_as_a_json_line(tmp_path, bed_monitoring, mod
     assert main(["sim", "run", "--scenario", "supine-unturned", "--hours", "9", "--out", str(out),
                  "--acknowledge-after-min", "5", "--cache-dir", str(model_cache)]) == 0
     lines = [json.loads(line) for line in out.read_text().splitlines()]
-    assert all({"time_s", "type", "kind", "priority", "region"} <= set(line) for line in lines)
+    assert all({"time_s", "type", "kind", "priority", "site", "posture", "x_mm", "y_mm"} <= set(line)
+               for line in lines)
     kinds = [(line["type"], line["kind"], line["key"]) for line in lines]
-    assert ("turn", "repositioned", None) in kinds
+    assert ("turn", "lay-down", None) in kinds
     sacral = [line for line in lines if (line["key"] or "").startswith("pressure:sacrum")]
     assert [line["kind"] for line in sacral] == ["raised", "acknowledged"]      # answered before escalation
     assert sacral[1]["user"] == "simulated-nurse" and sacral[1]["time_s"] - sacral[0]["time_s"] == 5 * MINUTE
-    assert sacral[0]["region"] == "sacrum" and sacral[0]["priority"] == "medium"
+    assert (sacral[0]["site"], sacral[0]["posture"], sacral[0]["priority"]) == ("sacrum", "supine", "medium")
     assert "541 frames (9 simulated h)" in capsys.readouterr().err
 
 
@@ -119,5 +120,25 @@ def test_a_night_replayed_from_recorded_pressure_maps(tmp_path, bed_monitoring, 
     assert main(["sim", "run", "--scenario", str(scenario), "--hours", "2", "--out", str(out),
                  "--cache-dir", str(model_cache)]) == 0
     lines = [json.loads(line) for line in out.read_text().splitlines()]
-    assert lines[0]["type"] == "turn" and lines[0]["kind"] == "repositioned" and lines[0]["time_s"] == 0.0
+    assert (lines[0]["type"], lines[0]["kind"], lines[0]["posture"], lines[0]["time_s"]) == \
+        ("turn", "lay-down", "supine", 0.0)
+    assert [(line["kind"], line["posture"]) for line in lines if line["type"] == "turn"][1:] == \
+        [("repositioned", "right-90")]
     assert not [line for line in lines if (line["key"] or "").startswith(("technical:", "pressure:"))]
+
+
+@pytest.mark.skipif(not PMAT.is_dir(), reason=f"PmatData recordings not present at {PMAT}")
+def test_sim_replay_feeds_true_maps_to_the_alert_layer_and_names_an_unknown_posture(tmp_path, capsys):
+    scenario = tmp_path / "unturned.toml"
+    scenario.write_text(f'[scene]\n[[recording]]\nsource = "pmatdata"\ndir = "{PMAT}"\nsubject = 4\n'
+                        f'posture = "supine"\nhold_s = 36000\n')
+    out = tmp_path / "events.jsonl"
+    assert main(["sim", "replay", "--scenario", str(scenario), "--hours", "10", "--out", str(out)]) == 0
+    lines = [json.loads(line) for line in out.read_text().splitlines()]
+    sacral = [line for line in lines if line["key"] == "pressure:sacrum" and line["kind"] == "raised"]
+    assert len(sacral) == 1 and sacral[0]["posture"] == "supine" and 700 <= sacral[0]["x_mm"] <= 1100
+    assert [line["key"] for line in lines if line["kind"] == "raised"][:2] == ["turn:due", "turn:overdue:1"]
+    assert "601 true maps (10 h)" in capsys.readouterr().err
+    scenario.write_text(scenario.read_text().replace('"supine"', '"sideways"'))
+    assert main(["sim", "replay", "--scenario", str(scenario), "--out", str(out)]) == 2
+    assert "unknown posture 'sideways'" in capsys.readouterr().err
