@@ -1,5 +1,6 @@
 """The site locator names the bony prominence under each loaded spot, wherever the body lies on the mat."""
 
+import functools
 import math
 from pathlib import Path
 
@@ -124,6 +125,7 @@ def test_out_of_bed_an_empty_map_and_bad_input():
 needs_pmat = pytest.mark.skipif(not PMAT.is_dir(), reason="PmatData is not on this machine")
 
 
+@functools.lru_cache(maxsize=None)
 def pmat_view(subject: int, posture_file: int) -> BodyView:
     scene = pmat_scene(PMAT, subject, posture_file, MatGrid(900.0, 1900.0, 10.0))
     return monitor_view(scene.frames[len(scene.frames) // 2], blurred=False)
