@@ -1,11 +1,15 @@
-"""The hand-labelled site maps (tests/data/site_labels) and how a located map is scored against them.
+"""The hand-labelled site maps (tests/data/site_labels) and how located sites are scored against them.
 
-The labels were given by eye on the middle frame of each held-out subject's PmatData posture files (S4, S6,
-S11), on the 900 x 1900 mm mat at 10 mm, positions in the body view (along from the head end, across from the
-patient's right). A located site agrees with the labels when a labelled spot of the same name lies within
-``MATCH_MM`` of it; a labelled spot is found when a located site of its name lies within ``MATCH_MM``.
-``MATCH_MM`` is one and a half of the monitor's 30 mm pixels: the located site is a pixel centre, the label a
-10 mm cell's.
+The labels were given by eye on the middle frame of each PmatData posture file (900 x 1900 mm mat, 10 mm
+cells), positions in the body view (along from the head end, across from the patient's right); a spot is
+named a site or left unnamed (``None``: a buttock, thigh, calf, hand). Subjects S4, S6 and S11 are the
+held-out ones; the others' labels are for fitting.
+
+A labelled spot counts when it is loaded on the monitor's pixels: the map there, within one pixel of it, is at
+or above 32 mmHg. The locator's label for it is the site of the located spot nearest to it within
+``MATCH_MM`` (unnamed if that spot is unnamed or none lies so near); it is right when it equals the hand's
+label, unnamed for unnamed included. ``MATCH_MM`` is one and a half of the monitor's 30 mm pixels: a located
+spot is placed on 30 mm pixels, a label on 10 mm cells.
 """
 
 from __future__ import annotations
@@ -17,8 +21,9 @@ from pathlib import Path
 import numpy as np
 
 LABELS = Path(__file__).resolve().parent.parent / "tests" / "data" / "site_labels"
-SUBJECTS = (4, 6, 11)
+HELD_OUT = (4, 6, 11)
 MATCH_MM = 45.0
+LOADED_KPA = 32 * 0.133322
 
 
 @dataclass(frozen=True)
@@ -32,7 +37,7 @@ class LabelledSpot:
     peak_mmhg: float
 
 
-def labelled_spots(subjects=SUBJECTS, folder: Path = LABELS) -> list[LabelledSpot]:
+def labelled_spots(subjects=HELD_OUT, folder: Path = LABELS) -> list[LabelledSpot]:
     """Every labelled spot of ``subjects``, named or not."""
     spots = []
     for subject in subjects:
@@ -53,44 +58,17 @@ def site_positions(spots: list[LabelledSpot], subject: int, posture_file: int) -
     return {site: (a, c) for site, (a, c, _) in out.items()}
 
 
-@dataclass(frozen=True)
-class Agreement:
-    """Located named sites agreeing with a label of the same name, and labelled named spots found."""
-
-    located: int
-    located_right: int
-    labelled: int
-    labelled_found: int
-    wrong: tuple[tuple[str, str], ...]      # (located name, what the labels say there) for each disagreement
-
-    @property
-    def precision(self) -> float:
-        return self.located_right / self.located if self.located else float("nan")
-
-    @property
-    def recall(self) -> float:
-        return self.labelled_found / self.labelled if self.labelled else float("nan")
-
-
-def score(located: list[tuple[str, float, float]], labelled: list[LabelledSpot], *,
-          loaded_mmhg: float = 32.0) -> Agreement:
-    """``located``: (site, along, across) of one map's named sites; ``labelled``: that map's spots. Only
-    labelled spots at or above ``loaded_mmhg`` count as spots to be found."""
-    named = [s for s in labelled if s.site and s.peak_mmhg >= loaded_mmhg]
-    right, wrong = 0, []
-    for site, along, across in located:
-        near = [s for s in labelled if np.hypot(s.along_mm - along, s.across_mm - across) <= MATCH_MM]
-        if any(s.site == site for s in near):
-            right += 1
-        else:
-            said = sorted({str(s.site) for s in near}) or ["no labelled spot"]
-            wrong.append((site, "/".join(said)))
-    found = sum(any(site == s.site and np.hypot(s.along_mm - along, s.across_mm - across) <= MATCH_MM
-                    for site, along, across in located) for s in named)
-    return Agreement(len(located), right, len(named), found, tuple(wrong))
-
-
-def combine(parts: list[Agreement]) -> Agreement:
-    return Agreement(sum(p.located for p in parts), sum(p.located_right for p in parts),
-                     sum(p.labelled for p in parts), sum(p.labelled_found for p in parts),
-                     tuple(w for p in parts for w in p.wrong))
+def labels_at_spots(true_view, located, spots: list[LabelledSpot]) -> list[tuple[str | None, str | None, str]]:
+    """(hand label, locator's label, posture) of each labelled spot of one map that is loaded on ``true_view``
+    (a :class:`~appliance.alerts.anatomy.BodyView` of the true map on the monitor's pixels); ``located``: the
+    locator's readings (on the true map or on a map read through the chain)."""
+    out = []
+    for spot in spots:
+        row, col = int(spot.along_mm // true_view.pitch_mm[0]), int(spot.across_mm // true_view.pitch_mm[1])
+        if true_view.kpa[max(row - 1, 0):row + 2, max(col - 1, 0):col + 2].max() < LOADED_KPA:
+            continue
+        distance = [np.hypot(r.along_mm - spot.along_mm, r.across_mm - spot.across_mm) for r in located]
+        nearest = int(np.argmin(distance)) if located else None
+        got = located[nearest].site if nearest is not None and distance[nearest] <= MATCH_MM else None
+        out.append((spot.site, got, spot.posture))
+    return out

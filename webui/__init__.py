@@ -18,14 +18,15 @@ from pathlib import Path
 
 from flask import Flask, current_app, g, redirect, url_for
 
-from webui import accounts, alarms, auth, engineering, history, live, settings, ward
+from webui import accounts, alarms, auth, engineering, history, live, patient, settings, ward
 from webui.security import LoginLimiter, csrf_token, guard
 from webui.users import UserStore
 
 SESSION_HOURS = 12          # one shift
-BLUEPRINTS = (auth.bp, accounts.bp, live.bp, alarms.bp, history.bp, settings.bp, engineering.bp)
+BLUEPRINTS = (auth.bp, accounts.bp, live.bp, alarms.bp, patient.bp, history.bp, settings.bp, engineering.bp)
 WARD_BLUEPRINTS = (auth.bp, accounts.bp, ward.bp)
-PAGES = (("ward.page", "Ward", "nurse"), ("live.page", "Live", "nurse"), ("alarms.page", "Alarms", "nurse"), ("history.page", "History", "nurse"),
+PAGES = (("ward.page", "Ward", "nurse"), ("live.page", "Live", "nurse"), ("alarms.page", "Alarms", "nurse"),
+         ("patient.page", "Patient", "nurse"), ("history.page", "History", "nurse"),
          ("settings.page", "Settings", "nurse"), ("engineering.page", "Engineering", "engineer"),
          ("accounts.page", "Accounts", "admin"))
 """The header's links, in order: each shown when its blueprint is registered and the user's role allows it."""

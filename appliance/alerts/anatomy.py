@@ -83,6 +83,10 @@ paired one with the patient's side. ``sacrum`` covers the sacrum and coccyx, ``h
 ``face``, ``chest``, ``iliac-crest``, ``knee`` and ``toes`` the prone patient's front."""
 
 
+SMALL_MAT_SITE = "mat"
+"""The one site of a small mat (a test sensor): no body lies on it, so all of it is one site."""
+
+
 def check_site(site) -> str:
     """``site`` if the monitor knows it; otherwise a ConfigError naming it and the known ones."""
     if site not in SITES:
@@ -92,6 +96,8 @@ def check_site(site) -> str:
 
 def site_words(site: str) -> str:
     """A site in plain words: ``heel-left`` is "left heel", ``iliac-crest-right`` "right iliac crest"."""
+    if site == SMALL_MAT_SITE:
+        return "sensor"
     check_site(site)
     name, _, side = site.rpartition("-")
     if side in ("left", "right"):

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from appliance.alerts.alarms import AlarmCondition, AlarmEngine, AlarmEvent, Escalation
-from appliance.alerts.anatomy import SITES, BodyView, body_view, is_bed, site_words
+from appliance.alerts.anatomy import SITES, SMALL_MAT_SITE, BodyView, body_view, is_bed, site_words
 from appliance.alerts.dose import MAX_DT_S, RELIEF_S, SiteDose, custom_curve, tolerance_curve
 from appliance.alerts.episodes import Episode
 from appliance.alerts.events import Event, as_event
@@ -49,7 +49,6 @@ from appliance.errors import ConfigError
 
 ESCALATE_AFTER_S = 15 * 60.0
 OVERDUE_ESCALATE_S = 60.0             # an overdue reminder reaches the ward station after a minute unanswered
-SMALL_MAT_SITE = "mat"
 MAX_COUNTED_GAP_S = 12 * 3600.0
 """A gap between maps (the monitor off, or paused for maintenance) counts as the new map's pressure held since
 the last one, as every frame does, up to this long: by then any loaded tissue is long past its tolerance, and a
@@ -231,9 +230,8 @@ class AlertPipeline:
 
     def _pressure_condition(self, site: str) -> AlarmCondition:
         s = self.settings
-        words = "sensor" if site == SMALL_MAT_SITE else site_words(site)
         return AlarmCondition(f"pressure:{site}", "clinical", "medium", False,
-                              f"sustained pressure at the {words}: reposition the patient",
+                              f"sustained pressure at the {site_words(site)}: reposition the patient",
                               (Escalation(s.escalate_after_s, s.escalation_channel),))
 
     def _turn_conditions(self, now_s: float) -> dict:

@@ -31,7 +31,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from appliance.alerts.anatomy import SITES as SITE_NAMES, site_words
+from appliance.alerts.anatomy import site_words
 from appliance.alerts.episodes import Episode
 from appliance.alerts.events import Event
 from appliance.alerts.notifiers import Notifier
@@ -299,7 +299,7 @@ class MonitorDaemon:
             "posture": self.pipeline.posture,
             "patient": None if self.pipeline.episode is None else
             {k: getattr(self.pipeline.episode, k) for k in ("patient_id", "name", "braden", "bed_exit_alert")},
-            "sites": [{"site": s.site, "words": site_words(s.site) if s.site in SITE_NAMES else s.site,
+            "sites": [{"site": s.site, "words": site_words(s.site),
                        "x_mm": s.x_mm, "y_mm": s.y_mm, "peak_mmhg": s.peak_kpa / KPA_PER_MMHG,
                        "dose": alerts.site_doses.get(s.site)} for s in self.pipeline.sites],
             "alarms": [{"alarm_id": a.alarm_id, "key": a.key, "category": a.category, "priority": a.priority,
@@ -313,7 +313,7 @@ class MonitorDaemon:
             g = self.grid
             snapshot["map"] = {"mmhg": map_mmhg(pressure_map.pressure_kpa), "pixel_mm": list(g.pixel_mm),
                                "peak_kpa": pressure_map.peak_kpa, "usable_readings": pressure_map.usable_readings}
-            snapshot["regions"] = [{"id": r.id, "zone": r.zone, "words": site_words(r.zone) if r.zone in SITE_NAMES else r.zone, "peak_mmhg": r.peak_kpa / KPA_PER_MMHG,
+            snapshot["regions"] = [{"id": r.id, "zone": r.zone, "words": r.zone and site_words(r.zone), "peak_mmhg": r.peak_kpa / KPA_PER_MMHG,
                                     "area_cm2": r.area_cm2, "x_mm": r.x_mm, "y_mm": r.y_mm, "since_s": r.first_seen_s,
                                     "dose": alerts.site_doses.get(r.zone) if r.zone else None}
                                    for r in self.pipeline.tracked]
