@@ -157,7 +157,7 @@ class Nurse:
             self.doses.update(((t, i), d) for t, i, d in db.execute(
                 "SELECT time_s, region_id, dose FROM region_history WHERE time_s > ? AND time_s <= ?",
                 (t0, state["last_time_s"])))
-            self.last_time_s, self.dose_state = state["last_time_s"], state["dose"]["dose"]
+            self.last_time_s, self.dose_state = state["last_time_s"], state["dose"]["cells"]["dose"]
             self.acknowledged |= set(db.execute("SELECT alarm_id, user, time_s FROM events"
                                                 " WHERE kind = 'acknowledged'"))
             self.commands.update((i, (s, r)) for i, s, r in db.execute(
@@ -194,7 +194,7 @@ def check_store(db_path: Path, nurse: Nurse) -> dict:
             "lost_acknowledgements": nurse.acknowledged - acknowledged, "lost_doses": lost_doses,
             "unacknowledged_again": unacknowledged,
             "rewound": nurse.last_time_s is not None and state["last_time_s"] < nurse.last_time_s,
-            "dose_state_differs": same_frame and state["dose"].get("dose") != nurse.dose_state,
+            "dose_state_differs": same_frame and state["dose"].get("cells", {}).get("dose") != nurse.dose_state,
             "last_time_s": state["last_time_s"]}
 
 

@@ -1,5 +1,6 @@
 """The real monitor process killed with SIGKILL at random moments and started again on the same data:
-doses and the turn clock carry on, and no alarm is lost or repeated, against an uninterrupted night."""
+site doses, the turn clock and the patient's episode carry on, and no alarm, turn or admission is lost or
+repeated, against an uninterrupted night."""
 
 import os
 import signal
@@ -22,6 +23,17 @@ def command(data_dir, model_cache, speed):
             "--speed", str(speed), "--data-dir", str(data_dir), "--cache-dir", str(model_cache)]
 
 
+ADMISSION = {"patient_id": "MRN-0042", "name": "A. Patient", "braden": 13, "bed_exit_alert": True}
+
+
+def admit(data_dir):
+    """A nurse admits the patient before the monitor starts: the command waits in the store for its first
+    frame."""
+    data_dir.mkdir(parents=True, exist_ok=True)
+    with Store.open(data_dir / "appliance.db") as store:
+        store.queue_command("admit", ADMISSION, "nurse.jones")
+
+
 def night(data_dir):
     """The store's events (kind, key, time) and the alert state it ends with."""
     with Store.open(data_dir / "appliance.db") as store:
@@ -40,6 +52,7 @@ def last_time(data_dir):
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory, bed_monitoring, model_cache):
     data = tmp_path_factory.mktemp("uninterrupted")
+    admit(data)
     subprocess.run(command(data, model_cache, 0), check=True, capture_output=True, timeout=600)
     return night(data)
 
@@ -50,6 +63,7 @@ def test_sigkill_at_20_random_moments_loses_and_repeats_nothing(tmp_path, uninte
     # 50 ms a frame; each life is killed at a random moment of its first second of monitoring (after its
     # first map line, printed once that frame is committed), whatever the machine's start-up time.
     args = command(data, model_cache, speed=MINUTE / 0.05)
+    admit(data)
     progress = []
     for _ in range(KILLS):
         process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
@@ -70,8 +84,12 @@ def test_sigkill_at_20_random_moments_loses_and_repeats_nothing(tmp_path, uninte
     assert [(kind, key) for kind, key, _ in events] == [(kind, key) for kind, key, _ in expected]
     assert all(abs(t - t0) <= MINUTE for (_, _, t), (_, _, t0) in zip(events, expected))
     assert state["last_time_s"] == expected_state["last_time_s"] == NIGHT_S
-    dose, dose0 = (np.array(s["dose"]["dose"], dtype=float) for s in (state, expected_state))
+    assert state["dose"]["sites"] == expected_state["dose"]["sites"]
+    dose, dose0 = (np.array(s["dose"]["cells"]["dose"], dtype=float) for s in (state, expected_state))
     one_frame = dose0 * MINUTE / NIGHT_S                      # what a minute adds under constant pressure
-    assert np.all(np.abs(dose - dose0) <= one_frame + 1e-9)
+    assert dose0.max() > 1.0 and np.all(np.abs(dose - dose0) <= one_frame + 1e-9)
     turns, turns0 = state["turns"], expected_state["turns"]
     assert abs(turns["last_turn_s"] - turns0["last_turn_s"]) <= MINUTE
+    assert (turns["posture"], turns["reference"]) == (turns0["posture"], turns0["reference"])
+    assert state["episode"] == expected_state["episode"] and state["episode"]["patient_id"] == "MRN-0042"
+    assert [kind for kind, _, _ in events].count("admitted") == 1
