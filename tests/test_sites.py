@@ -132,7 +132,7 @@ def test_out_of_bed_an_empty_map_and_bad_input():
 needs_pmat = pytest.mark.skipif(not PMAT.is_dir(), reason="PmatData is not on this machine")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def pmat_view(subject: int, posture_file: int) -> BodyView:
     scene = pmat_scene(PMAT, subject, posture_file, MatGrid(900.0, 1900.0, 10.0))
     return monitor_view(scene.frames[len(scene.frames) // 2], blurred=False)
@@ -192,6 +192,7 @@ def training_maps():
 @needs_pmat
 def test_the_shipped_table_rebuilds_from_the_label_files(training_maps):
     import json
+
     from appliance.alerts.site_table import TABLE_PATH, SiteTable, labelled_points
     rebuilt = SiteTable.from_points([p for m in training_maps for p in labelled_points(*m)])
     assert rebuilt.to_json() == json.loads(TABLE_PATH.read_text(encoding="utf-8"))["postures"]

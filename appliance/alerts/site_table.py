@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from appliance.alerts.anatomy import BodyView, SITES, body_view, check_posture
+from appliance.alerts.anatomy import SITES, BodyView, body_view, check_posture
 from appliance.alerts.body_frame import body_coordinates
 from appliance.errors import DataFileInvalid
 
@@ -115,7 +115,7 @@ def _known(site: str) -> str:
     return site
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def load_table(path: Path = TABLE_PATH) -> SiteTable:
     """The shipped table (read once)."""
     try:
