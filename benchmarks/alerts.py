@@ -39,7 +39,7 @@ from appliance.alerts.anatomy import body_view, posture_group, tilt_deg
 from appliance.alerts.dose import SiteDose, tolerance_curve
 from appliance.alerts.pipeline import AlertPipeline, AlertSettings
 from appliance.alerts.posture import default_posture_model
-from appliance.alerts.sites import locate_sites
+from appliance.alerts.sites import label_cells, locate_sites
 from appliance.core.layouts import get_layout
 from appliance.core.model_cache import cached_model, default_setup
 from appliance.core.pressure import KPA_PER_MMHG
@@ -119,7 +119,7 @@ def posture_and_sites(chain: Chain) -> dict:
             labelled = [s for s in spots if s.subject == subject and s.posture_file == posture_file]
             for which, view in (("true", true_view), ("read", body_view(read, chain.grid))):
                 estimate = model.classify(view).posture
-                pairs = labels_at_spots(true_view, locate_sites(view, estimate), labelled)
+                pairs = labels_at_spots(true_view, label_cells(view, estimate), labelled)
                 out[which].append((subject, posture_file, estimate, pairs))
     return out
 
@@ -399,9 +399,8 @@ the confusion matrices and the prone maps are in `benchmarks/posture.md` (`pytho
 The hand labels of the same 51 maps (`tests/data/site_labels`, named by eye on the 10 mm maps) against the
 locator, which works on the posture the model estimated (`benchmarks/site_labels.py` scores them). A
 labelled spot counts when the true map is at or above 32 mmHg within one of the monitor's pixels of it; the
-locator's label for it is the name of the located spot nearest to it within {MATCH_MM:g} mm (unnamed when
-that spot is unnamed or none is so near), right when it equals the hand's (a buttock left unnamed by both is
-right). "Named by hand" repeats it for the spots the hand named a site.
+locator's label for it is the site the locator gives the monitor pixel the spot lies in (`label_cells`;
+unnamed below its floor), right when it equals the hand's (a buttock left unnamed by both is right). "Named by hand" repeats it for the spots the hand named a site.
 
 {table(["maps", "loaded spots", "labelled right", "named by hand", "of those, right"], s_rows)}
 

@@ -6,10 +6,12 @@ named a site or left unnamed (``None``: a buttock, thigh, calf, hand). Subjects 
 held-out ones; the others' labels are for fitting.
 
 A labelled spot counts when it is loaded on the monitor's pixels: the map there, within one pixel of it, is at
-or above 32 mmHg. The locator's label for it is the site of the located spot nearest to it within
-``MATCH_MM`` (unnamed if that spot is unnamed or none lies so near); it is right when it equals the hand's
-label, unnamed for unnamed included. ``MATCH_MM`` is one and a half of the monitor's 30 mm pixels: a located
-spot is placed on 30 mm pixels, a label on 10 mm cells.
+or above 32 mmHg. The locator's label for it is the site the locator gives the cell (monitor pixel) the spot
+lies in (:func:`appliance.alerts.sites.label_cells`; unnamed for a cell below the locator's floor): the label the
+monitor gives the tissue there, found without looking at the hand's label. It is right when it equals the hand's
+label, unnamed for unnamed included. (Before the locator labelled every cell, the label was the site of the
+located spot nearest within 45 mm; a site's second spot, such as a sacrum labelled twice, then counted as
+unnamed however the locator read it.)
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import numpy as np
 LABELS = Path(__file__).resolve().parent.parent / "tests" / "data" / "site_labels"
 HELD_OUT = (4, 6, 11)
 MATCH_MM = 45.0
+"""How near a true map's peak must lie to a labelled site to be its peak: one and a half 30 mm pixels."""
 LOADED_KPA = 32 * 0.133322
 
 
@@ -58,17 +61,15 @@ def site_positions(spots: list[LabelledSpot], subject: int, posture_file: int) -
     return {site: (a, c) for site, (a, c, _) in out.items()}
 
 
-def labels_at_spots(true_view, located, spots: list[LabelledSpot]) -> list[tuple[str | None, str | None, str]]:
+def labels_at_spots(true_view, cell_labels: np.ndarray, spots: list[LabelledSpot]) -> list[tuple[str | None, str | None, str]]:
     """(hand label, locator's label, posture) of each labelled spot of one map that is loaded on ``true_view``
-    (a :class:`~appliance.alerts.anatomy.BodyView` of the true map on the monitor's pixels); ``located``: the
-    locator's readings (on the true map or on a map read through the chain)."""
+    (a :class:`~appliance.alerts.anatomy.BodyView` of the true map on the monitor's pixels); ``cell_labels``:
+    the locator's site for each pixel (:func:`~appliance.alerts.sites.label_cells`, on the true map or on a
+    map read through the chain)."""
     out = []
     for spot in spots:
         row, col = int(spot.along_mm // true_view.pitch_mm[0]), int(spot.across_mm // true_view.pitch_mm[1])
         if true_view.kpa[max(row - 1, 0):row + 2, max(col - 1, 0):col + 2].max() < LOADED_KPA:
             continue
-        distance = [np.hypot(r.along_mm - spot.along_mm, r.across_mm - spot.across_mm) for r in located]
-        nearest = int(np.argmin(distance)) if located else None
-        got = located[nearest].site if nearest is not None and distance[nearest] <= MATCH_MM else None
-        out.append((spot.site, got, spot.posture))
+        out.append((spot.site, cell_labels[row, col], spot.posture))
     return out
