@@ -20,12 +20,15 @@ runs, not after it silently ignored it::
 
     [board]                       # source = "emulated" or "hardware": as in drivers/profile.py
 
-    [alerts]
+    [alerts]                      # defaults: appliance.alerts.pipeline.AlertSettings, sources in the README
     threshold_mmhg = 32
     curve = "reswick-rogers"      # or linder-ganz, or curve_points = [[minutes, mmHg], ...]
     alarm_dose = 1.0
     recovery = "reset"            # or "decay"
+    relief_min = 15               # below the threshold this long relieves a site
     turn_interval_min = 120
+    turn_grace_min = 30           # a due turn is overdue (high priority, escalated) this much later
+    reminder_repeat_min = 30      # and repeated this often until a turn
     escalate_after_min = 15
     escalation_channel = "ward-station"
 
