@@ -256,6 +256,12 @@ BED_PITCH_MM = 1900.0 / 64
 NOISE_KPA = 0.1
 """Noise added to every pixel of an augmented map: a reconstruction's floor away from the body."""
 
+AUGMENTED_COPIES = 3
+"""Augmented copies of each training map (besides the map itself and the mirror images of all)."""
+
+N_COMPONENTS = 80
+"""Principal components the classifier reads (see benchmarks/posture.md for the choice)."""
+
 FRAMES_PER_RECORDING = 6
 """Frames taken from the middle half of each recording (the person settled); more add little, being alike."""
 
@@ -273,30 +279,29 @@ def bed_views(field_kpa: np.ndarray, pitch_mm: float) -> list[BodyView]:
 
 
 def recording_fields(pmat_dir=None, popu_dir=None, subjects=(), popu_variations=(),
-                     frames=FRAMES_PER_RECORDING) -> tuple[np.ndarray, list[str], list[str], float]:
-    """True fields (n, rows, cols) of the chosen recordings, their posture names, their sources
-    (``S<k>`` or ``popu/v<variation>``), and the fields' pitch (mm)."""
+                     frames=FRAMES_PER_RECORDING) -> tuple[np.ndarray, list[str], float]:
+    """True fields (n, rows, cols) of ``frames`` frames of each chosen recording, their posture names,
+    and the fields' pitch (mm)."""
     from appliance.sim.recordings import pmat_scene, popu_scene
 
-    fields, names, sources, pitch = [], [], [], None
+    fields, names, pitch = [], [], None
 
-    def take(scene, name, source):
+    def take(scene, name):
         nonlocal pitch
         n = len(scene.frames)
         picks = np.unique(np.linspace(0.25 * n, 0.75 * n, frames).astype(int).clip(0, n - 1))
         fields.extend(scene.frames[picks])
         names.extend([name] * len(picks))
-        sources.extend([source] * len(picks))
         pitch = scene.grid.pitch_mm
 
     for subject in subjects:
         for number, name in PMAT_POSTURE_NAMES.items():
-            take(pmat_scene(pmat_dir, subject, number), name, f"S{subject}")
+            take(pmat_scene(pmat_dir, subject, number), name)
     for variation in popu_variations:
         for family, name in POPU_POSE_NAMES.items():
             for k in range(1, 8):
-                take(popu_scene(popu_dir, f"{family}{k}", variation, scale_to_weight=True), name, f"popu/v{variation}")
-    return np.stack(fields), names, sources, pitch
+                take(popu_scene(popu_dir, f"{family}{k}", variation, scale_to_weight=True), name)
+    return np.stack(fields), names, pitch
 
 
 def mirrored(name: str) -> str:
@@ -323,7 +328,7 @@ def augmented(fields: np.ndarray, pitch_mm: float, rng: np.random.Generator) -> 
     return views
 
 
-def training_set(fields: np.ndarray, names: list[str], pitch_mm: float, copies: int, seed: int):
+def training_set(fields: np.ndarray, names: list[str], pitch_mm: float, copies: int, seed):
     """Feature rows and names: each field as the bed sees it, ``copies`` augmented copies, and the mirror
     image of each (left and right swapped), so both sides learn from every side posture."""
     rng = np.random.default_rng(seed)
@@ -338,13 +343,16 @@ def training_set(fields: np.ndarray, names: list[str], pitch_mm: float, copies: 
     return np.array(rows), labels
 
 
-def fit_logistic(features: np.ndarray, labels: list[str], l2: float = 1e-3) -> PostureModel:
-    """Multinomial logistic regression on standardised features, classes weighted equally (supine has six
-    recordings a subject, a side posture one), with an L2 penalty; folded into one linear map."""
+def fit_logistic(features: np.ndarray, labels: list[str], l2: float = 1e-3,
+                 n_components: int = N_COMPONENTS) -> PostureModel:
+    """Multinomial logistic regression on the leading principal components of the standardised features,
+    classes weighted equally (supine has six recordings a subject, a side posture one), with an L2
+    penalty; folded into one linear map over the features."""
     classes = tuple(p for p in LYING + ("inclined",) if p in set(labels))
     y = np.array([classes.index(n) for n in labels])
     mean, scale = features.mean(axis=0), features.std(axis=0) + 1e-6
-    x = (features - mean) / scale
+    axes = np.linalg.svd((features - mean) / scale, full_matrices=False)[2][:n_components]
+    x = (features - mean) / scale @ axes.T
     counts = np.bincount(y, minlength=len(classes))
     sample_weight = (len(y) / (len(classes) * counts))[y] / len(y)
     onehot = np.eye(len(classes))[y]
@@ -362,20 +370,40 @@ def fit_logistic(features: np.ndarray, labels: list[str], l2: float = 1e-3) -> P
 
     theta0 = np.zeros(len(classes) * (n_feat + 1))
     fit = minimize(loss, theta0, jac=True, method="L-BFGS-B", options={"maxiter": 2000})
-    w = fit.x[:len(classes) * n_feat].reshape(len(classes), n_feat) / scale
+    w = fit.x[:len(classes) * n_feat].reshape(len(classes), n_feat) @ axes / scale
     b = fit.x[len(classes) * n_feat:] - w @ mean
-    return PostureModel(classes, w, b, {"l2": l2, "iterations": int(fit.nit), "samples": len(y)})
+    return PostureModel(classes, w, b, {"l2": l2, "components": n_components, "iterations": int(fit.nit), "samples": len(y)})
+
+
+def training_features(pmat_dir, popu_dir, subjects=SHIPPED_PMAT_SUBJECTS,
+                      popu_variations=SHIPPED_POPU_VARIATIONS, copies: int = AUGMENTED_COPIES,
+                      seed: int = TRAINING_SEED) -> dict:
+    """Feature rows and posture names of each source (``S<k>``, ``popu/v<variation>``), augmented with a
+    seed of the source's own, so a source's rows are the same whichever others are trained with."""
+    sources = [(f"S{k}", [k], [], k) for k in subjects] + \
+              [(f"popu/v{v}", [], [v], 1000 + v) for v in popu_variations]
+    out = {}
+    for name, pmat_subjects, variations, stream in sources:
+        fields, names, pitch = recording_fields(pmat_dir, popu_dir, pmat_subjects, variations)
+        out[name] = training_set(fields, names, pitch, copies, [seed, stream])
+    return out
+
+
+def fit_sources(features_by_source: dict, sources) -> PostureModel:
+    """The model learnt from the named sources of :func:`training_features`."""
+    model = fit_logistic(np.vstack([features_by_source[s][0] for s in sources]),
+                         [n for s in sources for n in features_by_source[s][1]])
+    model.info["sources"] = list(sources)
+    return model
 
 
 def train_posture_model(pmat_dir, popu_dir, subjects=SHIPPED_PMAT_SUBJECTS,
-                        popu_variations=SHIPPED_POPU_VARIATIONS, copies: int = 3,
+                        popu_variations=SHIPPED_POPU_VARIATIONS, copies: int = AUGMENTED_COPIES,
                         seed: int = TRAINING_SEED) -> PostureModel:
     """A posture model learnt from PmatData ``subjects`` and PoPu ``popu_variations``; deterministic."""
-    fields, names, _, pitch = recording_fields(pmat_dir, popu_dir, subjects, popu_variations)
-    features, labels = training_set(fields, names, pitch, copies, seed)
-    model = fit_logistic(features, labels)
-    model.info.update({"pmat_subjects": list(subjects), "popu_variations": list(popu_variations),
-                       "copies": copies, "seed": seed})
+    features = training_features(pmat_dir, popu_dir, subjects, popu_variations, copies, seed)
+    model = fit_sources(features, list(features))
+    model.info.update({"copies": copies, "seed": seed})
     return model
 
 
