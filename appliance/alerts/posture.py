@@ -64,7 +64,7 @@ CANONICAL_SHAPE = (54, 24)
 """The body-centred grid: 2160 mm along (a tall patient from either end of their centre of force) by
 960 mm across, in 40 mm cells, coarser than the bed's 30 mm pixels, so a blurred map's features change little."""
 
-ACROSS_BANDS_MM = ((-900.0, -450.0), (-450.0, -150.0), (-150.0, 150.0), (150.0, 450.0), (450.0, 1200.0))
+BODY_BANDS_MM = ((-900.0, -450.0), (-450.0, -150.0), (-150.0, 150.0), (150.0, 450.0), (450.0, 1200.0))
 """Bands along the body, mm from the centre of force (about the buttocks): shoulders, back, pelvis,
 thighs, legs; the load's spread across in each says how far that part has rolled."""
 
@@ -137,7 +137,7 @@ def is_sitting_on_edge(view: BodyView) -> bool:
     in_window = np.max(along[window - 1:] - np.concatenate([[0.0], along[:-window]])) \
         if window < len(along) else 1.0
     across = kpa.sum(axis=0) / total
-    strip = max(1, int(round(SITTING_EDGE_MM / view.pitch_mm[1])))
+    strip = max(1, round(SITTING_EDGE_MM / view.pitch_mm[1]))
     at_an_edge = max(across[:strip].sum(), across[-strip:].sum())
     return in_window >= SITTING_SHARE and at_an_edge >= SITTING_SHARE
 
@@ -167,7 +167,7 @@ def canonical_map(view: BodyView) -> np.ndarray:
 def moment_features(view: BodyView) -> np.ndarray:
     """How the load spreads across the body: overall spread and skew across and along, their
     correlation, and the spread across, the share and the offset of the centre in each band of
-    ACROSS_BANDS_MM. Lengths in units of 100 mm."""
+    BODY_BANDS_MM. Lengths in units of 100 mm."""
     kpa = check_view(view)
     total = kpa.sum()
     mass = kpa / total if total > 0 else kpa
@@ -179,7 +179,7 @@ def moment_features(view: BodyView) -> np.ndarray:
     sa, sc = np.sqrt((mass * da**2).sum()), np.sqrt((mass * dc**2).sum())
     features = [sa / 100, sc / 100, (mass * dc**3).sum() / max(sc, 1.0)**3, (mass * da**3).sum() / max(sa, 1.0)**3,
                 (mass * da * dc).sum() / max(sa * sc, 1.0)]
-    for low, high in ACROSS_BANDS_MM:
+    for low, high in BODY_BANDS_MM:
         rows = (along - a0 >= low) & (along - a0 < high)
         band = mass[rows].sum(axis=0)
         share = band.sum()
@@ -222,12 +222,13 @@ class PostureModel:
         return PostureEstimate(self.classes[best], float(p[best]), {q: learnt.get(q, 0.0) for q in POSTURES})
 
     def save(self, path) -> None:
-        """Write the model as a small .npz (weights as float32 are enough: logits change by < 1e-4)."""
+        """Write the model as a small .npz, its weights in float32 (half the size; a freshly trained model's
+        probabilities move by that rounding only, and a loaded one saves and loads back unchanged)."""
         np.savez_compressed(path, classes=np.array(self.classes), weights=self.weights.astype(np.float32),
                             bias=self.bias, info=np.array(json.dumps(self.info)))
 
     @classmethod
-    def load(cls, path) -> "PostureModel":
+    def load(cls, path) -> PostureModel:
         try:
             with np.load(path, allow_pickle=False) as data:
                 return cls(data["classes"], data["weights"].astype(float), data["bias"], json.loads(str(data["info"])))
@@ -356,11 +357,11 @@ def fit_logistic(features: np.ndarray, labels: list[str], l2: float = 1e-3,
     counts = np.bincount(y, minlength=len(classes))
     sample_weight = (len(y) / (len(classes) * counts))[y] / len(y)
     onehot = np.eye(len(classes))[y]
-    n_feat = x.shape[1]
+    n_axes = x.shape[1]
 
     def loss(theta):
-        w = theta[:len(classes) * n_feat].reshape(len(classes), n_feat)
-        b = theta[len(classes) * n_feat:]
+        w = theta[:len(classes) * n_axes].reshape(len(classes), n_axes)
+        b = theta[len(classes) * n_axes:]
         logits = x @ w.T + b
         logits -= logits.max(axis=1, keepdims=True)
         log_p = logits - np.log(np.exp(logits).sum(axis=1, keepdims=True))
@@ -368,11 +369,12 @@ def fit_logistic(features: np.ndarray, labels: list[str], l2: float = 1e-3,
         value = -(sample_weight * (log_p * onehot).sum(axis=1)).sum() + 0.5 * l2 * (w**2).sum()
         return value, np.concatenate([(residual.T @ x + l2 * w).ravel(), residual.sum(axis=0)])
 
-    theta0 = np.zeros(len(classes) * (n_feat + 1))
+    theta0 = np.zeros(len(classes) * (n_axes + 1))
     fit = minimize(loss, theta0, jac=True, method="L-BFGS-B", options={"maxiter": 2000})
-    w = fit.x[:len(classes) * n_feat].reshape(len(classes), n_feat) @ axes / scale
-    b = fit.x[len(classes) * n_feat:] - w @ mean
-    return PostureModel(classes, w, b, {"l2": l2, "components": n_components, "iterations": int(fit.nit), "samples": len(y)})
+    w = fit.x[:len(classes) * n_axes].reshape(len(classes), n_axes) @ axes / scale
+    b = fit.x[len(classes) * n_axes:] - w @ mean
+    return PostureModel(classes, w, b, {"l2": l2, "components": n_components, "iterations": int(fit.nit),
+                                        "samples": len(y)})
 
 
 def training_features(pmat_dir, popu_dir, subjects=SHIPPED_PMAT_SUBJECTS,
