@@ -1,0 +1,428 @@
+"""Which posture a patient lies in, from one pressure map seen as the body.
+
+Two postures come from rules, because no recording shows them: ``out-of-bed``
+(too little force on the mat for a body) and ``sitting-edge`` (all the load in a
+short stretch beside one long edge). The lying postures come from a linear
+classifier (multinomial logistic regression) trained on real recordings: PmatData
+experiment I for supine, the side postures at 30, 60 and 90 degrees, the curled
+ones and the raised head of the bed; PoPu's single volunteer for prone.
+
+The features do not depend on where the body lies on the mat or on its weight:
+the map is normalised to unit force and resampled, by area, onto a canonical grid
+centred on its centre of force, then square-rooted (so the broad, light load of
+the back and legs counts beside the bony peaks, and a peak that is 12 % off moves
+the feature little). Moments of the load across the body (spread, skew, and the
+spread in bands along the body) are appended: they carry how far the pelvis and
+shoulders have rolled, which is what separates 30, 60 and 90 degrees.
+
+The model is trained on maps as the default bed's pixel grid would see them,
+augmented with the errors of reconstruction (blur, gain, shift, rotation,
+noise); ``benchmarks/posture.py`` reports how well it holds on subjects it never
+saw. The shipped model (``posture_model.npz``) never saw PmatData S4, S6 and S11.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+from scipy.ndimage import affine_transform, gaussian_filter
+from scipy.optimize import minimize
+
+from appliance.alerts.anatomy import LYING, POSTURES, BodyView
+from appliance.errors import DataFileInvalid, ModelInputInvalid
+
+MIN_BODY_FORCE_N = 100.0
+"""Less than this on the mat is out of bed: about 10 kg, a third of the lightest adult's trunk, while a
+pillow, a bag or a hand leaning on the mat weighs less (the weight of a body lying or sitting is on the mat)."""
+
+LOADED_KPA = 0.5
+"""A cell carries load above this (about 4 mmHg): under it lies the noise floor of a reconstructed map."""
+
+MIN_LOADED_AREA_M2 = 0.04
+"""Less loaded area than this is out of bed, whatever the force: a lying adult loads 0.25 m2 or more and
+a sitting one about 0.1 m2, while a bag or a knee on the mat loads a few hundred cm2."""
+
+SITTING_MAX_LENGTH_MM = 700.0
+"""Sitting puts the load within the width of the hips and thighs along the mat (about 400-500 mm);
+lying loads 1.4 m or more, curled up 1 m."""
+
+SITTING_EDGE_MM = 450.0
+"""A patient sitting on the edge loads only the strip of the mat this deep from that long edge: the
+ischial tuberosities sit 100-200 mm in, the backs of the thighs run out to the edge."""
+
+SITTING_SHARE = 0.95
+"""Share of the force that must lie within the sitting region (a hand on the mat may carry the rest)."""
+
+CANONICAL_PITCH_MM = 40.0
+CANONICAL_SHAPE = (54, 24)
+"""The body-centred grid: 2160 mm along (a tall patient from either end of their centre of force) by
+960 mm across, in 40 mm cells, coarser than the bed's 30 mm pixels, so a blurred map's features change little."""
+
+BODY_BANDS_MM = ((-900.0, -450.0), (-450.0, -150.0), (-150.0, 150.0), (150.0, 450.0), (450.0, 1200.0))
+"""Bands along the body, mm from the centre of force (about the buttocks): shoulders, back, pelvis,
+thighs, legs; the load's spread across in each says how far that part has rolled."""
+
+MODEL_FILE = "posture_model.npz"
+TRAINING_SEED = 20240611
+PMAT_POSTURE_NAMES = {1: "supine", 2: "right-90", 3: "left-90", 4: "right-30", 5: "right-60", 6: "left-30",
+                      7: "left-60", 8: "supine", 9: "supine", 10: "supine", 11: "supine", 12: "supine",
+                      13: "fetal-right", 14: "fetal-left", 15: "inclined", 16: "inclined", 17: "inclined"}
+"""PmatData experiment I's posture files by the names the monitor uses."""
+
+POPU_POSE_NAMES = {"supine": "supine", "prone": "prone", "left": "left-90", "right": "right-90"}
+"""PoPu's pose families: its left and right poses lie fully on that side (their tilt is not recorded)."""
+
+SHIPPED_PMAT_SUBJECTS = (1, 2, 3, 5, 7, 8, 9, 10)
+"""PmatData subjects the shipped model learns from: S4, S6 and S11 validate the whole product."""
+
+SHIPPED_POPU_VARIATIONS = (0, 1)
+"""PoPu variations the shipped model learns from: variation 2 is held out."""
+
+
+@dataclass(frozen=True)
+class PostureEstimate:
+    """A posture, the probability the model gives it (``confidence``) and every posture's probability."""
+
+    posture: str
+    confidence: float
+    probabilities: dict
+
+
+def check_view(view: BodyView) -> np.ndarray:
+    """The view's pressures with unknown (NaN) and negative cells read as no load; ModelInputInvalid if
+    the view is not a 2-D map with at least one known cell."""
+    kpa = np.asarray(view.kpa, dtype=float)
+    if kpa.ndim != 2 or min(kpa.shape) < 2:
+        raise ModelInputInvalid(f"a posture needs a 2-D pressure map, got shape {kpa.shape}")
+    if not np.isfinite(kpa).any():
+        raise ModelInputInvalid("the pressure map holds no finite value: no posture can be read from it")
+    if np.isinf(kpa).any():
+        raise ModelInputInvalid("the pressure map holds an infinite value")
+    if not (len(view.pitch_mm) == 2 and all(p > 0 for p in view.pitch_mm)):
+        raise ModelInputInvalid(f"cell pitch must be two positive lengths, got {view.pitch_mm!r}")
+    return np.clip(np.nan_to_num(kpa, nan=0.0), 0.0, None)
+
+
+def force_on_mat_n(view: BodyView) -> float:
+    """Force (N) the view's map lays on the mat."""
+    return float(check_view(view).sum() * view.pitch_mm[0] * view.pitch_mm[1] * 1e-3)
+
+
+def is_out_of_bed(view: BodyView) -> bool:
+    """Too little force or loaded area for a body (see MIN_BODY_FORCE_N and MIN_LOADED_AREA_M2)."""
+    kpa = check_view(view)
+    area_m2 = (kpa > LOADED_KPA).sum() * view.pitch_mm[0] * view.pitch_mm[1] * 1e-6
+    return force_on_mat_n(view) < MIN_BODY_FORCE_N or area_m2 < MIN_LOADED_AREA_M2
+
+
+def is_sitting_on_edge(view: BodyView) -> bool:
+    """All the load in a stretch shorter than SITTING_MAX_LENGTH_MM along the mat and within
+    SITTING_EDGE_MM of one long edge, so no head and no heels on the mat.
+
+    A rule, not a learnt class: no recording of a patient sitting on the edge exists here, so it is
+    tested on synthetic sitting maps only and is not validated on real ones.
+    """
+    kpa = check_view(view)
+    total = kpa.sum()
+    if total <= 0:
+        return False
+    along = np.cumsum(kpa.sum(axis=1)) / total
+    window = max(1, int(SITTING_MAX_LENGTH_MM // view.pitch_mm[0]))
+    in_window = np.max(along[window - 1:] - np.concatenate([[0.0], along[:-window]])) \
+        if window < len(along) else 1.0
+    across = kpa.sum(axis=0) / total
+    strip = max(1, round(SITTING_EDGE_MM / view.pitch_mm[1]))
+    at_an_edge = max(across[:strip].sum(), across[-strip:].sum())
+    return in_window >= SITTING_SHARE and at_an_edge >= SITTING_SHARE
+
+
+def _rebin_weights(src_edges: np.ndarray, dst_edges: np.ndarray) -> np.ndarray:
+    """Share of each source cell (columns) that falls in each destination cell (rows): the difference of
+    the cell's cumulative mass at the destination edges, mass spread evenly over the cell."""
+    width = np.diff(src_edges)
+    cumulative = np.clip((dst_edges[:, None] - src_edges[None, :-1]) / width[None, :], 0.0, 1.0)
+    return np.diff(cumulative, axis=0)
+
+
+def canonical_map(view: BodyView) -> np.ndarray:
+    """The map's share of force in each cell of CANONICAL_SHAPE, centred on the centre of force; the
+    share that falls outside the grid is dropped."""
+    kpa = check_view(view)
+    mass = kpa / kpa.sum() if kpa.sum() > 0 else kpa
+    grids = []
+    for axis, (n_dst, pitch) in enumerate(zip(CANONICAL_SHAPE, view.pitch_mm)):
+        src_edges = np.arange(kpa.shape[axis] + 1) * pitch
+        centre = (mass.sum(axis=1 - axis) * (src_edges[:-1] + pitch / 2)).sum()
+        dst_edges = centre + (np.arange(n_dst + 1) - n_dst / 2) * CANONICAL_PITCH_MM
+        grids.append(_rebin_weights(src_edges, dst_edges))
+    return grids[0] @ mass @ grids[1].T
+
+
+def moment_features(view: BodyView) -> np.ndarray:
+    """How the load spreads across the body: overall spread and skew across and along, their
+    correlation, and the spread across, the share and the offset of the centre in each band of
+    BODY_BANDS_MM. Lengths in units of 100 mm."""
+    kpa = check_view(view)
+    total = kpa.sum()
+    mass = kpa / total if total > 0 else kpa
+    along = (np.arange(kpa.shape[0]) + 0.5) * view.pitch_mm[0]
+    across = (np.arange(kpa.shape[1]) + 0.5) * view.pitch_mm[1]
+    a0 = (mass.sum(axis=1) * along).sum()
+    c0 = (mass.sum(axis=0) * across).sum()
+    da, dc = along[:, None] - a0, across[None, :] - c0
+    sa, sc = np.sqrt((mass * da**2).sum()), np.sqrt((mass * dc**2).sum())
+    features = [sa / 100, sc / 100, (mass * dc**3).sum() / max(sc, 1.0)**3, (mass * da**3).sum() / max(sa, 1.0)**3,
+                (mass * da * dc).sum() / max(sa * sc, 1.0)]
+    for low, high in BODY_BANDS_MM:
+        rows = (along - a0 >= low) & (along - a0 < high)
+        band = mass[rows].sum(axis=0)
+        share = band.sum()
+        centre = (band * dc[0]).sum() / share if share > 1e-6 else 0.0
+        spread = np.sqrt((band * (dc[0] - centre)**2).sum() / share) if share > 1e-6 else 0.0
+        features += [share, centre / 100, spread / 100]
+    return np.array(features)
+
+
+def posture_features(view: BodyView) -> np.ndarray:
+    """The feature vector the classifier reads: the square root of the canonical map, then the moments."""
+    return np.concatenate([np.sqrt(canonical_map(view)).ravel(), moment_features(view)])
+
+
+class PostureModel:
+    """A linear model over posture features: ``probabilities = softmax(weights @ features + bias)``."""
+
+    def __init__(self, classes, weights: np.ndarray, bias: np.ndarray, info: dict | None = None):
+        self.classes = tuple(str(c) for c in classes)
+        self.weights, self.bias = np.asarray(weights, float), np.asarray(bias, float)
+        self.info = dict(info or {})
+        n_features = len(posture_features(BodyView(np.ones((4, 4)), (10.0, 10.0), False)))
+        unknown = [c for c in self.classes if c not in LYING + ("inclined",)]
+        if unknown or self.weights.shape != (len(self.classes), n_features) or self.bias.shape != (len(self.classes),):
+            raise DataFileInvalid(f"a posture model needs known lying postures (got unknown {unknown}) and weights of "
+                                  f"shape ({len(self.classes)}, {n_features}), got {self.weights.shape}")
+
+    def probabilities(self, features: np.ndarray) -> np.ndarray:
+        """Class probabilities for feature rows (n, n_features), shape (n, n_classes)."""
+        return _softmax(np.atleast_2d(features) @ self.weights.T + self.bias)
+
+    def classify(self, view: BodyView) -> PostureEstimate:
+        """The posture of ``view``: the rules first (out of bed, sitting on the edge), then the classifier."""
+        for rule, posture in ((is_out_of_bed, "out-of-bed"), (is_sitting_on_edge, "sitting-edge")):
+            if rule(view):
+                return PostureEstimate(posture, 1.0, {p: float(p == posture) for p in POSTURES})
+        p = self.probabilities(posture_features(view))[0]
+        learnt = dict(zip(self.classes, p.tolist()))
+        best = int(np.argmax(p))
+        return PostureEstimate(self.classes[best], float(p[best]), {q: learnt.get(q, 0.0) for q in POSTURES})
+
+    def save(self, path) -> None:
+        """Write the model as a small .npz, its weights in float32 (half the size; a freshly trained model's
+        probabilities move by that rounding only, and a loaded one saves and loads back unchanged)."""
+        np.savez_compressed(path, classes=np.array(self.classes), weights=self.weights.astype(np.float32),
+                            bias=self.bias, info=np.array(json.dumps(self.info)))
+
+    @classmethod
+    def load(cls, path) -> PostureModel:
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                return cls(data["classes"], data["weights"].astype(float), data["bias"], json.loads(str(data["info"])))
+        except (OSError, KeyError, ValueError) as exc:
+            raise DataFileInvalid(f"posture model {path} cannot be read: {exc}") from None
+
+
+@functools.lru_cache(maxsize=1)
+def default_posture_model() -> PostureModel:
+    """The shipped model (trained without PmatData S4, S6, S11 and PoPu variation 2), loaded once."""
+    with resources.as_file(resources.files("appliance.alerts").joinpath(MODEL_FILE)) as path:
+        return PostureModel.load(path)
+
+
+def _softmax(logits: np.ndarray) -> np.ndarray:
+    e = np.exp(logits - logits.max(axis=1, keepdims=True))
+    return e / e.sum(axis=1, keepdims=True)
+
+
+# ---- training ------------------------------------------------------------------------------------------
+
+BED_PITCH_MM = 1900.0 / 64
+"""The default bed's (grid-16x32) pixel along the body; its pixels across are 30 mm, taken here as square
+(the view is 1 % narrower than the bed's, which no feature notices)."""
+
+NOISE_KPA = 0.1
+"""Noise added to every pixel of an augmented map: a reconstruction's floor away from the body."""
+
+AUGMENTED_COPIES = 3
+"""Augmented copies of each training map (besides the map itself and the mirror images of all)."""
+
+N_COMPONENTS = 40
+"""Principal components the classifier reads. Chosen on trial fits (same features): with 40, 80, 150 and all
+1316, leave-one-subject-out got 99.7, 99.4, 99.2 and 99.0 % on the 4 groups, and a model without S4, S6 and
+S11 got 99.0, 96.1, 96.1 % on them (all features not tried there); fewer axes also fit faster."""
+
+FRAMES_PER_RECORDING = 6
+"""Frames taken from the middle half of each recording (the person settled); more add little, being alike."""
+
+
+def bed_views(field_kpa: np.ndarray, pitch_mm: float) -> list[BodyView]:
+    """Scene fields (n, rows head to foot, cols right to left) as the default bed's pixel grid sees them
+    perfectly: block-averaged, force kept, onto its 30 mm pixels."""
+    from appliance.sim.body import MatGrid
+    from appliance.sim.recordings import resample_onto
+
+    fields = np.asarray(field_kpa, float)
+    grid = MatGrid(fields.shape[-1] * pitch_mm // BED_PITCH_MM * BED_PITCH_MM, fields.shape[-2] * pitch_mm,
+                   BED_PITCH_MM)
+    return [BodyView(m, (BED_PITCH_MM, BED_PITCH_MM), True) for m in resample_onto(fields, pitch_mm, grid)]
+
+
+def recording_fields(pmat_dir=None, popu_dir=None, subjects=(), popu_variations=(),
+                     frames=FRAMES_PER_RECORDING) -> tuple[np.ndarray, list[str], float]:
+    """True fields (n, rows, cols) of ``frames`` frames of each chosen recording, their posture names,
+    and the fields' pitch (mm)."""
+    from appliance.sim.recordings import pmat_scene, popu_scene
+
+    fields, names, pitch = [], [], None
+
+    def take(scene, name):
+        nonlocal pitch
+        n = len(scene.frames)
+        picks = np.unique(np.linspace(0.25 * n, 0.75 * n, frames).astype(int).clip(0, n - 1))
+        fields.extend(scene.frames[picks])
+        names.extend([name] * len(picks))
+        pitch = scene.grid.pitch_mm
+
+    for subject in subjects:
+        for number, name in PMAT_POSTURE_NAMES.items():
+            take(pmat_scene(pmat_dir, subject, number), name)
+    for variation in popu_variations:
+        for family, name in POPU_POSE_NAMES.items():
+            for k in range(1, 8):
+                take(popu_scene(popu_dir, f"{family}{k}", variation, scale_to_weight=True), name)
+    return np.stack(fields), names, pitch
+
+
+def mirrored(name: str) -> str:
+    """The posture seen in a mirror: left and right swap."""
+    return name.replace("left", "@").replace("right", "left").replace("@", "right")
+
+
+def augmented(fields: np.ndarray, pitch_mm: float, rng: np.random.Generator) -> list[BodyView]:
+    """Fields as a reconstruction might see them: shifted up to 60 mm, turned up to 5 degrees, placed on
+    the bed's pixels, blurred (0-1.2 pixel sigma), under a smooth gain of +-20 % and with noise."""
+    moved = []
+    for field in fields:
+        angle = np.deg2rad(rng.uniform(-5, 5))
+        turn = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+        centre = (np.array(field.shape) - 1) / 2
+        shift = rng.uniform(-60, 60, 2) / pitch_mm
+        moved.append(affine_transform(field, turn, offset=centre - turn @ centre - shift, order=1))
+    views = []
+    for view in bed_views(np.array(moved), pitch_mm):
+        kpa = gaussian_filter(view.kpa, rng.uniform(0.0, 1.2))
+        gain = 1 + 0.2 * np.clip(gaussian_filter(rng.normal(size=kpa.shape), 3) * 4, -1, 1)
+        kpa = kpa * gain * rng.uniform(0.8, 1.2) + rng.normal(0, NOISE_KPA, kpa.shape)
+        views.append(BodyView(kpa, view.pitch_mm, view.transposed))
+    return views
+
+
+def training_set(fields: np.ndarray, names: list[str], pitch_mm: float, copies: int, seed):
+    """Feature rows and names: each field as the bed sees it, ``copies`` augmented copies, and the mirror
+    image of each (left and right swapped), so both sides learn from every side posture."""
+    rng = np.random.default_rng(seed)
+    rows, labels = [], []
+    for flip, label_of in ((False, str), (True, mirrored)):
+        source = fields[:, :, ::-1] if flip else fields
+        views = bed_views(source, pitch_mm)
+        for _ in range(copies):
+            views += augmented(source, pitch_mm, rng)
+        rows += [posture_features(v) for v in views]
+        labels += [label_of(n) for n in names] * (copies + 1)
+    return np.array(rows), labels
+
+
+def fit_logistic(features: np.ndarray, labels: list[str], l2: float = 1e-3,
+                 n_components: int = N_COMPONENTS) -> PostureModel:
+    """Multinomial logistic regression on the leading principal components of the standardised features,
+    classes weighted equally (supine has six recordings a subject, a side posture one), with an L2
+    penalty; folded into one linear map over the features."""
+    classes = tuple(p for p in LYING + ("inclined",) if p in set(labels))
+    y = np.array([classes.index(n) for n in labels])
+    mean, scale = features.mean(axis=0), features.std(axis=0) + 1e-6
+    axes = np.linalg.svd((features - mean) / scale, full_matrices=False)[2][:n_components]
+    x = (features - mean) / scale @ axes.T
+    counts = np.bincount(y, minlength=len(classes))
+    sample_weight = (len(y) / (len(classes) * counts))[y] / len(y)
+    onehot = np.eye(len(classes))[y]
+    n_axes = x.shape[1]
+
+    def loss(theta):
+        w = theta[:len(classes) * n_axes].reshape(len(classes), n_axes)
+        b = theta[len(classes) * n_axes:]
+        logits = x @ w.T + b
+        logits -= logits.max(axis=1, keepdims=True)
+        log_p = logits - np.log(np.exp(logits).sum(axis=1, keepdims=True))
+        residual = (np.exp(log_p) - onehot) * sample_weight[:, None]
+        value = -(sample_weight * (log_p * onehot).sum(axis=1)).sum() + 0.5 * l2 * (w**2).sum()
+        return value, np.concatenate([(residual.T @ x + l2 * w).ravel(), residual.sum(axis=0)])
+
+    theta0 = np.zeros(len(classes) * (n_axes + 1))
+    fit = minimize(loss, theta0, jac=True, method="L-BFGS-B", options={"maxiter": 2000})
+    w = fit.x[:len(classes) * n_axes].reshape(len(classes), n_axes) @ axes / scale
+    b = fit.x[len(classes) * n_axes:] - w @ mean
+    return PostureModel(classes, w, b, {"l2": l2, "components": n_components, "iterations": int(fit.nit),
+                                        "samples": len(y)})
+
+
+def training_features(pmat_dir, popu_dir, subjects=SHIPPED_PMAT_SUBJECTS,
+                      popu_variations=SHIPPED_POPU_VARIATIONS, copies: int = AUGMENTED_COPIES,
+                      seed: int = TRAINING_SEED) -> dict:
+    """Feature rows and posture names of each source (``S<k>``, ``popu/v<variation>``), augmented with a
+    seed of the source's own, so a source's rows are the same whichever others are trained with."""
+    sources = [(f"S{k}", [k], [], k) for k in subjects] + \
+              [(f"popu/v{v}", [], [v], 1000 + v) for v in popu_variations]
+    out = {}
+    for name, pmat_subjects, variations, stream in sources:
+        fields, names, pitch = recording_fields(pmat_dir, popu_dir, pmat_subjects, variations)
+        out[name] = training_set(fields, names, pitch, copies, [seed, stream])
+    return out
+
+
+def fit_sources(features_by_source: dict, sources) -> PostureModel:
+    """The model learnt from the named sources of :func:`training_features`."""
+    model = fit_logistic(np.vstack([features_by_source[s][0] for s in sources]),
+                         [n for s in sources for n in features_by_source[s][1]])
+    model.info["sources"] = list(sources)
+    return model
+
+
+def train_posture_model(pmat_dir, popu_dir, subjects=SHIPPED_PMAT_SUBJECTS,
+                        popu_variations=SHIPPED_POPU_VARIATIONS, copies: int = AUGMENTED_COPIES,
+                        seed: int = TRAINING_SEED) -> PostureModel:
+    """A posture model learnt from PmatData ``subjects`` and PoPu ``popu_variations``; deterministic."""
+    features = training_features(pmat_dir, popu_dir, subjects, popu_variations, copies, seed)
+    model = fit_sources(features, list(features))
+    model.info.update({"copies": copies, "seed": seed})
+    return model
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m appliance.alerts.posture",
+                                     description="Rebuild the shipped posture model from the recordings.")
+    parser.add_argument("--train", action="store_true", required=True)
+    parser.add_argument("--pmat", required=True, help="PmatData directory (holds experiment-i)")
+    parser.add_argument("--popu", required=True, help="PoPu directory (holds preview_data)")
+    parser.add_argument("--out", default=str(Path(__file__).with_name(MODEL_FILE)))
+    args = parser.parse_args(argv)
+    model = train_posture_model(args.pmat, args.popu)
+    model.save(args.out)
+    print(f"wrote {args.out}: classes {', '.join(model.classes)}; {model.info}")
+
+
+if __name__ == "__main__":
+    main()
