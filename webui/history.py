@@ -25,7 +25,7 @@ from flask import Blueprint, abort, jsonify, render_template, request
 
 from appliance.alerts.alarms import PRIORITIES
 from appliance.alerts.pipeline import AlertSettings
-from appliance.alerts.anatomy import SITES, SMALL_MAT_SITE, site_words
+from appliance.alerts.anatomy import SITES, SMALL_MAT_SITE, UNIDENTIFIED_SITE, site_words
 from appliance.alerts.turns import TURN_KINDS as TURN_EVENT_KINDS
 from appliance.core.pressure import KPA_PER_MMHG
 from webui.alarms import clock, store
@@ -116,7 +116,7 @@ class RegionSeries:
 
     @property
     def label(self) -> str:
-        words = site_words(self.zone) if self.zone in (*SITES, SMALL_MAT_SITE) else self.zone
+        words = site_words(self.zone) if self.zone in (*SITES, SMALL_MAT_SITE, UNIDENTIFIED_SITE) else self.zone
         return f"{words} (region {self.region_id})" if self.zone else f"region {self.region_id}"
 
 

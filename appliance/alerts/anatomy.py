@@ -86,6 +86,11 @@ paired one with the patient's side. ``sacrum`` covers the sacrum and coccyx, ``h
 SMALL_MAT_SITE = "mat"
 """The one site of a small mat (a test sensor): no body lies on it, so all of it is one site."""
 
+UNIDENTIFIED_SITE = "unidentified"
+"""Load on a bed that is no body: far less than a person's weight (heels alone on the mat, a patient getting
+out), so no site can be named from anatomy. Its tissue is still dosed, as one site, so that it can never go
+unwatched; its alarms name where the load lies."""
+
 
 def check_site(site) -> str:
     """``site`` if the monitor knows it; otherwise a ConfigError naming it and the known ones."""
@@ -98,6 +103,8 @@ def site_words(site: str) -> str:
     """A site in plain words: ``heel-left`` is "left heel", ``iliac-crest-right`` "right iliac crest"."""
     if site == SMALL_MAT_SITE:
         return "sensor"
+    if site == UNIDENTIFIED_SITE:
+        return "unidentified loaded spot"
     check_site(site)
     name, _, side = site.rpartition("-")
     if side in ("left", "right"):

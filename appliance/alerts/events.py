@@ -14,7 +14,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from appliance.alerts.alarms import AlarmEvent
-from appliance.alerts.anatomy import POSTURE_WORDS, SITES, SMALL_MAT_SITE, site_words
+from appliance.alerts.anatomy import POSTURE_WORDS, SITES, SMALL_MAT_SITE, UNIDENTIFIED_SITE, site_words
 from appliance.alerts.turns import TurnEvent
 
 EVENT_TYPES = ("alarm", "turn", "episode")
@@ -70,6 +70,6 @@ def as_event(event: AlarmEvent | TurnEvent) -> Event:
     site = None
     if event.key and event.key.startswith("pressure:"):
         site = event.key.split(":", 1)[1]
-        site = site if site in SITES or site == SMALL_MAT_SITE else None
+        site = site if site in (*SITES, SMALL_MAT_SITE, UNIDENTIFIED_SITE) else None
     return Event(event.time_s, "alarm", event.kind, event.priority, event.category, event.key, site,
                  alarm_id=event.alarm_id, message=event.message, user=event.user, channel=event.channel)

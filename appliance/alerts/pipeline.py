@@ -14,7 +14,9 @@ it. Loaded regions are still tracked for the screen and the history, each named
 by the site it holds.
 
 On a small mat (a test sensor, no body on it) the whole mat is one site,
-``mat``, and no turn is watched.
+``mat``, and no turn is watched. Load on a bed too light to be a body (heels
+alone on the mat) is one site too, ``unidentified``, placed at its peak: no
+site can be named without a body, but no loaded tissue goes unwatched.
 
 Technical conditions (no data, electrode fault, saturation, bus error) come from
 the caller and stay apart. The engine turns conditions into alarm events; every
@@ -37,7 +39,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from appliance.alerts.alarms import AlarmCondition, AlarmEngine, AlarmEvent, Escalation
-from appliance.alerts.anatomy import SITES, SMALL_MAT_SITE, BodyView, body_view, is_bed, site_words
+from appliance.alerts.anatomy import (SITES, SMALL_MAT_SITE, UNIDENTIFIED_SITE, BodyView, body_view, is_bed,
+                                     site_words)
 from appliance.alerts.dose import MAX_DT_S, RELIEF_S, SiteDose, custom_curve, tolerance_curve
 from appliance.alerts.episodes import Episode
 from appliance.alerts.events import Event, as_event
@@ -145,7 +148,8 @@ class AlertPipeline:
         """Fresh doses, turn clock and regions for ``episode`` (None: an unnamed patient)."""
         s = self.settings
         self.episode = episode
-        self.dose = SiteDose(SITES if self.bed else (SMALL_MAT_SITE,), self.curve, recovery=s.recovery,
+        self.dose = SiteDose((*SITES, UNIDENTIFIED_SITE) if self.bed else (SMALL_MAT_SITE,), self.curve,
+                             recovery=s.recovery,
                              relief_s=s.relief_s)
         self.turns = TurnClock(interval_s=s.turn_interval_s, grace_s=s.turn_grace_s, repeat_s=s.reminder_repeat_s,
                                at_risk_kpa=s.threshold_kpa, away_s=s.relief_s)
@@ -206,6 +210,11 @@ class AlertPipeline:
             return None, [LocatedSite(SMALL_MAT_SITE, float(x), float(y), float(kpa.max()))]
         view = body_view(kpa, self.grid)
         posture = self._classify(view)
+        if posture == "out-of-bed":
+            if kpa.max() < self.settings.threshold_kpa:
+                return posture, []
+            x, y = self.grid.centres_mm[int(np.argmax(kpa))]        # load, but no body to name it from
+            return posture, [LocatedSite(UNIDENTIFIED_SITE, float(x), float(y), float(kpa.max()))]
         located = []
         for reading in self._locate(view, posture):
             if reading.site is None:
