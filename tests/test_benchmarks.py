@@ -157,3 +157,16 @@ def test_the_default_bed_sees_a_person_it_was_never_calibrated_on(bed_monitoring
     assert summary["spots"] >= 40
     assert summary["seen"] >= 0.95 and summary["median_abs_error"] <= 0.25, summary
     assert bed.tilts_told_apart(maps) == (2, 2)
+
+
+def test_alerts_benchmark_nights_and_scoring():
+    alerts = load("alerts")
+    nights = alerts.nights()
+    assert {n.subject for n in nights} == {4, 6, 11}                     # held-out subjects only
+    hours = sorted({(n.name, n.duration_s / 3600) for n in nights})
+    assert [h for _, h in hours] == [8.0, 4.0, 12.0, 8.0]
+    restless = next(n for n in nights if n.name.startswith("restless"))
+    assert all(p in (1, 8, 9) and abs(dx) <= 40 and abs(dy) <= 30 for p, _, (dx, dy) in restless.segments)
+    assert restless.segment_at(0.0) == (restless.segments[0][0], restless.segments[0][2])
+    got = alerts.compare({"sacrum": 100.0, "heel-left": 500.0}, {"sacrum": 160.0, "occiput": 50.0})
+    assert got == {"truth": 2, "missed": ["heel-left"], "late_s": [60.0], "false": ["occiput"]}

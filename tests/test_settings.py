@@ -210,7 +210,7 @@ def test_the_monitor_applies_a_change_at_its_next_frame_and_carries_doses_and_al
     daemon.run(6)
     before = daemon.pipeline.state()
     open_before = {a.alarm_id: a.key for a in daemon.pipeline.engine.alarms()}
-    assert np.max(before["dose"]["dose"]) > 0.05 and open_before                 # a dose and an alarm to keep
+    assert np.max(before["dose"]["cells"]["dose"]) > 0.05 and open_before                 # a dose and an alarm to keep
     answer = post(nurse, "/settings/patient", threshold_mmhg="40", curve="linder-ganz", recovery="decay",
                   turn_interval_min="30", escalate_after_min="5")
     assert answer.status_code == 303
@@ -221,10 +221,10 @@ def test_the_monitor_applies_a_change_at_its_next_frame_and_carries_doses_and_al
     assert s.threshold_kpa == pytest.approx(40 * KPA_PER_MMHG) and s.alarm_dose == 0.05
     assert daemon.config.alerts == s and daemon.pipeline.turns.interval_s == 1800.0
     after = daemon.pipeline.state()
-    assert after["dose"]["dose"] == before["dose"]["dose"]                       # carried over, not reset
-    assert after["dose"]["relieved_s"] == before["dose"]["relieved_s"]
-    assert (after["dose"]["curve"], after["dose"]["recovery"]) == ("linder-ganz", "decay")
-    assert after["dose"]["relief_kpa"] == pytest.approx(40 * KPA_PER_MMHG)
+    assert after["dose"]["cells"]["dose"] == before["dose"]["cells"]["dose"]                       # carried over, not reset
+    assert after["dose"]["cells"]["relieved_s"] == before["dose"]["cells"]["relieved_s"]
+    assert (after["dose"]["cells"]["curve"], after["dose"]["cells"]["recovery"]) == ("linder-ganz", "decay")
+    assert after["dose"]["cells"]["relief_kpa"] == pytest.approx(40 * KPA_PER_MMHG)
     assert after["turns"]["last_turn_s"] == before["turns"]["last_turn_s"]
     assert open_before.items() <= {a.alarm_id: a.key for a in daemon.pipeline.engine.alarms()}.items()
     [command] = commands(tmp_path)
@@ -280,8 +280,8 @@ def test_a_restart_resumes_the_doses_under_settings_changed_while_the_monitor_wa
     after = restarted.pipeline.state()
     restarted.close()
     assert restarted.resumed_from_s == before["last_time_s"]                  # resumed, not started afresh
-    assert after["dose"]["dose"] == before["dose"]["dose"] and np.max(after["dose"]["dose"]) > 0
-    assert (after["dose"]["curve"], after["dose"]["recovery"]) == ("linder-ganz", "decay")
+    assert after["dose"]["cells"]["dose"] == before["dose"]["cells"]["dose"] and np.max(after["dose"]["cells"]["dose"]) > 0
+    assert (after["dose"]["cells"]["curve"], after["dose"]["cells"]["recovery"]) == ("linder-ganz", "decay")
     assert after["alarms"] == before["alarms"]
 
 

@@ -47,14 +47,15 @@ def test_events_of_both_engines_round_trip_with_extra_fields_in_detail(tmp_path)
         store.record_events([alarm_event(10.0),
                              AlarmEvent(12.0, "acknowledged", 1, "sacrum", "clinical", "high", "Sacrum pressure",
                                         user="nurse A", channel="bedside"),
-                             TurnEvent(time_s=15.0, kind="turn-due", relieved_share=0.25)])
+                             TurnEvent(time_s=15.0, kind="repositioned", posture="left-30", previous="supine",
+                                       how="posture")])
         events = store.events_since(11.0)
         assert store.last_time() == 15.0
     assert events[0]["kind"] == "acknowledged" and events[0]["user"] == "nurse A"
     assert events[0]["channel"] == "bedside"
-    assert events[1] == {"time_s": 15.0, "kind": "turn-due", "alarm_id": None, "key": None, "category": None,
+    assert events[1] == {"time_s": 15.0, "kind": "repositioned", "alarm_id": None, "key": None, "category": None,
                          "priority": None, "user": None, "channel": None, "message": None,
-                         "relieved_share": 0.25}
+                         "posture": "left-30", "previous": "supine", "how": "posture", "site": None}
 
 
 def test_state_json_round_trip(tmp_path):

@@ -304,9 +304,10 @@ def test_the_daemon_publishes_summaries_the_station_sees(small_mat_calibration, 
         daemon.close()
     seen = bed(station, "ward-bed")
     body = seen["summary"]
-    assert set(body) == {"bed_id", "time_s", "written_at", "peak_mmhg", "regions", "turn", "alarms", "status"}
+    assert set(body) == {"bed_id", "time_s", "written_at", "peak_mmhg", "regions", "posture", "patient", "turn",
+                         "alarms", "status"}
     assert body["time_s"] == daemon.pipeline.last_time_s and body["peak_mmhg"] > 0
-    assert body["regions"] and set(body["regions"][0]) == {"zone", "peak_mmhg", "dose"}
+    assert body["regions"] and set(body["regions"][0]) == {"zone", "words", "peak_mmhg", "dose"}
     assert {a["alarm_id"] for a in body["alarms"]} == {a.alarm_id for a in daemon.pipeline.engine.alarms()}
     assert seen["status"] == "offline" and not seen["online"]                     # the daemon closed its notifier
 
