@@ -164,15 +164,15 @@ def test_the_monitor_plays_the_maps_in_order_and_on_time(calibration_file, model
 
 def test_sim_run_replays_a_map_scenario(calibration_file, model_cache, tmp_path, capsys):
     write_maps(tmp_path, a=square(70, 30, mmhg=300))
-    path = scenario(tmp_path, 'source = "maps"\nfiles = ["a.csv"]\npitch_mm = 5\neach_s = 7200')
+    path = scenario(tmp_path, 'source = "maps"\nfiles = ["a.csv"]\npitch_mm = 5\neach_s = 18000')
     config = tmp_path / "monitor.toml"
     config.write_text(f'[monitor]\nlayout = "grid-4x4"\ncalibration = "{calibration_file}"\n'
                       f'cache_dir = "{model_cache}"\n', encoding="utf-8")
-    code = main(["sim", "run", "--scenario", str(path), "--config", str(config), "--hours", "2", "--interval", "600",
+    code = main(["sim", "run", "--scenario", str(path), "--config", str(config), "--hours", "5", "--interval", "600",
                  "--out", str(tmp_path / "events.jsonl")])
     err = capsys.readouterr().err
     assert code == 0, err
-    assert "13 frames (2 simulated h)" in err
+    assert "31 frames (5 simulated h)" in err
     events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
     raised = [e for e in events if e["type"] == "alarm" and e["kind"] == "raised" and e["category"] == "clinical"]
-    assert raised and all(e["time_s"] > 0 for e in raised)           # 300 mmHg held: the tissue's tolerance runs out
+    assert raised and all(e["time_s"] > 0 for e in raised)           # read at ~130 mmHg (the small mat saturates): ~4 h

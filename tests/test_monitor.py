@@ -70,9 +70,9 @@ def test_run_starts_on_the_virtual_bed_calibrates_once_and_maps_the_patient(bed_
     assert "virtual bed (grid-16x32" in err and "pressure calibration" in err
     maps = [line for line in out.strip().splitlines() if not line.startswith("  ")]
     assert len(maps) == 3 and all("region(s) >= 32 mmHg" in line for line in maps)
-    assert "  TURN repositioned at 60 s" in out                         # the patient lay down
+    assert "  TURN lay-down at 60 s" in out                             # the patient lay down: the clock starts
     with Store.open(data / "appliance.db") as store:
-        assert [e["kind"] for e in store.events_since(0.0)] == ["repositioned"]
+        assert [e["kind"] for e in store.events_since(0.0)] == ["lay-down"]
         assert store.load_state("alerts")["last_time_s"] == 120.0
     assert (data / "live.png").stat().st_size > 0
     live = np.genfromtxt(data / "live.csv", delimiter=",")

@@ -125,7 +125,7 @@ GOOD_SEGMENT = "subject = 1\nposture = 1\nhold_s = 0"
 
 @needs_pmat
 @pytest.mark.parametrize("segment, extra, message", [
-    ("subject = 1\nposture = 18\nhold_s = 0", "", r"recording 2: posture must be 1 to 17"),
+    ("subject = 1\nposture = 18\nhold_s = 0", "", r"recording 2: posture must be a file number 1 to 17"),
     ("subject = 1\nposture = 1\nhold_s = -5", "", r"recording 2: hold_s must not be negative"),
     ("subject = '1'\nposture = 1\nhold_s = 0", "", r"recording 2: subject must be an integer"),
     ("subject = 1\nposture = 1", "", r"recording 2 is missing 'hold_s'"),
