@@ -76,7 +76,7 @@ LOADED_MMHG = 32.0
 def true_frame(subject: int, posture_file: int, shift: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
     """The middle frame of a recording (the one the labels were given on), 10 mm, scene frame, kPa."""
     scene = pmat_scene(PMAT, subject, posture_file, BED_GRID, shift_mm=shift)
-    return scene.frames[len(scene.frames) // 2]
+    return scene.frames[len(scene.frames) // 2].copy()      # not a view: the recording is let go
 
 
 class Chain:

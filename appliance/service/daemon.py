@@ -31,7 +31,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from appliance.alerts.anatomy import site_words
+from appliance.alerts.anatomy import POSTURE_WORDS, site_words
 from appliance.alerts.episodes import Episode
 from appliance.alerts.events import Event
 from appliance.alerts.notifiers import Notifier
@@ -297,6 +297,7 @@ class MonitorDaemon:
             "turn": {"last_turn_s": turns.last_turn_s, "due_in_s": turns.due_in_s(now), "bed_empty": turns.bed_empty,
                      "interval_s": turns.interval_s},
             "posture": self.pipeline.posture,
+            "posture_words": POSTURE_WORDS.get(self.pipeline.posture),
             "patient": None if self.pipeline.episode is None else
             {k: getattr(self.pipeline.episode, k) for k in ("patient_id", "name", "braden", "bed_exit_alert")},
             "sites": [{"site": s.site, "words": site_words(s.site),

@@ -42,6 +42,10 @@ function draw(snapshot) {
     tbody.appendChild(tr);
   }
   document.getElementById("peak").textContent = (snapshot.map.peak_kpa / 0.133322).toFixed(0);
+  const patient = snapshot.patient;
+  document.getElementById("patient").textContent = patient ? patient.patient_id + (patient.name ? ` (${patient.name})` : "")
+                                                           : "not admitted";
+  document.getElementById("posture").textContent = snapshot.posture_words || snapshot.posture || "-";
   document.getElementById("turn").textContent = clock(snapshot.turn && snapshot.turn.due_in_s);
   const alarms = document.getElementById("alarms");
   alarms.innerHTML = "";
