@@ -296,7 +296,7 @@ def report_pressure(pressure_kpa, grid) -> None:
     import numpy as np
 
     from appliance.core.pressure import KPA_PER_MMHG
-    from appliance.core.pressure_map import HIGH_PRESSURE_KPA, loaded_regions
+    from appliance.core.pressure_map import HIGH_PRESSURE_KPA, HIGH_PRESSURE_MMHG, loaded_regions
 
     if not np.isfinite(pressure_kpa).any():
         print("no pixel of the map could be read", file=sys.stderr)
@@ -304,7 +304,7 @@ def report_pressure(pressure_kpa, grid) -> None:
     peak = float(np.nanmax(pressure_kpa))
     regions = loaded_regions(pressure_kpa, grid)
     print(f"peak {peak:.1f} kPa ({peak / KPA_PER_MMHG:.0f} mmHg); {len(regions)} region(s) at or above "
-          f"{HIGH_PRESSURE_KPA:g} kPa", file=sys.stderr)
+          f"{HIGH_PRESSURE_MMHG:g} mmHg ({HIGH_PRESSURE_KPA:.2f} kPa)", file=sys.stderr)
     for region in regions:
         print(f"  peak {region.peak_kpa:.1f} kPa ({region.peak_mmhg:.0f} mmHg), mean {region.mean_kpa:.1f} kPa, "
               f"{region.area_cm2:.1f} cm2 centred at ({region.x_mm:.0f}, {region.y_mm:.0f}) mm", file=sys.stderr)

@@ -142,8 +142,8 @@ class EmulatedBed:
         return events
 
     def _event(self, Event, kind: str, alarm: dict, user: str | None = None):
-        return Event(self.time_s, "alarm", kind, alarm["priority"], "clinical", alarm["key"], alarm["zone"],
-                     alarm["region_id"], alarm["alarm_id"], alarm["message"], user, None)
+        return Event(self.time_s, "alarm", kind, alarm["priority"], "clinical", alarm["key"], site=alarm["zone"],
+                     alarm_id=alarm["alarm_id"], message=alarm["message"], user=user)
 
     def summary(self) -> dict:
         """As ``appliance.service.daemon.ward_summary`` cuts a live snapshot down."""

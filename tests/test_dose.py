@@ -9,6 +9,7 @@ from scipy.optimize import brentq
 
 from appliance.alerts.dose import MIN_TOLERABLE_S, DoseMap, custom_curve, reswick_rogers_mmhg, tolerance_curve
 from appliance.core.pressure import KPA_PER_MMHG
+from appliance.core.pressure_map import HIGH_PRESSURE_KPA
 from appliance.errors import ConfigError, CurveInvalid, DataFileInvalid
 from conftest import median_seconds
 
@@ -68,7 +69,7 @@ def test_curves_fall_with_pressure():
 def test_nothing_accumulates_at_or_below_the_floor_or_off_the_sheet():
     dose = DoseMap((1, 4), tolerance_curve("reswick-rogers"))
     for _ in range(3600):
-        dose.update(np.array([[4.3, 2.0, 0.0, np.nan]]), 1.0)
+        dose.update(np.array([[HIGH_PRESSURE_KPA, 2.0, 0.0, np.nan]]), 1.0)
     assert dose.dose.tolist() == [[0.0] * 4]
 
 
