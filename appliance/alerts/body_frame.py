@@ -28,8 +28,8 @@ import numpy as np
 from scipy.ndimage import binary_opening, label
 
 from appliance.alerts.anatomy import BodyView, posture_side
+from appliance.core.pressure import KPA_PER_MMHG
 from appliance.errors import ModelInputInvalid
-from appliance.sim.field import KPA_PER_MMHG
 
 CONTACT_KPA = 5.0 * KPA_PER_MMHG
 """Where the body touches the mat: well above a sensor's noise, below any lying body's load."""

@@ -29,8 +29,8 @@ from appliance.alerts.anatomy import BodyView, check_posture
 from appliance.alerts.body_frame import body_coordinates
 from appliance.alerts.site_table import LABELLED_POSTURES, SiteTable, load_table
 from appliance.calibration import BED_MIN_LENGTH_MM
+from appliance.core.pressure import KPA_PER_MMHG
 from appliance.errors import ModelInputInvalid
-from appliance.sim.field import KPA_PER_MMHG
 
 FLOOR_KPA = 20.0 * KPA_PER_MMHG
 """Cells from 20 mmHg: a site approaching the 32 mmHg threshold is already tracked."""
