@@ -134,21 +134,3 @@ def test_an_unknown_posture_is_refused_by_name():
 
 def test_the_at_risk_threshold_is_the_alarm_threshold():
     assert TurnClock().at_risk_kpa == HIGH_PRESSURE_KPA
-
-
-def test_a_posture_misread_on_a_body_that_has_not_moved_is_no_turn():
-    """Names follow the posture estimate, places do not: a change of group counts only if some site at risk is
-    relieved where it lay."""
-    unmoved, moved = (lambda site: 6.0), (lambda site: 0.5 if site == "sacrum" else 6.0)
-    clock = TurnClock()
-    frames = lying("supine", 30) + lying("right-90", 20, peaks={"trochanter-right": 8.0}, start=30)
-    assert kinds(run_where(clock, frames, unmoved)) == ["lay-down"]
-    clock = TurnClock()
-    assert kinds(run_where(clock, frames, moved)) == ["lay-down", "repositioned"]
-
-
-def run_where(clock, frames, load_where):
-    events = []
-    for minute, posture, peaks in frames:
-        events += clock.update(minute * MIN, posture, peaks, frozenset(), load_where)
-    return events

@@ -51,9 +51,6 @@ from appliance.core.pressure_map import HIGH_PRESSURE_KPA, PressureMap
 from appliance.errors import ConfigError
 
 ESCALATE_AFTER_S = 15 * 60.0
-PLACE_REACH_MM = 45.0
-"""Where a site lay, for telling a turn from a misread posture: a pixel and a half, more than a restless
-shift moves it (20 to 40 mm), less than a turn does (10 cm and more)."""
 OVERDUE_ESCALATE_S = 60.0             # an overdue reminder reaches the ward station after a minute unanswered
 MAX_COUNTED_GAP_S = 12 * 3600.0
 """A gap between maps (the monitor off, or paused for maintenance) counts as the new map's pressure held since
@@ -177,13 +174,12 @@ class AlertPipeline:
                 self.dose.update(peaks, step)
                 gap -= step
         self.last_time_s = now
-        load_where = self._load_where(pressure_map, dict(self.places))      # where the sites lay before this map
         self.posture, self.sites = posture, located
         self.places.update({s.site: (s.x_mm, s.y_mm) for s in located})
         self.tracked = self._named_regions(pressure_map, located)
         doses = self.dose.doses()
         alarmed = frozenset(key.split(":", 1)[1] for key in self.clinical if key.startswith("pressure:"))
-        turn_events = self.turns.update(now, posture, peaks, alarmed, load_where) if self.bed else []
+        turn_events = self.turns.update(now, posture, peaks, alarmed) if self.bed else []
         active = {}
         for site, dose in doses.items():
             if dose >= self.settings.alarm_dose:
@@ -226,20 +222,6 @@ class AlertPipeline:
             x, y = view.mat_mm(reading.along_mm, reading.across_mm)
             located.append(LocatedSite(reading.site, float(x), float(y), float(reading.peak_kpa)))
         return posture, located
-
-    def _load_where(self, pressure_map: PressureMap, places: dict) -> Callable[[str], float]:
-        """The map's highest load within ``PLACE_REACH_MM`` of where a site lay in ``places`` (0 where it
-        never lay)."""
-        kpa = np.nan_to_num(np.asarray(pressure_map.pressure_kpa, dtype=float)).ravel()
-        centres = self.grid.centres_mm
-
-        def load(site: str) -> float:
-            if site not in places:
-                return 0.0
-            x, y = places[site]
-            near = np.hypot(centres[:, 0] - x, centres[:, 1] - y) <= PLACE_REACH_MM
-            return float(kpa[near].max()) if near.any() else 0.0
-        return load
 
     def _named_regions(self, pressure_map: PressureMap, located: list[LocatedSite]) -> list:
         """This frame's tracked regions, each named by the most loaded site inside it (None where none is)."""

@@ -2,11 +2,9 @@
 
 A repositioning is what moves the load off the tissue that bore it. It is seen as:
 
-- a change of lying posture group (back, left side, right side, front) held for ``settle_s`` that relieves
-  at least one site at risk where it lay (below half the threshold there; a site's name follows the
-  posture, its place does not, so a posture misread on an unmoved body is no turn); a change of tilt on the
-  same side (30 to 60 degrees) is not one by itself, since the posture estimate may waver between
-  neighbouring tilts and the same side stays loaded;
+- a change of lying posture group (back, left side, right side, front) held for ``settle_s``; a change of
+  tilt on the same side (30 to 60 degrees) is not one by itself, since the posture estimate may waver
+  between neighbouring tilts and the same side stays loaded;
 - or, in the same posture, the offloading of the sites at risk (those loaded at or above the threshold for
   ``settle_s`` since the last turn): at least half of them below half the threshold for ``settle_s``, as
   a pillow that floats the heels and a small tilt the posture estimate misses do. A restless patient
@@ -25,7 +23,6 @@ repeated every ``repeat_s`` while overdue, each repeat a new alarm, until a turn
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 from appliance.alerts.anatomy import LYING, check_posture, posture_group
@@ -72,7 +69,6 @@ class TurnClock:
         self.posture: str | None = None             # the settled posture (None: nothing seen yet)
         self.candidate: str | None = None           # a new posture waiting to settle, and since when
         self.candidate_since: float | None = None
-        self.candidate_relieved = False             # whether, while it settles, a site at risk was relieved
         self.reference: str | None = None           # the lying posture the last turn (or lying down) left
         self.last_turn_s: float | None = None       # when the clock started: None while the bed is empty
         self.away_since: float | None = None
@@ -97,17 +93,15 @@ class TurnClock:
         return ("due", 0) if late < 0 else ("overdue", 1 + int(late // self.repeat_s))
 
     def update(self, now_s: float, posture: str, peaks: dict[str, float],
-               alarmed: frozenset[str] = frozenset(),
-               load_where: Callable[[str], float] | None = None) -> list[TurnEvent]:
+               alarmed: frozenset[str] = frozenset()) -> list[TurnEvent]:
         """The events this frame brings: ``posture`` as estimated now, ``peaks`` the kPa at each located site,
-        ``alarmed`` the sites with a pressure alarm open (reported if a turn leaves them loaded), and
-        ``load_where(site)`` the load now where that site last lay (None: not known, no check)."""
+        ``alarmed`` the sites with a pressure alarm open (reported if a turn leaves them loaded)."""
         check_posture(posture)
         loaded = {s for s, kpa in peaks.items() if kpa >= self.at_risk_kpa}
         self.loaded_since = {s: self.loaded_since.get(s, now_s) for s in loaded}
-        events = self._settle(now_s, posture, load_where)
+        events = self._settle(now_s, posture)
         if self.posture in LYING and self.last_turn_s is not None and not events:
-            events = self._offloading(now_s, load_where or (lambda site: peaks.get(site, 0.0)))
+            events = self._offloading(now_s, peaks)
         if self.posture == "out-of-bed" and self.last_turn_s is not None and self.away_since is not None \
                 and now_s - self.away_since >= self.away_s:
             self.last_turn_s = self.reference = None
@@ -130,22 +124,17 @@ class TurnClock:
         return [TurnEvent(now_s, "recorded", self.posture, how="by hand", user=user.strip()),
                 *self._still_loaded(now_s, loaded, alarmed)]
 
-    def _settle(self, now_s: float, posture: str, load_where: Callable[[str], float] | None) -> list[TurnEvent]:
+    def _settle(self, now_s: float, posture: str) -> list[TurnEvent]:
         """Hold a new posture for ``settle_s``, then act on the change, dated from when it began."""
         if posture == self.posture:
             self.candidate = self.candidate_since = None
-            self.candidate_relieved = False
             return []
         if posture != self.candidate:
             self.candidate, self.candidate_since = posture, now_s
-            self.candidate_relieved = False
-        if load_where is not None and any(load_where(s) < self.at_risk_kpa / 2 for s in self.at_risk):
-            self.candidate_relieved = True
         if now_s - self.candidate_since < self.settle_s:
             return []
-        since, previous, relieved = self.candidate_since, self.posture, self.candidate_relieved
+        since, previous = self.candidate_since, self.posture
         self.posture, self.candidate, self.candidate_since = posture, None, None
-        self.candidate_relieved = False
         if posture == "out-of-bed":
             self.away_since = since
             return []
@@ -161,20 +150,17 @@ class TurnClock:
             return []
         if posture_group(posture) == posture_group(self.reference):
             return []
-        if not (load_where is None or relieved or not self.at_risk):   # the body has not moved off its sites
-            return []
         before = self.reference
         self._turned(since)
         self.reference = posture
         return [TurnEvent(since, "repositioned", posture, before, "posture")]
 
-    def _offloading(self, now_s: float, load: Callable[[str], float]) -> list[TurnEvent]:
-        """A turn in the same posture: most of the sites at risk below half the threshold, where they lay, for
-        ``settle_s``."""
+    def _offloading(self, now_s: float, peaks: dict[str, float]) -> list[TurnEvent]:
+        """A turn in the same posture: most of the sites at risk below half the threshold for ``settle_s``."""
         if not self.at_risk:
             self.offloaded_since = None
             return []
-        relieved = [s for s in self.at_risk if load(s) < self.at_risk_kpa / 2]
+        relieved = [s for s in self.at_risk if peaks.get(s, 0.0) < self.at_risk_kpa / 2]
         if len(relieved) < OFFLOADED_SHARE * len(self.at_risk):
             self.offloaded_since = None
             return []
@@ -199,7 +185,6 @@ class TurnClock:
     def state(self) -> dict:
         """Everything needed to carry on after a restart, as plain JSON types."""
         return {"posture": self.posture, "candidate": self.candidate, "candidate_since": self.candidate_since,
-                "candidate_relieved": self.candidate_relieved,
                 "reference": self.reference, "last_turn_s": self.last_turn_s, "away_since": self.away_since,
                 "loaded_since": dict(self.loaded_since), "at_risk": sorted(self.at_risk),
                 "offloaded_since": self.offloaded_since}
@@ -209,7 +194,6 @@ class TurnClock:
         for name in ("posture", "candidate", "candidate_since", "reference", "last_turn_s", "away_since",
                      "offloaded_since"):
             setattr(self, name, state.get(name))
-        self.candidate_relieved = bool(state.get("candidate_relieved", False))
         self.loaded_since = {str(s): float(t) for s, t in (state.get("loaded_since") or {}).items()}
         self.at_risk = set(state.get("at_risk") or ())
         return self
