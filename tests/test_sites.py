@@ -17,7 +17,7 @@ from appliance.sim.recordings import pmat_scene, resample_onto
 
 MONITOR_CELLS = MatGrid(900.0, 1900.0, 1900.0 / 64)
 PITCH = (1900.0 / 64, 900.0 / 30)
-PMAT = Path("/work/shared/data/pmatdata")
+PMAT = Path(__file__).resolve().parents[2] / "shared" / "data" / "pmatdata"
 TRAINING = (1, 2, 3, 5, 7, 8, 9, 10)          # S4, S6 and S11 are held out for validating the product
 LOCATOR_POSTURE = {"supine": "supine", "left-30": "left-30", "right-30": "right-30",
                    "head-raised-30": "inclined", "head-raised-45": "inclined"}

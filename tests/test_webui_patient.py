@@ -2,7 +2,7 @@
 patient's history kept under their identifier; bad input refused with the reason and nothing queued."""
 
 from test_daemon import FlakySource, small_daemon
-from webui_client import PASSWORD, log_in, set_up, token
+from webui_client import client_as, token
 
 from appliance.service.live import LiveChannel, read_live
 from appliance.store import Store
@@ -11,11 +11,7 @@ from webui import create_app
 
 def test_a_nurse_admits_turns_and_discharges_and_the_patients_history_stays(small_mat_calibration, tmp_path):
     daemon, events = small_daemon(small_mat_calibration, tmp_path, FlakySource(failing=()), alarm_dose=0.05)
-    app = create_app(tmp_path, secure_cookies=False, TESTING=True)
-    set_up(app.test_client())
-    app.extensions["users"].create("nurse.jones", PASSWORD, "nurse", by="admin.ward3")
-    client = app.test_client()
-    log_in(client, "nurse.jones")
+    client = client_as(create_app(tmp_path, secure_cookies=False, TESTING=True), "nurse", "nurse.jones")
     daemon.run(1)
     csrf = token(client, "/patient")
     refused = client.post("/patient/admit", data={"csrf_token": csrf, "patient_id": "MRN-7", "braden": "40"},

@@ -10,6 +10,7 @@ it names nothing. Site names come from looking at the rendered panels.
 """
 
 import sys
+from pathlib import Path
 
 import numpy as np
 from scipy.ndimage import gaussian_filter, maximum_filter
@@ -22,7 +23,8 @@ KPA_PER_MMHG = 0.133322
 LOADED_MMHG = 32.0
 MERGE_MM = 40.0
 MAX_SPOTS = 12
-PMAT_DIR, POPU_DIR = "/work/shared/data/pmatdata", "/work/shared/data/popu"
+SHARED = Path(__file__).resolve().parents[4] / "shared" / "data"      # beside the repository
+PMAT_DIR, POPU_DIR = str(SHARED / "pmatdata"), str(SHARED / "popu")
 NAMES = {1: "supine", 2: "right side 90", 3: "left side 90", 4: "right 30", 5: "right 60", 6: "left 30",
          7: "left 60", 8: "supine var 8", 9: "supine var 9", 10: "supine var 10", 11: "supine var 11",
          12: "supine var 12", 13: "right fetal", 14: "left fetal", 15: "head up 30", 16: "head up 45",
