@@ -9,6 +9,7 @@ import pytest
 
 from appliance.alerts.episodes import Episode
 from appliance.alerts.pipeline import AlertPipeline, AlertSettings
+from appliance.alerts.posture import PostureEstimate
 from appliance.core.layouts import get_layout
 from appliance.core.pixels import pixel_grid
 from appliance.core.pressure import KPA_PER_MMHG
@@ -35,7 +36,7 @@ class ScriptedBody:
         self.posture, self.readings = "out-of-bed", []
 
     def classify(self, view):
-        return self.posture
+        return PostureEstimate.certain(self.posture)
 
     def locate(self, view, posture):
         return list(self.readings)
@@ -151,6 +152,39 @@ def test_a_turned_patient_gets_no_pressure_alarm_and_no_overdue_reminder():
         events += [pipeline.record(e) for e in out.turn_events + out.alarm_events]
     assert not raised(events) and not raised(events, "turn:overdue")
     assert len([e for e in events if e.kind == "repositioned"]) == 11
+
+
+class UnsureBody(ScriptedBody):
+    """A body the posture model reads, for a while, as lying on the right side with little certainty (as it
+    reads a supine patient with the arms raised); the locator names what it is told the posture is."""
+
+    unsure = False
+
+    def classify(self, view):
+        if not self.unsure:
+            return super().classify(view)
+        return PostureEstimate("right-90", 0.56, {"right-90": 0.56, "inclined": 0.24, "supine": 0.20})
+
+    def locate(self, view, posture):
+        site = "trochanter-right" if posture == "right-90" else "sacrum"
+        return [Reading(site, 850.0, 450.0, SACRUM_MMHG * KPA_PER_MMHG)]
+
+
+def test_an_unsure_posture_is_no_turn_and_renames_no_site():
+    body = UnsureBody()
+    pipeline = pipeline_for(body)
+    events = run(pipeline, body, 60, posture="supine")
+    body.unsure = True
+    events += run(pipeline, body, 6 * 60, start=60)
+    assert (pipeline.posture, pipeline.posture_sure) == ("supine", False)
+    assert not [e for e in events if e.kind == "repositioned"]
+    assert [e.site for e in raised(events)] == ["sacrum"]                     # one dose, never split
+    assert "turn:due" in [e.key for e in raised(events, "turn:")]
+    body.unsure = False
+    body.posture = "right-90"                                                  # sure now: a turn
+    later = run(pipeline, body, 17, start=7 * 60)
+    assert [e.posture for e in later if e.kind == "repositioned"] == ["right-90"]
+    assert pipeline.posture_sure
 
 
 def test_admitting_a_new_patient_starts_doses_and_clock_afresh_and_keeps_the_old_ones_history():

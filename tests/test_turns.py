@@ -54,10 +54,29 @@ def test_a_restless_patient_whose_sites_stay_loaded_is_never_turned():
 def test_offloading_most_sites_at_risk_in_the_same_posture_is_a_turn_but_a_brief_lift_is_not():
     clock = TurnClock()
     floated = {"occiput": 5.0}                                # sacrum and both heels relieved
-    events = run(clock, lying("supine", 20) + [(20, "supine", floated)] + lying("supine", 20, start=21)
-                 + lying("supine", 5, peaks=floated, start=41))
+    events = run(clock, lying("supine", 20) + lying("supine", 10, peaks=floated, start=20)   # a skin check
+                 + lying("supine", 20, start=30) + lying("supine", 20, peaks=floated, start=50))
     assert kinds(events) == ["lay-down", "repositioned"]
-    assert events[1].time_s == 41 * MIN and "heel-left" in events[1].how and "sacrum" in events[1].how
+    assert events[1].time_s == 50 * MIN and "heel-left" in events[1].how and "sacrum" in events[1].how
+
+
+def test_a_new_position_counts_only_once_held_for_the_relief_time_and_reminders_wait_meanwhile():
+    clock = TurnClock()
+    run(clock, lying("supine", 120))
+    assert clock.reminder(120 * MIN) == ("due", 0)
+    brief = run(clock, lying("right-90", 10, start=120))     # misread, or rolled and back: relieved nothing
+    assert clock.turning_since == 120 * MIN and clock.reminder(129 * MIN) is None
+    brief += run(clock, lying("supine", 30, start=130))
+    assert kinds(brief) == [] and clock.last_turn_s == 0.0 and clock.reminder(159 * MIN) == ("overdue", 1)
+    held = run(clock, lying("left-30", 16, start=160))
+    assert kinds(held) == ["repositioned"] and held[0].time_s == 160 * MIN and clock.turning_since is None
+
+
+def test_sitting_up_in_bed_from_a_side_for_longer_than_the_relief_time_is_a_turn_onto_the_back():
+    clock = TurnClock()
+    events = run(clock, lying("left-30", 60) + lying("inclined", 20, start=60) + lying("supine", 30, start=80))
+    assert kinds(events) == ["lay-down", "repositioned"]
+    assert events[1].time_s == 60 * MIN and (events[1].previous, events[1].posture) == ("left-30", "inclined")
 
 
 def test_sitting_up_for_a_meal_is_no_turn_and_the_clock_runs_on():
@@ -68,7 +87,7 @@ def test_sitting_up_for_a_meal_is_no_turn_and_the_clock_runs_on():
 
 def test_coming_back_to_bed_on_the_other_side_after_a_meal_is_a_turn():
     clock = TurnClock()
-    events = run(clock, lying("right-30", 60) + lying("sitting-edge", 20, start=60) + lying("left-30", 5, start=80))
+    events = run(clock, lying("right-30", 60) + lying("sitting-edge", 20, start=60) + lying("left-30", 20, start=80))
     assert kinds(events) == ["lay-down", "repositioned"] and events[1].time_s == 80 * MIN
 
 
@@ -104,19 +123,20 @@ def test_a_turn_recorded_by_hand_names_who_and_reports_an_alarmed_site_still_loa
 
 def test_a_seen_turn_reports_the_alarmed_sites_it_left_loaded():
     clock = TurnClock()
-    events = run(clock, lying("supine", 10) + lying("left-30", 3, peaks={"heel-left": 7.0, "trochanter-left": 9.0},
+    events = run(clock, lying("supine", 10) + lying("left-30", 20, peaks={"heel-left": 7.0, "trochanter-left": 9.0},
                                                     start=10), alarmed=frozenset({"heel-left", "sacrum"}))
     assert [(e.kind, e.site) for e in events][1:] == [("repositioned", None), ("still-loaded", "heel-left")]
 
 
 def test_the_clock_carries_on_after_a_restart():
-    frames = lying("supine", 30) + lying("left-30", 1, start=30)
+    frames = lying("supine", 30) + lying("left-30", 5, start=30)          # a turn being held
     whole = TurnClock()
-    expected = run(whole, frames + lying("left-30", 5, start=31))
+    expected = run(whole, frames + lying("left-30", 15, start=35))
     clock = TurnClock()
     got = run(clock, frames)
     clock = TurnClock().restore(json.loads(json.dumps(clock.state())))
-    got += run(clock, lying("left-30", 5, start=31))
+    got += run(clock, lying("left-30", 15, start=35))
+    assert kinds(got) == ["lay-down", "repositioned"]
     assert got == expected
 
 

@@ -39,11 +39,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from appliance.alerts.alarms import AlarmCondition, AlarmEngine, AlarmEvent, Escalation
-from appliance.alerts.anatomy import (SITES, SMALL_MAT_SITE, UNIDENTIFIED_SITE, BodyView, body_view, is_bed,
-                                     site_words)
+from appliance.alerts.anatomy import (LYING, SITES, SMALL_MAT_SITE, UNIDENTIFIED_SITE, BodyView, body_view,
+                                     is_bed, site_words)
 from appliance.alerts.dose import MAX_DT_S, RELIEF_S, SiteDose, custom_curve, tolerance_curve
 from appliance.alerts.episodes import Episode
 from appliance.alerts.events import Event, as_event
+from appliance.alerts.posture import PostureEstimate
 from appliance.alerts.regions import RegionTracker
 from appliance.alerts.turns import DEFAULT_GRACE_S, DEFAULT_INTERVAL_S, DEFAULT_REPEAT_S, TurnClock, TurnEvent
 from appliance.core.pixels import PixelGrid
@@ -107,12 +108,11 @@ def _technical(technical: dict[str, str] | None) -> dict:
             for key, message in (technical or {}).items()}
 
 
-def default_classifier() -> Callable[[BodyView], str]:
+def default_classifier() -> Callable[[BodyView], PostureEstimate]:
     """The shipped posture model's estimate of a view."""
     from appliance.alerts.posture import default_posture_model
 
-    model = default_posture_model()
-    return lambda view: model.classify(view).posture
+    return default_posture_model().classify
 
 
 def default_locator() -> Callable[[BodyView, str], list]:
@@ -124,8 +124,10 @@ def default_locator() -> Callable[[BodyView, str], list]:
 class AlertPipeline:
     """Posture, sites, dose, turns and alarms for one mat's pixel grid, for the patient in the bed.
 
-    ``classify`` (view -> posture) and ``locate`` (view, posture -> site readings) default to the shipped
-    posture model and site locator.
+    ``classify`` (view -> :class:`~appliance.alerts.posture.PostureEstimate`) and ``locate`` (view, posture ->
+    site readings) default to the shipped posture model and site locator. An estimate that is not sure of its
+    group leaves the patient in the last sure lying posture: no turn is counted and no site renamed on a map the
+    model cannot tell (``posture_sure`` says so).
     """
 
     def __init__(self, grid: PixelGrid, settings: AlertSettings = AlertSettings(), *,
@@ -152,10 +154,11 @@ class AlertPipeline:
                              recovery=s.recovery,
                              relief_s=s.relief_s)
         self.turns = TurnClock(interval_s=s.turn_interval_s, grace_s=s.turn_grace_s, repeat_s=s.reminder_repeat_s,
-                               at_risk_kpa=s.threshold_kpa, away_s=s.relief_s)
+                               at_risk_kpa=s.threshold_kpa, away_s=s.relief_s, hold_s=s.relief_s)
         self.regions = RegionTracker(self.grid, threshold_kpa=s.threshold_kpa)
         self.tracked: list = []                                  # the last map's regions, each named by its site
-        self.posture: str | None = None                          # the last map's estimate
+        self.posture: str | None = None                          # the last map's posture (held while unsure)
+        self.posture_sure = True                                 # whether the model was sure of it
         self.sites: list[LocatedSite] = []                       # the last map's located sites
         self.places: dict[str, tuple[float, float]] = {}         # where each site was last found, mm
 
@@ -209,7 +212,7 @@ class AlertPipeline:
             x, y = self.grid.centres_mm[int(np.argmax(kpa))]
             return None, [LocatedSite(SMALL_MAT_SITE, float(x), float(y), float(kpa.max()))]
         view = body_view(kpa, self.grid)
-        posture = self._classify(view)
+        posture = self._sure_posture(self._classify(view))
         if posture == "out-of-bed":
             if kpa.max() < self.settings.threshold_kpa:
                 return posture, []
@@ -222,6 +225,13 @@ class AlertPipeline:
             x, y = view.mat_mm(reading.along_mm, reading.across_mm)
             located.append(LocatedSite(reading.site, float(x), float(y), float(reading.peak_kpa)))
         return posture, located
+
+    def _sure_posture(self, estimate: PostureEstimate) -> str:
+        """The estimate's posture when the model is sure of its group; otherwise the last lying posture, held
+        until a sure estimate says the patient has moved."""
+        self.posture_sure = estimate.sure
+        held = self.posture in LYING or self.posture == "inclined"
+        return estimate.posture if estimate.sure or not held else self.posture
 
     def _named_regions(self, pressure_map: PressureMap, located: list[LocatedSite]) -> list:
         """This frame's tracked regions, each named by the most loaded site inside it (None where none is)."""

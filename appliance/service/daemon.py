@@ -295,9 +295,10 @@ class MonitorDaemon:
             "status": {"maps": self.maps, "faults": self.faults, "consecutive_faults": self.consecutive_faults,
                        "last_fault": self.last_fault, "source": self.config.source},
             "turn": {"last_turn_s": turns.last_turn_s, "due_in_s": turns.due_in_s(now), "bed_empty": turns.bed_empty,
-                     "interval_s": turns.interval_s},
+                     "interval_s": turns.interval_s, "turning_since_s": turns.turning_since},
             "posture": self.pipeline.posture,
             "posture_words": POSTURE_WORDS.get(self.pipeline.posture),
+            "posture_sure": self.pipeline.posture_sure,
             "patient": None if self.pipeline.episode is None else
             {k: getattr(self.pipeline.episode, k) for k in ("patient_id", "name", "braden", "bed_exit_alert")},
             "sites": [{"site": s.site, "words": site_words(s.site),

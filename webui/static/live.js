@@ -45,8 +45,12 @@ function draw(snapshot) {
   const patient = snapshot.patient;
   document.getElementById("patient").textContent = patient ? patient.patient_id + (patient.name ? ` (${patient.name})` : "")
                                                            : "not admitted";
-  document.getElementById("posture").textContent = snapshot.posture_words || snapshot.posture || "-";
-  document.getElementById("turn").textContent = clock(snapshot.turn && snapshot.turn.due_in_s);
+  const posture = snapshot.posture_words || snapshot.posture || "-";
+  document.getElementById("posture").textContent =
+    snapshot.posture_sure === false ? `${posture} (kept: the latest map is unclear)` : posture;
+  const turn = snapshot.turn || {};
+  document.getElementById("turn").textContent = turn.turning_since_s == null ? clock(turn.due_in_s)
+    : `${clock(turn.due_in_s)} (a turn is being held: counted once it lasts)`;
   const alarms = document.getElementById("alarms");
   alarms.innerHTML = "";
   for (const a of snapshot.alarms || []) {
