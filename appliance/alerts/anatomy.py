@@ -59,6 +59,11 @@ def posture_group(posture: str) -> str:
     return "supine" if posture in ("supine", "inclined") else "prone/other"
 
 
+def in_bed(posture: str | None) -> bool:
+    """Lying, or sitting up in bed with the head of the bed raised (which counts as lying on the back)."""
+    return posture in LYING or posture == "inclined"
+
+
 def tilt_deg(posture: str) -> int | None:
     """How far a side posture rolls onto its side: 30, 60 or 90 (curled up counts as 90); None otherwise."""
     if posture_side(posture) is None:

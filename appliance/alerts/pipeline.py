@@ -39,8 +39,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from appliance.alerts.alarms import AlarmCondition, AlarmEngine, AlarmEvent, Escalation
-from appliance.alerts.anatomy import (LYING, SITES, SMALL_MAT_SITE, UNIDENTIFIED_SITE, BodyView, body_view,
-                                     is_bed, site_words)
+from appliance.alerts.anatomy import (SITES, SMALL_MAT_SITE, UNIDENTIFIED_SITE, BodyView, body_view, in_bed,
+                                     is_bed, posture_group, site_words)
 from appliance.alerts.dose import MAX_DT_S, RELIEF_S, SiteDose, custom_curve, tolerance_curve
 from appliance.alerts.episodes import Episode
 from appliance.alerts.events import Event, as_event
@@ -53,6 +53,11 @@ from appliance.errors import ConfigError
 
 ESCALATE_AFTER_S = 15 * 60.0
 OVERDUE_ESCALATE_S = 60.0             # an overdue reminder reaches the ward station after a minute unanswered
+FOLLOW_MM = 45.0
+"""A site the locator does not name on a map keeps being dosed with the load where it last lay, within this
+distance (one and a half 30 mm pixels: a restless patient's shift between two namings), as long as the patient
+lies in the posture group it was named in: the tissue is still loaded whatever the names do. A turn to another
+group ends it, and an unloaded place relieves the site."""
 MAX_COUNTED_GAP_S = 12 * 3600.0
 """A gap between maps (the monitor off, or paused for maintenance) counts as the new map's pressure held since
 the last one, as every frame does, up to this long: by then any loaded tissue is long past its tolerance, and a
@@ -161,6 +166,7 @@ class AlertPipeline:
         self.posture_sure = True                                 # whether the model was sure of it
         self.sites: list[LocatedSite] = []                       # the last map's located sites
         self.places: dict[str, tuple[float, float]] = {}         # where each site was last found, mm
+        self.place_groups: dict[str, str] = {}                   # and in which posture group
 
     # --- frames ----------------------------------------------------------
 
@@ -169,7 +175,7 @@ class AlertPipeline:
         message while it holds."""
         now = pressure_map.time_s
         posture, located = self._read_body(pressure_map)
-        peaks = {s.site: s.peak_kpa for s in located}
+        peaks = {**self._where_sites_lay(pressure_map, posture, located), **{s.site: s.peak_kpa for s in located}}
         if self.last_time_s is not None and now > self.last_time_s:
             gap = min(now - self.last_time_s, MAX_COUNTED_GAP_S)
             while gap > 0:                          # a gap (a restart, a pause for maintenance) in steps
@@ -179,6 +185,8 @@ class AlertPipeline:
         self.last_time_s = now
         self.posture, self.sites = posture, located
         self.places.update({s.site: (s.x_mm, s.y_mm) for s in located})
+        if in_bed(posture):
+            self.place_groups.update({s.site: posture_group(posture) for s in located})
         self.tracked = self._named_regions(pressure_map, located)
         doses = self.dose.doses()
         alarmed = frozenset(key.split(":", 1)[1] for key in self.clinical if key.startswith("pressure:"))
@@ -226,12 +234,24 @@ class AlertPipeline:
             located.append(LocatedSite(reading.site, float(x), float(y), float(reading.peak_kpa)))
         return posture, located
 
+    def _where_sites_lay(self, pressure_map: PressureMap, posture: str | None, located: list[LocatedSite]) -> dict:
+        """The load within ``FOLLOW_MM`` of where each site not named on this map last lay, for the sites named in
+        the posture group the patient still lies in."""
+        group = posture_group(posture) if in_bed(posture) else None
+        named = {s.site for s in located}
+        kpa = np.nan_to_num(np.asarray(pressure_map.pressure_kpa, dtype=float)).ravel()
+        out = {}
+        for site, (x, y) in self.places.items():
+            if site not in named and group is not None and self.place_groups.get(site) == group:
+                near = np.hypot(self.grid.centres_mm[:, 0] - x, self.grid.centres_mm[:, 1] - y) <= FOLLOW_MM
+                out[site] = float(kpa[near].max()) if near.any() else 0.0
+        return out
+
     def _sure_posture(self, estimate: PostureEstimate) -> str:
         """The estimate's posture when the model is sure of its group; otherwise the last lying posture, held
         until a sure estimate says the patient has moved."""
         self.posture_sure = estimate.sure
-        held = self.posture in LYING or self.posture == "inclined"
-        return estimate.posture if estimate.sure or not held else self.posture
+        return estimate.posture if estimate.sure or not in_bed(self.posture) else self.posture
 
     def _named_regions(self, pressure_map: PressureMap, located: list[LocatedSite]) -> list:
         """This frame's tracked regions, each named by the most loaded site inside it (None where none is)."""
@@ -326,7 +346,7 @@ class AlertPipeline:
         """Everything needed to carry on after a restart, as plain JSON types."""
         return {"regions": self.regions.state(), "dose": self.dose.state(), "turns": self.turns.state(),
                 "alarms": self.engine.state(), "last_time_s": self.last_time_s, "posture": self.posture,
-                "places": {site: list(xy) for site, xy in self.places.items()},
+                "places": {site: list(xy) for site, xy in self.places.items()}, "place_groups": self.place_groups,
                 "episode": None if self.episode is None else self.episode.to_dict(),
                 "clinical": [[c.to_dict(), detail] for c, detail in self.clinical.values()]}
 
@@ -351,5 +371,6 @@ class AlertPipeline:
         pipeline.last_time_s = state["last_time_s"]
         pipeline.posture = state.get("posture")
         pipeline.places = {site: (float(x), float(y)) for site, (x, y) in (state.get("places") or {}).items()}
+        pipeline.place_groups = {str(site): str(group) for site, group in (state.get("place_groups") or {}).items()}
         pipeline.clinical = {c["key"]: (AlarmCondition.from_dict(c), detail) for c, detail in state.get("clinical", [])}
         return pipeline

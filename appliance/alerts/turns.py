@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from appliance.alerts.anatomy import LYING, check_posture, posture_group
+from appliance.alerts.anatomy import LYING, check_posture, in_bed, posture_group
 from appliance.alerts.dose import RELIEF_S
 from appliance.core.pressure_map import HIGH_PRESSURE_KPA
 from appliance.errors import ConfigError
@@ -135,7 +135,7 @@ class TurnClock:
         if not isinstance(user, str) or not user.strip():
             raise ConfigError("a turn recorded by hand needs the name of who turned the patient")
         self._turned(now_s)
-        if _in_bed(self.posture):
+        if in_bed(self.posture):
             self.reference = self.posture
         loaded = {s for s, kpa in peaks.items() if kpa >= self.at_risk_kpa}
         return [TurnEvent(now_s, "recorded", self.posture, how="by hand", user=user.strip()),
@@ -159,9 +159,9 @@ class TurnClock:
         self.away_since = None
         if self.last_turn_s is None:                               # into an empty bed: the clock starts
             self._turned(since)
-            self.reference = posture if _in_bed(posture) else None
+            self.reference = posture if in_bed(posture) else None
             return [TurnEvent(since, "lay-down", posture, previous)]
-        if not _in_bed(posture):                                    # sitting on the edge: the clock runs on
+        if not in_bed(posture):                                    # sitting on the edge: the clock runs on
             return []
         if self.reference is None:
             self.reference = posture
@@ -173,7 +173,7 @@ class TurnClock:
 
     def _moved(self, now_s: float) -> list[TurnEvent]:
         """A new posture group held for ``hold_s``: a turn, dated from when it began."""
-        if self.moved_since is None or not _in_bed(self.posture) or now_s - self.moved_since < self.hold_s:
+        if self.moved_since is None or not in_bed(self.posture) or now_s - self.moved_since < self.hold_s:
             return []
         since, before = self.moved_since, self.reference
         self._turned(since)
@@ -223,8 +223,3 @@ class TurnClock:
         self.loaded_since = {str(s): float(t) for s, t in (state.get("loaded_since") or {}).items()}
         self.at_risk = set(state.get("at_risk") or ())
         return self
-
-
-def _in_bed(posture: str | None) -> bool:
-    """Lying, or sitting up in bed with the head of the bed raised (which counts as lying on the back)."""
-    return posture in LYING or posture == "inclined"
