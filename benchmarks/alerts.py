@@ -38,7 +38,7 @@ import numpy as np
 from appliance.alerts.anatomy import body_view, posture_group, tilt_deg
 from appliance.alerts.dose import SiteDose, tolerance_curve
 from appliance.alerts.pipeline import AlertPipeline, AlertSettings
-from appliance.alerts.posture import default_posture_model
+from appliance.alerts.posture import SURE_GROUP_PROBABILITY, default_posture_model
 from appliance.alerts.sites import label_cells, locate_sites
 from appliance.core.layouts import get_layout
 from appliance.core.model_cache import cached_model, default_setup
@@ -118,9 +118,10 @@ def posture_and_sites(chain: Chain) -> dict:
             read = list(chain.maps(still_scene(frame, 5 * MINUTE), [0.0, MINUTE]))[-1].pressure_kpa
             labelled = [s for s in spots if s.subject == subject and s.posture_file == posture_file]
             for which, view in (("true", true_view), ("read", body_view(read, chain.grid))):
-                estimate = model.classify(view).posture
+                found = model.classify(view)
+                estimate = found.posture
                 pairs = labels_at_spots(true_view, label_cells(view, estimate), labelled)
-                out[which].append((subject, posture_file, estimate, pairs))
+                out[which].append((subject, posture_file, estimate, pairs, found.sure))
     return out
 
 
@@ -128,20 +129,24 @@ def posture_rows(results) -> list[list]:
     rows = []
     for which, label in (("true", "true maps (30 mm pixels)"), ("read", "maps read through the chain")):
         items = results[which]
-        truth = [POSTURE_OF_FILE[p] for _, p, _, _ in items]
-        guess = [g for _, _, g, _ in items]
-        groups = np.mean([posture_group(t) == posture_group(g) for t, g in zip(truth, guess)])
+        truth = [POSTURE_OF_FILE[p] for _, p, *_ in items]
+        guess = [g for _, _, g, *_ in items]
+        sure = [s for *_, s in items]
+        right = [posture_group(t) == posture_group(g) for t, g in zip(truth, guess)]
         sides = [(t, g) for t, g in zip(truth, guess) if tilt_deg(t) is not None]
         tilts = np.mean([tilt_deg(t) == tilt_deg(g) for t, g in sides])
         exact = np.mean([t == g for t, g in zip(truth, guess)])
-        rows.append([label, len(items), f"{groups:.1%}", f"{tilts:.1%} of {len(sides)}", f"{exact:.1%}"])
+        wrong_sure = sum(1 for ok, s in zip(right, sure) if not ok and s)
+        rows.append([label, len(items), f"{np.mean(right):.1%}", f"{tilts:.1%} of {len(sides)}", f"{exact:.1%}",
+                     f"{len(sure) - sum(sure)} ({sum(1 for ok, s in zip(right, sure) if not ok and not s)} wrong)",
+                     wrong_sure])
     return rows
 
 
 def site_rows(results) -> tuple[list[list], dict]:
     rows, wrong = [], {}
     for which, label in (("true", "true maps (30 mm pixels)"), ("read", "maps read through the chain")):
-        pairs = [pair for *_, found in results[which] for pair in found]
+        pairs = [pair for *_, found, _ in results[which] for pair in found]
         named = [(hand, got) for hand, got, _ in pairs if hand]
         rows.append([label, len(pairs), f"{np.mean([h == g for h, g, _ in pairs]):.1%}", len(named),
                      f"{np.mean([h == g for h, g in named]):.1%}"])
@@ -392,7 +397,12 @@ Groups: supine (with the head of the bed raised), left, right, prone or other; t
 among the side postures (curled counts as 90). The leave-one-subject-out study over all eleven subjects,
 the confusion matrices and the prone maps are in `benchmarks/posture.md` (`python benchmarks/posture.py`).
 
-{table(["maps", "n", "group right", "tilt right", "posture right"], posture_rows(sites))}
+{table(["maps", "n", "group right", "tilt right", "posture right", "unsure (of them wrong)", "wrong and sure"],
+        posture_rows(sites))}
+
+"Unsure": the postures of the estimate's group have less than {SURE_GROUP_PROBABILITY} probability together (the
+floor chosen on the training subjects' leave-one-out study, `alerts/posture.py`); the alert layer then keeps the
+last sure lying posture, so such a map neither counts as a turn nor renames the sites.
 
 ## Sites against the hand labels
 
@@ -428,9 +438,10 @@ after the truth); a false alarm is a site alarm where the truth has none.
 
 ## Turns and reminders through the chain
 
-Repositionings seen against the changes of posture group the night holds; reminders raised (hours from
-the start): due at the 2 h interval (medium), overdue 30 min later (high, escalated) and repeated every
-30 min until a turn; sacral alarms raised.
+Repositionings seen against the changes of posture group the night holds (a new position counts once it has
+lasted the relief time, 15 min, dated from its start; no reminder is raised while one is being held);
+reminders raised (hours from the start): due at the 2 h interval (medium), overdue 30 min later (high,
+escalated) and repeated every 30 min until a turn; sacral alarms raised.
 
 {table(["night", "subject", "turns seen", "turn due (h)", "overdue (h)", "sacral alarms"],
        reminder_rows(results))}
