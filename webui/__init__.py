@@ -6,7 +6,8 @@ log). ``create_ward_app`` makes the ward station's screen from the same parts:
 its own accounts, and the ward page instead of one bed's. The session key
 is made once and kept in ``webui.key`` (mode 0600) so a restart does not log
 everyone out. Cookies are HttpOnly, SameSite=Strict and, unless ``secure_cookies``
-is turned off for plain-HTTP tests, Secure.
+is turned off for plain-HTTP tests, Secure. Every response carries the headers of
+:mod:`webui.headers`.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from pathlib import Path
 from flask import Flask, current_app, g, redirect, url_for
 
 from webui import accounts, alarms, auth, engineering, history, live, patient, settings, ward
+from webui.headers import add_security_headers
 from webui.security import LoginLimiter, csrf_token, guard
 from webui.users import UserStore
 
@@ -46,6 +48,7 @@ def create_app(data_dir, *, secure_cookies: bool = True, blueprints=BLUEPRINTS, 
     app.extensions["users"] = UserStore(data_dir / "webui.db")
     app.extensions["login_limiter"] = LoginLimiter()
     app.before_request(guard)
+    app.after_request(add_security_headers)
     app.jinja_env.globals.update(csrf_token=csrf_token, nav_links=nav_links)
     for blueprint in blueprints:
         app.register_blueprint(blueprint)

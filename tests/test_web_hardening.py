@@ -1,0 +1,66 @@
+"""The screen against an attacker: redirects, sessions, passwords, login limits, audit size, headers, files, load.
+
+Each test drives the app as a browser would (Flask's test client, or a real
+waitress server where the server's own limits are the point) and none depends on
+how fast the machine is.
+"""
+
+import re
+
+import pytest
+from webui_client import client_as, log_in, set_up, token
+
+from webui import create_app
+
+NEW = "staple battery horse"
+
+
+@pytest.fixture
+def app(tmp_path):
+    return create_app(tmp_path, secure_cookies=False, TESTING=True, STREAM_MAX_S=1.0)
+
+
+def post(client, path, **data):
+    return client.post(path, data={"csrf_token": token(client, "/account/password"), **data})
+
+
+# -- headers -------------------------------------------------------------------------------------------------------
+
+def assert_hardened(answer):
+    policy = answer.headers.get("Content-Security-Policy", "")
+    assert "default-src 'self'" in policy and "frame-ancestors 'none'" in policy and "unsafe-inline" not in policy
+    assert answer.headers["X-Frame-Options"] == "DENY"
+    assert answer.headers["X-Content-Type-Options"] == "nosniff"
+    assert answer.headers["Referrer-Policy"] in ("same-origin", "no-referrer")
+
+
+def test_every_kind_of_response_carries_the_security_headers(app):
+    anonymous = app.test_client()
+    assert_hardened(anonymous.get("/setup"))
+    set_up(anonymous)
+    admin = app.test_client()
+    for answer in (admin.get("/login"), admin.get("/"), admin.get("/api/live"), admin.get("/no/such/page"),
+                   admin.post("/logout"), log_in(admin, "admin.ward3", "wrong password!")):
+        assert_hardened(answer)
+    log_in(admin, "admin.ward3")
+    with admin.get("/static/style.css") as css:
+        assert_hardened(css)
+    for path in ("/", "/accounts", "/history/summary"):
+        assert_hardened(admin.get(path))
+
+
+INLINE = re.compile(r"<script(?![^>]*\bsrc=)[^>]*>|<style|\sstyle=|\son[a-z]+=|javascript:", re.IGNORECASE)
+
+
+def test_no_page_has_inline_script_or_style_the_policy_would_block(app):
+    admin = client_as(app, "admin", "admin.ward3")
+    for rule in app.url_map.iter_rules():
+        if "GET" not in rule.methods or rule.arguments or rule.endpoint == "static":
+            continue
+        answer = admin.get(rule.rule)
+        if answer.mimetype == "text/html":
+            page = answer.get_data(as_text=True)
+            assert not INLINE.search(page), (rule.rule, INLINE.search(page).group(0))
+        answer.close()
+    for path in ("/setup", "/login"):
+        assert not INLINE.search(app.test_client().get(path).get_data(as_text=True))
