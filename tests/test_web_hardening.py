@@ -5,7 +5,9 @@ waitress server where the server's own limits are the point) and none depends on
 how fast the machine is.
 """
 
+import os
 import re
+import stat
 
 import pytest
 from webui_client import client_as, log_in, set_up, token
@@ -64,3 +66,29 @@ def test_no_page_has_inline_script_or_style_the_policy_would_block(app):
         answer.close()
     for path in ("/setup", "/login"):
         assert not INLINE.search(app.test_client().get(path).get_data(as_text=True))
+
+
+# -- files ---------------------------------------------------------------------------------------------------------
+
+def mode(path):
+    return stat.S_IMODE(path.stat().st_mode)
+
+
+def test_the_accounts_database_and_the_session_key_are_made_owner_only(tmp_path):
+    old = os.umask(0o022)
+    try:
+        app = create_app(tmp_path, secure_cookies=False, TESTING=True)
+        set_up(app.test_client())
+    finally:
+        os.umask(old)
+    files = sorted(p.name for p in tmp_path.glob("webui.*"))
+    assert {"webui.db", "webui.key"} <= set(files)
+    assert {name: mode(tmp_path / name) for name in files} == {name: 0o600 for name in files}
+
+
+def test_files_left_readable_by_an_older_version_are_narrowed_when_opened(tmp_path):
+    create_app(tmp_path, secure_cookies=False, TESTING=True)
+    for name in ("webui.db", "webui.key"):
+        os.chmod(tmp_path / name, 0o644)
+    create_app(tmp_path, secure_cookies=False, TESTING=True)
+    assert mode(tmp_path / "webui.db") == mode(tmp_path / "webui.key") == 0o600

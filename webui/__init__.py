@@ -12,7 +12,6 @@ is turned off for plain-HTTP tests, Secure. Every response carries the headers o
 
 from __future__ import annotations
 
-import os
 import secrets
 from datetime import timedelta
 from pathlib import Path
@@ -21,6 +20,7 @@ from flask import Flask, current_app, g, redirect, url_for
 
 from webui import accounts, alarms, auth, engineering, history, live, patient, settings, ward
 from webui.headers import add_security_headers
+from webui.private import private_file
 from webui.security import LoginLimiter, csrf_token, guard
 from webui.users import UserStore
 
@@ -72,9 +72,7 @@ def nav_links() -> list[tuple[str, str]]:
 
 
 def _secret_key(path: Path) -> bytes:
-    """The key in ``path``, made (32 random bytes, owner-only) the first time."""
-    if not path.exists():
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "wb") as f:
-            f.write(secrets.token_bytes(32))
-    return path.read_bytes()
+    """The key in ``path``, made (32 random bytes) the first time; owner-only, also if it was made readable."""
+    if not path.exists() or path.stat().st_size == 0:
+        private_file(path).write_bytes(secrets.token_bytes(32))
+    return private_file(path).read_bytes()

@@ -4,7 +4,7 @@ Passwords are hashed with Argon2id (argon2-cffi, the OWASP-recommended memory-ha
 hash); nothing else about a password is kept. Roles are ordered: a nurse sees and
 acknowledges, an engineer also calibrates and diagnoses, an admin also manages
 accounts. Every acknowledgement and settings change is appended to the audit log
-with who did it and when.
+with who did it and when. The file is readable by its owner alone (:mod:`webui.private`).
 """
 
 from __future__ import annotations
@@ -17,6 +17,8 @@ from pathlib import Path
 
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError
+
+from webui.private import narrow, private_file
 
 ROLES = ("nurse", "engineer", "admin")
 MIN_PASSWORD_LENGTH = 10
@@ -47,11 +49,13 @@ class UserStore:
     """Accounts and the audit log in ``path``; one connection per call, so any thread may use it."""
 
     def __init__(self, path: Path):
-        self.path = Path(path)
+        self.path = private_file(Path(path))
         self.hasher = PasswordHasher()
         with self._db() as db:
             for statement in _SCHEMA:
                 db.execute(statement)
+        for suffix in ("-wal", "-shm"):                # SQLite gives these the main file's mode once it is narrow
+            narrow(self.path.with_name(self.path.name + suffix))
 
     def _db(self) -> sqlite3.Connection:
         db = sqlite3.connect(self.path, timeout=5.0)
