@@ -10,9 +10,11 @@ import re
 import stat
 
 import pytest
-from webui_client import client_as, log_in, set_up, token
+from webui_client import PASSWORD, client_as, log_in, set_up, token
 
 from webui import create_app
+from webui.passwords import common_passwords
+from webui.users import AccountError
 
 NEW = "staple battery horse"
 
@@ -24,6 +26,48 @@ def app(tmp_path):
 
 def post(client, path, **data):
     return client.post(path, data={"csrf_token": token(client, "/account/password"), **data})
+
+
+# -- passwords -----------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("password, message", [
+    ("password123", "most common"),
+    ("1234567890", "digits only"),
+    ("98765432101234", "digits only"),
+    ("qwertyuiop", "most common"),
+    ("Letmein2024!", "most common"),
+    ("PASSWORD!!!!", "most common"),
+    ("zzzzzzzzzzzz", "one repeated character"),
+    ("short one", "at least 10 characters"),
+    ("nurse.jones rocks", "must not contain the user name"),
+    ("my name is JONES ok", "must not contain the user name"),
+])
+def test_weak_passwords_are_refused_everywhere_with_the_reason(app, password, message):
+    users = app.extensions["users"]
+    with pytest.raises(AccountError, match=message):
+        users.create("nurse.jones", password, "nurse", by="admin")
+    fresh = create_app(app.config["LIVE_PATH"].parent / "fresh", secure_cookies=False, TESTING=True)
+    client = fresh.test_client()
+    first = client.post("/setup", data={"name": "nurse.jones", "password": password, "confirm": password,
+                                         "csrf_token": token(client, "/setup")})
+    assert first.status_code == 400 and message in first.get_data(as_text=True)
+    admin = client_as(app, "admin", "admin.ward3")
+    made = post(admin, "/accounts", name="nurse.jones", role="nurse", password=password, confirm=password)
+    assert made.status_code == 400 and message in made.get_data(as_text=True)
+    users.create("nurse.jones", PASSWORD, "nurse", by="admin.ward3")
+    reset = post(admin, "/accounts/nurse.jones/password", password=password)
+    assert reset.status_code == 400 and message in reset.get_data(as_text=True)
+    nurse = client_as(app, "nurse", "nurse.jones")
+    own = post(nurse, "/account/password", current=PASSWORD, password=password, confirm=password)
+    assert own.status_code == 400 and message in own.get_data(as_text=True)
+    assert users.verify("nurse.jones", PASSWORD)
+
+
+def test_long_passphrases_pass_and_the_common_list_is_shipped():
+    assert len(common_passwords()) >= 300 and {"123456", "password", "qwerty", "letmein"} <= common_passwords()
+    from webui.passwords import check
+    for good in (PASSWORD, NEW, "Tuesday kettle 42", "blue mug on the ward"):
+        check("nurse.jones", good)
 
 
 # -- headers -------------------------------------------------------------------------------------------------------

@@ -49,7 +49,7 @@ def test_a_fresh_screen_sends_everyone_to_set_up_the_first_admin(app):
     ("admin", "short", "short", "at least 10 characters"),
     ("Admin Ward", PASSWORD, PASSWORD, "a user name is 2-32 lower-case letters"),
     ("admin", PASSWORD, PASSWORD + "x", "the two passwords differ"),
-    ("admin.password", "admin.password", "admin.password", "must not be the user name"),
+    ("admin.password", "admin.password", "admin.password", "must not contain the user name"),
 ])
 def test_a_weak_first_account_is_refused_with_the_reason_and_nothing_is_made(app, name, password, confirm, message):
     client = app.test_client()

@@ -18,10 +18,11 @@ from pathlib import Path
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError
 
+from webui import passwords
 from webui.private import narrow, private_file
 
 ROLES = ("nurse", "engineer", "admin")
-MIN_PASSWORD_LENGTH = 10
+MIN_PASSWORD_LENGTH = passwords.MIN_LENGTH
 _NAME = re.compile(r"^[a-z0-9][a-z0-9._-]{1,31}$")
 _SCHEMA = (
     "CREATE TABLE IF NOT EXISTS users (name TEXT PRIMARY KEY, role TEXT NOT NULL, hash TEXT NOT NULL,"
@@ -158,10 +159,11 @@ def _check_role(role: str) -> None:
 
 
 def _check_password(name: str, password: str) -> None:
-    if len(password or "") < MIN_PASSWORD_LENGTH:
-        raise AccountError(f"a password needs at least {MIN_PASSWORD_LENGTH} characters")
-    if password.lower() == name.lower():
-        raise AccountError("the password must not be the user name")
+    try:
+        passwords.check(name, password)
+    except passwords.WeakPassword as exc:
+        raise AccountError(str(exc)) from None
+
 
 
 _DUMMY_HASH = PasswordHasher().hash("no such user: equal time for unknown names")
