@@ -13,8 +13,9 @@ import pytest
 from webui_client import PASSWORD, client_as, log_in, set_up, token
 
 from webui import create_app
+from webui.limiter import ADDRESS_ATTEMPTS, PAIR_ATTEMPTS, LoginLimiter
 from webui.passwords import common_passwords
-from webui.users import AccountError
+from webui.users import MAX_AUDIT_USER, AccountError, UserStore
 
 NEW = "staple battery horse"
 
@@ -24,8 +25,38 @@ def app(tmp_path):
     return create_app(tmp_path, secure_cookies=False, TESTING=True, STREAM_MAX_S=1.0)
 
 
+def from_address(app, address):
+    """A test client whose requests come from ``address``."""
+    client = app.test_client()
+    client.environ_base["REMOTE_ADDR"] = address
+    return client
+
+
 def post(client, path, **data):
     return client.post(path, data={"csrf_token": token(client, "/account/password"), **data})
+
+
+# -- the page after login ------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("target", [
+    "/\t/evil.example", "/\n/evil.example", "/\r\n/evil.example", "//evil.example", "/\\evil.example",
+    "\\/evil.example", "/\\/evil.example", "https://evil.example/", "javascript:alert(1)", " //evil.example",
+    "/\x00/evil.example", "evil.example", "",
+])
+def test_a_login_never_sends_the_browser_off_site(app, target):
+    set_up(app.test_client())
+    client = app.test_client()
+    answer = client.post("/login", query_string={"next": target},
+                         data={"name": "admin.ward3", "password": PASSWORD, "csrf_token": token(client)})
+    assert answer.status_code == 302 and answer.headers["Location"] == "/"
+
+
+def test_a_login_returns_to_the_local_page_asked_for(app):
+    set_up(app.test_client())
+    client = app.test_client()
+    answer = client.post("/login", query_string={"next": "/history?hours=8"},
+                         data={"name": "admin.ward3", "password": PASSWORD, "csrf_token": token(client)})
+    assert answer.headers["Location"] == "/history?hours=8"
 
 
 # -- passwords -----------------------------------------------------------------------------------------------------
@@ -68,6 +99,85 @@ def test_long_passphrases_pass_and_the_common_list_is_shipped():
     from webui.passwords import check
     for good in (PASSWORD, NEW, "Tuesday kettle 42", "blue mug on the ward"):
         check("nurse.jones", good)
+
+
+# -- login limits --------------------------------------------------------------------------------------------------
+
+def test_failures_from_one_address_lock_that_account_there_not_others_nor_other_addresses(app):
+    users = app.extensions["users"]
+    set_up(app.test_client())
+    users.create("nurse.jones", PASSWORD, "nurse", by="admin.ward3")
+    attacker = from_address(app, "10.0.0.66")
+    codes = [log_in(attacker, "admin.ward3", f"guess number {n}").status_code for n in range(PAIR_ATTEMPTS + 1)]
+    assert codes == [401] * PAIR_ATTEMPTS + [429]
+    assert log_in(from_address(app, "10.0.0.66"), "nurse.jones").status_code == 302   # another account, same address
+    assert log_in(from_address(app, "10.0.0.12"), "admin.ward3").status_code == 302   # same account, elsewhere
+    assert log_in(app.test_client(), "admin.ward3").status_code == 302                # the bedside's own screen
+
+
+def test_an_address_guessing_through_many_accounts_is_locked_for_all(app):
+    set_up(app.test_client())
+    attacker = from_address(app, "10.0.0.66")
+    codes = [log_in(attacker, f"guess{n}", "wrong password!").status_code for n in range(ADDRESS_ATTEMPTS)]
+    assert codes == [401] * ADDRESS_ATTEMPTS
+    assert log_in(attacker, "admin.ward3").status_code == 429
+    assert log_in(from_address(app, "10.0.0.12"), "admin.ward3").status_code == 302
+
+
+def test_guesses_from_many_addresses_lock_the_account_but_never_on_the_bedside_screen(app):
+    app.extensions["login_limiter"] = LoginLimiter(pair_attempts=2, address_attempts=3, account_attempts=4)
+    set_up(app.test_client())
+    for n in range(4):
+        assert log_in(from_address(app, f"10.0.1.{n}"), "admin.ward3", "wrong password!").status_code == 401
+    assert log_in(from_address(app, "10.0.2.1"), "admin.ward3").status_code == 429
+    assert log_in(from_address(app, "127.0.0.1"), "admin.ward3").status_code == 302
+    assert log_in(from_address(app, "::1"), "admin.ward3").status_code == 302
+    actions = [e["action"] for e in app.extensions["users"].audit_log()]
+    assert actions.count("login locked") == 1                        # once, not at every refused try
+
+
+def test_logging_in_to_ones_own_account_does_not_wipe_ones_guesses_at_others():
+    limiter = LoginLimiter(pair_attempts=5, address_attempts=3, account_attempts=50)
+    for name in ("admin", "sister"):
+        limiter.failed(name, "10.0.0.66", now=0.0)
+    limiter.succeeded("intruder", "10.0.0.66")
+    limiter.failed("matron", "10.0.0.66", now=1.0)
+    assert limiter.blocked_for_s("intruder", "10.0.0.66", now=2.0) > 0
+
+
+def test_the_limiter_forgets_addresses_and_names_it_no_longer_needs(monkeypatch):
+    import webui.limiter
+
+    monkeypatch.setattr(webui.limiter, "SWEEP_EVERY", 10)
+    limiter = LoginLimiter(window_s=60.0)
+    for n in range(9):
+        limiter.failed(f"name{n}", f"10.0.0.{n}", now=0.0)
+    limiter.failed("late", "10.0.9.9", now=100.0)                   # the tenth: the others are out of the window
+    assert set(limiter._failures) == {("addr", "10.0.9.9"), ("pair", "late", "10.0.9.9"), ("account", "late")}
+
+
+# -- audit log size ------------------------------------------------------------------------------------------------
+
+def test_an_over_long_user_name_is_refused_at_once_and_logged_cut_short(app):
+    set_up(app.test_client())
+    client = from_address(app, "10.0.0.66")
+    name = "x" * 200_000
+    answer = client.post("/login", data={"name": name, "password": "whatever it is", "csrf_token": token(client)})
+    assert answer.status_code == 400 and "at most 64 characters" in answer.get_data(as_text=True)
+    assert name[:1000] not in answer.get_data(as_text=True)
+    entry = app.extensions["users"].audit_log()[0]
+    assert entry["action"] == "login failed" and len(entry["user"]) < MAX_AUDIT_USER + 30
+    assert entry["user"].startswith("x" * MAX_AUDIT_USER) and entry["user"].endswith(f"(+{200_000 - 64} chars)")
+    codes = {client.post("/login", data={"name": name, "password": "p", "csrf_token": token(client)}).status_code
+             for _ in range(ADDRESS_ATTEMPTS)}
+    assert codes == {400, 429}                                      # the address is limited like any guesser
+
+
+def test_every_audit_entry_is_bounded(tmp_path):
+    users = UserStore(tmp_path / "webui.db")
+    users.audit("y" * 5000, "login failed", "z" * 50_000)
+    entry = users.audit_log()[0]
+    assert len(entry["user"]) < 100 and len(entry["detail"]) < 600 and entry["detail"].endswith("chars)")
 
 
 # -- headers -------------------------------------------------------------------------------------------------------

@@ -20,8 +20,9 @@ from flask import Flask, current_app, g, redirect, url_for
 
 from webui import accounts, alarms, auth, engineering, history, live, patient, settings, ward
 from webui.headers import add_security_headers
+from webui.limiter import LoginLimiter
 from webui.private import private_file
-from webui.security import LoginLimiter, csrf_token, guard
+from webui.security import csrf_token, guard
 from webui.users import UserStore
 
 SESSION_HOURS = 12          # one shift

@@ -4,7 +4,8 @@ Passwords are hashed with Argon2id (argon2-cffi, the OWASP-recommended memory-ha
 hash); nothing else about a password is kept. Roles are ordered: a nurse sees and
 acknowledges, an engineer also calibrates and diagnoses, an admin also manages
 accounts. Every acknowledgement and settings change is appended to the audit log
-with who did it and when. The file is readable by its owner alone (:mod:`webui.private`).
+with who did it and when; its entries are bounded in size, so a request cannot
+fill the disk through it. The file is readable by its owner alone (:mod:`webui.private`).
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ from webui.private import narrow, private_file
 
 ROLES = ("nurse", "engineer", "admin")
 MIN_PASSWORD_LENGTH = passwords.MIN_LENGTH
+MAX_AUDIT_USER, MAX_AUDIT_DETAIL = 64, 512
+"""Longest user name and detail kept in an audit entry; longer ones are cut and marked."""
 _NAME = re.compile(r"^[a-z0-9][a-z0-9._-]{1,31}$")
 _SCHEMA = (
     "CREATE TABLE IF NOT EXISTS users (name TEXT PRIMARY KEY, role TEXT NOT NULL, hash TEXT NOT NULL,"
@@ -143,9 +146,10 @@ class UserStore:
         return User(name, row[0]) if row else None
 
     def audit(self, user: str, action: str, detail: str = "") -> None:
+        """Append an entry; a user name or detail too long to keep is cut (see :func:`bounded`)."""
         with self._db() as db:
             db.execute("INSERT INTO audit (time_s, user, action, detail) VALUES (?, ?, ?, ?)",
-                       (time.time(), user, action, detail))
+                       (time.time(), bounded(user, MAX_AUDIT_USER), action, bounded(detail, MAX_AUDIT_DETAIL)))
 
     def audit_log(self, limit: int = 200) -> list[dict]:
         with self._db() as db:
@@ -164,6 +168,14 @@ def _check_password(name: str, password: str) -> None:
     except passwords.WeakPassword as exc:
         raise AccountError(str(exc)) from None
 
+
+def bounded(text: str, limit: int) -> str:
+    """``text``, or its first ``limit`` characters and how many more there were.
+
+    >>> bounded("abcdef", 4)
+    'abcd...(+2 chars)'
+    """
+    return text if len(text) <= limit else f"{text[:limit]}...(+{len(text) - limit} chars)"
 
 
 _DUMMY_HASH = PasswordHasher().hash("no such user: equal time for unknown names")
