@@ -59,6 +59,67 @@ def test_a_login_returns_to_the_local_page_asked_for(app):
     assert answer.headers["Location"] == "/history?hours=8"
 
 
+# -- sessions ------------------------------------------------------------------------------------------------------
+
+def copy_of(app, client):
+    """Another browser holding a copy of ``client``'s session cookie (as a thief would)."""
+    thief = app.test_client()
+    thief.set_cookie("session", client.get_cookie("session").value)
+    return thief
+
+
+def logged_in(client) -> bool:
+    return client.get("/").status_code == 200
+
+
+def log_out(client):
+    return client.post("/logout", data={"csrf_token": token(client, "/account/password")})
+
+
+def test_a_copied_cookie_stops_working_at_logout_but_other_sessions_of_the_user_go_on(app):
+    nurse = client_as(app, "nurse", "nurse.jones")
+    other_screen = app.test_client()
+    log_in(other_screen, "nurse.jones")
+    thief = copy_of(app, nurse)
+    assert logged_in(thief)
+    assert log_out(nurse).status_code == 302
+    assert not logged_in(nurse) and not logged_in(thief)
+    assert logged_in(other_screen)
+
+
+def test_a_changed_password_ends_every_other_session_of_the_user(app):
+    nurse = client_as(app, "nurse", "nurse.jones")
+    other_screen = app.test_client()
+    log_in(other_screen, "nurse.jones")
+    thief = copy_of(app, nurse)
+    assert post(nurse, "/account/password", current=PASSWORD, password=NEW, confirm=NEW).status_code == 303
+    assert not logged_in(thief) and not logged_in(other_screen)
+    page = nurse.get("/")                                           # the one who changed it goes on
+    assert page.status_code == 200 and "your password was changed" in page.get_data(as_text=True)
+
+
+def test_a_reset_by_an_admin_ends_every_session_of_the_user(app):
+    admin = client_as(app, "admin", "admin.ward3")
+    nurse = client_as(app, "nurse", "nurse.jones")
+    assert post(admin, "/accounts/nurse.jones/password", password=NEW).status_code == 303
+    assert not logged_in(nurse) and logged_in(admin)
+
+
+def test_an_admin_who_resets_their_own_password_stays_logged_in_alone(app):
+    admin = client_as(app, "admin", "admin.ward3")
+    thief = copy_of(app, admin)
+    assert post(admin, "/accounts/admin.ward3/password", password=NEW).status_code == 303
+    assert logged_in(admin) and not logged_in(thief)
+
+
+def test_an_account_made_again_under_a_removed_name_inherits_no_session(app):
+    users = app.extensions["users"]
+    nurse = client_as(app, "nurse", "nurse.jones")
+    users.remove("nurse.jones", by="admin.ward3")
+    users.create("nurse.jones", NEW, "engineer", by="admin.ward3")
+    assert not logged_in(nurse)
+
+
 # -- passwords -----------------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("password, message", [

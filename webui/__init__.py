@@ -6,8 +6,9 @@ log). ``create_ward_app`` makes the ward station's screen from the same parts:
 its own accounts, and the ward page instead of one bed's. The session key
 is made once and kept in ``webui.key`` (mode 0600) so a restart does not log
 everyone out. Cookies are HttpOnly, SameSite=Strict and, unless ``secure_cookies``
-is turned off for plain-HTTP tests, Secure. Every response carries the headers of
-:mod:`webui.headers`.
+is turned off for plain-HTTP tests, Secure; they name a session kept on the
+server (:mod:`webui.sessions`), which logout and a new password end. Every
+response carries the headers of :mod:`webui.headers`.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from webui.headers import add_security_headers
 from webui.limiter import LoginLimiter
 from webui.private import private_file
 from webui.security import csrf_token, guard
+from webui.sessions import SessionStore
 from webui.users import UserStore
 
 SESSION_HOURS = 12          # one shift
@@ -47,6 +49,8 @@ def create_app(data_dir, *, secure_cookies: bool = True, blueprints=BLUEPRINTS, 
                       PERMANENT_SESSION_LIFETIME=timedelta(hours=SESSION_HOURS), HOME="live.page")
     app.config.update(config)
     app.extensions["users"] = UserStore(data_dir / "webui.db")
+    app.extensions["sessions"] = SessionStore(data_dir / "webui.db",
+                                              app.config["PERMANENT_SESSION_LIFETIME"].total_seconds())
     app.extensions["login_limiter"] = LoginLimiter()
     app.before_request(guard)
     app.after_request(add_security_headers)

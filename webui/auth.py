@@ -72,14 +72,15 @@ def login():
 @bp.route("/logout", methods=["POST"])
 def logout():
     current_app.extensions["users"].audit(g.user.name, "logged out")
+    current_app.extensions["sessions"].close(session["sid"])
     session.clear()
     return redirect(url_for("auth.login"))
 
 
 def log_in(name: str) -> None:
-    """A fresh session (no fixation), holding only the user's name and a new CSRF token."""
+    """A fresh session (no fixation): a new server-side session of ``name`` and, on first use, a new CSRF token."""
     session.clear()
-    session["user"] = name
+    session["sid"] = current_app.extensions["sessions"].open(name)
     session.permanent = True
     current_app.extensions["users"].audit(name, "logged in", f"from {request.remote_addr}")
 

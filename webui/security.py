@@ -1,10 +1,11 @@
 """Login, roles and CSRF tokens for every blueprint.
 
 Everything but the login and first-start pages and static files needs a login
-(``before_request``); routes that need more than a nurse say so with
-:func:`requires`. Every state-changing request carries the session's CSRF token
-(form field ``csrf_token`` or header ``X-CSRF-Token``), compared in constant time.
-Failed logins are limited by :mod:`webui.limiter`.
+(``before_request``): a session still open in :class:`webui.sessions.SessionStore`,
+so a logged-out or superseded cookie counts as none. Routes that need more than a
+nurse say so with :func:`requires`. Every state-changing request carries the
+session's CSRF token (form field ``csrf_token`` or header ``X-CSRF-Token``),
+compared in constant time. Failed logins are limited by :mod:`webui.limiter`.
 """
 
 from __future__ import annotations
@@ -34,10 +35,8 @@ def guard() -> object | None:
         if not session.get("csrf") or not secrets.compare_digest(sent, session["csrf"]):
             abort(400, description="missing or wrong CSRF token: reload the page and try again")
     users = current_app.extensions["users"]
-    g.user = None
-    name = session.get("user")
-    if name:
-        g.user = users.get(name)
+    token = session.get("sid")
+    g.user = current_app.extensions["sessions"].user(token) if token else None
     if request.endpoint in PUBLIC_ENDPOINTS:
         return None
     if users.count() == 0:
@@ -60,4 +59,3 @@ def requires(role: str):
             return view(*args, **kwargs)
         return checked
     return wrap
-

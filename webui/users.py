@@ -5,7 +5,9 @@ hash); nothing else about a password is kept. Roles are ordered: a nurse sees an
 acknowledges, an engineer also calibrates and diagnoses, an admin also manages
 accounts. Every acknowledgement and settings change is appended to the audit log
 with who did it and when; its entries are bounded in size, so a request cannot
-fill the disk through it. The file is readable by its owner alone (:mod:`webui.private`).
+fill the disk through it. Each account has a generation, raised whenever its
+password is set, that ends every session opened before (:mod:`webui.sessions`).
+The file is readable by its owner alone (:mod:`webui.private`).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ MAX_AUDIT_USER, MAX_AUDIT_DETAIL = 64, 512
 _NAME = re.compile(r"^[a-z0-9][a-z0-9._-]{1,31}$")
 _SCHEMA = (
     "CREATE TABLE IF NOT EXISTS users (name TEXT PRIMARY KEY, role TEXT NOT NULL, hash TEXT NOT NULL,"
-    " created_s REAL NOT NULL)",
+    " created_s REAL NOT NULL, generation INTEGER NOT NULL DEFAULT 0)",
     "CREATE TABLE IF NOT EXISTS audit (id INTEGER PRIMARY KEY, time_s REAL NOT NULL, user TEXT NOT NULL,"
     " action TEXT NOT NULL, detail TEXT NOT NULL)",
 )
@@ -58,12 +60,16 @@ class UserStore:
         with self._db() as db:
             for statement in _SCHEMA:
                 db.execute(statement)
+            columns = [row[1] for row in db.execute("PRAGMA table_info(users)")]
+            if "generation" not in columns:            # a store made before sessions could be ended
+                db.execute("ALTER TABLE users ADD COLUMN generation INTEGER NOT NULL DEFAULT 0")
         for suffix in ("-wal", "-shm"):                # SQLite gives these the main file's mode once it is narrow
             narrow(self.path.with_name(self.path.name + suffix))
 
     def _db(self) -> sqlite3.Connection:
         db = sqlite3.connect(self.path, timeout=5.0)
         db.execute("PRAGMA journal_mode=WAL")
+        db.execute("PRAGMA foreign_keys=ON")           # removing an account removes its sessions
         return db
 
     def count(self) -> int:
@@ -102,11 +108,13 @@ class UserStore:
             return [User(*row) for row in db.execute("SELECT name, role FROM users ORDER BY name")]
 
     def set_password(self, name: str, password: str, *, by: str) -> None:
-        """A new password for ``name`` (by an admin, or the user after giving the old one)."""
+        """A new password for ``name`` (by an admin, or the user after giving the old one); every session of
+        ``name`` ends, since whoever knew the old password may hold one."""
         self._existing(name)
         _check_password(name, password)
         with self._db() as db:
-            db.execute("UPDATE users SET hash = ? WHERE name = ?", (self.hasher.hash(password), name))
+            db.execute("UPDATE users SET hash = ?, generation = generation + 1 WHERE name = ?",
+                       (self.hasher.hash(password), name))
         self.audit(by, "password changed", name)
 
     def set_role(self, name: str, role: str, *, by: str) -> None:
