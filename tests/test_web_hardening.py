@@ -5,9 +5,15 @@ waitress server where the server's own limits are the point) and none depends on
 how fast the machine is.
 """
 
+import http.client
+import http.cookiejar
 import os
 import re
+import socket
 import stat
+import threading
+import urllib.parse
+import urllib.request
 
 import pytest
 from webui_client import PASSWORD, client_as, log_in, set_up, token
@@ -307,3 +313,83 @@ def test_files_left_readable_by_an_older_version_are_narrowed_when_opened(tmp_pa
         os.chmod(tmp_path / name, 0o644)
     create_app(tmp_path, secure_cookies=False, TESTING=True)
     assert mode(tmp_path / "webui.db") == mode(tmp_path / "webui.key") == 0o600
+
+
+# -- streams and connections ---------------------------------------------------------------------------------------
+
+def test_streams_beyond_the_limit_are_refused_with_retry_after_and_a_closed_one_frees_its_place(app):
+    app.config["MAX_STREAMS"] = 2
+    nurse = client_as(app, "nurse", "nurse.jones")
+    first, second = nurse.get("/api/live/stream"), nurse.get("/api/live/stream")
+    assert first.status_code == second.status_code == 200
+    refused = nurse.get("/api/live/stream")
+    assert refused.status_code == 503 and int(refused.headers["Retry-After"]) > 0
+    assert nurse.get("/").status_code == 200                         # pages are still served
+    first.close()
+    third = nurse.get("/api/live/stream")
+    assert third.status_code == 200
+    second.close()
+    third.close()
+
+
+@pytest.fixture
+def served(tmp_path, monkeypatch):
+    """The screen on a real waitress with two worker threads, a nurse's session cookie, and the port."""
+    import webui.streams
+    from waitress import create_server
+
+    from webui.server import server_options, stream_limit
+
+    monkeypatch.setattr(webui.streams, "HEARTBEAT_S", 0.2)         # a closed stream frees its thread soon
+    app = create_app(tmp_path, secure_cookies=False, STREAM_MAX_S=300.0, MAX_STREAMS=stream_limit(2))
+    app.extensions["users"].create("nurse.jones", PASSWORD, "nurse", by="admin")
+    server = create_server(app, **server_options("127.0.0.1", 0, threads=2, ident="test", behind_proxy=False))
+    threading.Thread(target=server.run, daemon=True).start()
+    port = server.effective_port
+    jar = http.cookiejar.CookieJar()
+    opener = urllib.request.build_opener(urllib.request.HTTPCookieProcessor(jar))
+    page = opener.open(f"http://127.0.0.1:{port}/login", timeout=30).read()
+    csrf = re.search(rb'name="csrf_token" value="([^"]+)"', page).group(1).decode()
+    form = urllib.parse.urlencode({"name": "nurse.jones", "password": PASSWORD, "csrf_token": csrf}).encode()
+    opener.open(f"http://127.0.0.1:{port}/login", data=form, timeout=30)
+    session = "; ".join(f"{c.name}={c.value}" for c in jar)
+    try:
+        yield port, session
+    finally:
+        server.task_dispatcher.shutdown(timeout=5)
+        server.close()
+
+
+def get(port, path, cookie="", timeout_s=30.0):
+    """The connection and the answer of GET ``path``; the connection stays open (a stream goes on)."""
+    connection = http.client.HTTPConnection("127.0.0.1", port, timeout=timeout_s)
+    connection.request("GET", path, headers={"Cookie": cookie})
+    answer = connection.getresponse()
+    return connection, answer
+
+
+def test_open_streams_leave_the_server_threads_for_pages(served):
+    port, cookie = served
+    connection, stream = get(port, "/api/live/stream", cookie)
+    assert stream.status == 200 and stream.read(5) == b"retry"
+    refused_connection, refused = get(port, "/api/live/stream", cookie)
+    assert refused.status == 503 and refused.getheader("Retry-After")
+    refused_connection.close()
+    for path in ("/", "/api/live", "/login"):                       # the other thread still serves
+        page_connection, page = get(port, path, cookie)
+        assert page.status == 200
+        page.read()
+        page_connection.close()
+    connection.close()
+
+
+def test_a_hundred_and_fifty_idle_connections_do_not_shut_out_a_browser(served):
+    port, cookie = served
+    idle = [socket.create_connection(("127.0.0.1", port), timeout=30) for _ in range(150)]
+    try:
+        connection, page = get(port, "/login", timeout_s=20.0)
+        assert page.status == 200 and b"Log in" in page.read()
+        connection.close()
+    finally:
+        for s in idle:
+            s.close()
