@@ -15,7 +15,7 @@ from appliance.store import Store
 from appliance.ward.config import WardConfig
 from appliance.ward.station import WardStation
 from webui import create_app, create_ward_app
-from webui.security import LoginLimiter
+from webui.limiter import ADDRESS_ATTEMPTS, LoginLimiter
 from webui.users import AccountError, UserStore
 
 
@@ -49,7 +49,7 @@ def test_a_fresh_screen_sends_everyone_to_set_up_the_first_admin(app):
     ("admin", "short", "short", "at least 10 characters"),
     ("Admin Ward", PASSWORD, PASSWORD, "a user name is 2-32 lower-case letters"),
     ("admin", PASSWORD, PASSWORD + "x", "the two passwords differ"),
-    ("admin.password", "admin.password", "admin.password", "must not be the user name"),
+    ("admin.password", "admin.password", "admin.password", "must not contain the user name"),
 ])
 def test_a_weak_first_account_is_refused_with_the_reason_and_nothing_is_made(app, name, password, confirm, message):
     client = app.test_client()
@@ -147,11 +147,11 @@ def test_failed_logins_are_rate_limited_per_name(app):
 
 
 def test_the_limiter_forgets_failures_after_its_window():
-    limiter = LoginLimiter(attempts=2, window_s=60.0)
-    limiter.failed("user:a", now=0.0)
-    limiter.failed("user:a", now=10.0)
-    assert limiter.blocked_for_s("user:a", now=20.0) == pytest.approx(40.0)
-    assert limiter.blocked_for_s("user:a", now=61.0) == 0.0
+    limiter = LoginLimiter(pair_attempts=2, window_s=60.0)
+    limiter.failed("a", "10.0.0.5", now=0.0)
+    limiter.failed("a", "10.0.0.5", now=10.0)
+    assert limiter.blocked_for_s("a", "10.0.0.5", now=20.0) == pytest.approx(40.0)
+    assert limiter.blocked_for_s("a", "10.0.0.5", now=61.0) == 0.0
 
 
 def test_passwords_are_stored_as_argon2id_hashes_only(tmp_path):
@@ -259,8 +259,8 @@ def test_a_nurse_acknowledges_an_alarm_of_the_running_monitor_and_sees_it_in_the
 
 @pytest.mark.parametrize("behind_proxy", [True, False])
 def test_behind_the_proxy_the_limiter_counts_each_browser_not_the_proxy(tmp_path, behind_proxy):
-    """Five wrong passwords from one browser through the proxy: another browser can still log in (and without
-    trusting the proxy, as a check that the test can tell, it cannot)."""
+    """Enough wrong passwords from one browser through the proxy to lock its address: another browser can still
+    log in (and without trusting the proxy, as a check that the test can tell, it cannot)."""
     import threading
     import urllib.parse
     import urllib.request
@@ -286,7 +286,8 @@ def test_behind_the_proxy_the_limiter_counts_each_browser_not_the_proxy(tmp_path
         except urllib.error.HTTPError as error:
             return error.code
     try:
-        assert [log_in_from("10.0.0.66", f"guess{n}", "wrong password!") for n in range(5)] == [401] * 5
+        guesses = [log_in_from("10.0.0.66", f"guess{n}", "wrong password!") for n in range(ADDRESS_ATTEMPTS)]
+        assert guesses == [401] * ADDRESS_ATTEMPTS
         assert log_in_from("10.0.0.12", "nurse.jones", PASSWORD) == (200 if behind_proxy else 429)
     finally:
         server.task_dispatcher.shutdown(timeout=5)         # the workers first, so none writes to a closed server

@@ -42,7 +42,7 @@ def test_an_admin_creates_re_roles_resets_and_removes_an_account(app):
     ("/accounts/admin.ward3/remove", {}, "your own account"),
     ("/accounts/nobody/role", {"role": "nurse"}, "there is no user"),
     ("/accounts/nobody/password", {"password": NEW}, "there is no user"),
-    ("/accounts/admin.ward3/password", {"password": "admin.ward3"}, "must not be the user name"),
+    ("/accounts/admin.ward3/password", {"password": "admin.ward3"}, "must not contain the user name"),
 ])
 def test_a_refused_account_change_says_why_and_changes_nothing(app, path, data, message):
     admin, users = client_as(app, "admin", "admin.ward3"), app.extensions["users"]

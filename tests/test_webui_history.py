@@ -142,7 +142,9 @@ def test_the_summary_page_shows_them_with_the_bed_and_a_print_button(filled, nur
     live.publish({"bed_id": "bed-7", "time_s": 3300.0, "sequence": 1, "frame_interval_s": 1.0})
     live.close()
     page = nurse.get("/history/summary").get_data(as_text=True)
-    assert "bed bed-7" in page and "window.print()" in page and "@media print" not in page
+    assert "bed bed-7" in page and 'id="print"' in page and "static/print.js" in page and "@media print" not in page
+    with nurse.get("/static/print.js") as script:
+        assert "window.print()" in script.get_data(as_text=True)
     assert "Period 0:00:00 to 0:55:00 (55 min)" in page
     assert "2 turns; longest time without a turn\n  <strong>22 min</strong>" in page
     assert "<td>sacrum (region 1)</td><td>50</td>\n        <td>0.60</td><td>35</td>" in page

@@ -6,12 +6,13 @@ log). ``create_ward_app`` makes the ward station's screen from the same parts:
 its own accounts, and the ward page instead of one bed's. The session key
 is made once and kept in ``webui.key`` (mode 0600) so a restart does not log
 everyone out. Cookies are HttpOnly, SameSite=Strict and, unless ``secure_cookies``
-is turned off for plain-HTTP tests, Secure.
+is turned off for plain-HTTP tests, Secure; they name a session kept on the
+server (:mod:`webui.sessions`), which logout and a new password end. Every
+response carries the headers of :mod:`webui.headers`.
 """
 
 from __future__ import annotations
 
-import os
 import secrets
 from datetime import timedelta
 from pathlib import Path
@@ -19,7 +20,11 @@ from pathlib import Path
 from flask import Flask, current_app, g, redirect, url_for
 
 from webui import accounts, alarms, auth, engineering, history, live, patient, settings, ward
-from webui.security import LoginLimiter, csrf_token, guard
+from webui.headers import add_security_headers
+from webui.limiter import LoginLimiter
+from webui.private import private_file
+from webui.security import csrf_token, guard
+from webui.sessions import SessionStore
 from webui.users import UserStore
 
 SESSION_HOURS = 12          # one shift
@@ -44,8 +49,11 @@ def create_app(data_dir, *, secure_cookies: bool = True, blueprints=BLUEPRINTS, 
                       PERMANENT_SESSION_LIFETIME=timedelta(hours=SESSION_HOURS), HOME="live.page")
     app.config.update(config)
     app.extensions["users"] = UserStore(data_dir / "webui.db")
+    app.extensions["sessions"] = SessionStore(data_dir / "webui.db",
+                                              app.config["PERMANENT_SESSION_LIFETIME"].total_seconds())
     app.extensions["login_limiter"] = LoginLimiter()
     app.before_request(guard)
+    app.after_request(add_security_headers)
     app.jinja_env.globals.update(csrf_token=csrf_token, nav_links=nav_links)
     for blueprint in blueprints:
         app.register_blueprint(blueprint)
@@ -69,9 +77,7 @@ def nav_links() -> list[tuple[str, str]]:
 
 
 def _secret_key(path: Path) -> bytes:
-    """The key in ``path``, made (32 random bytes, owner-only) the first time."""
-    if not path.exists():
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "wb") as f:
-            f.write(secrets.token_bytes(32))
-    return path.read_bytes()
+    """The key in ``path``, made (32 random bytes) the first time; owner-only, also if it was made readable."""
+    if not path.exists() or path.stat().st_size == 0:
+        private_file(path).write_bytes(secrets.token_bytes(32))
+    return private_file(path).read_bytes()

@@ -4,7 +4,9 @@ There are no shared logins on a ward: each nurse and engineer has an account, so
 the audit log says who acknowledged what. Every change here is audited (by
 :class:`webui.users.UserStore`), and a refused change says why and changes
 nothing. A removed or re-roled user's next request already sees the change,
-because the guard reads the account on every request.
+because the guard reads the account on every request. A new password ends
+every session of its account; the user who set their own stays logged in, in a
+new session.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 from flask import Blueprint, current_app, flash, g, redirect, render_template, request, url_for
 
 from webui.alarms import clock
+from webui.auth import log_in
 from webui.security import requires
 from webui.users import ROLES, AccountError, UserStore
 
@@ -54,7 +57,13 @@ def set_role(name: str):
 @requires("admin")
 def reset_password(name: str):
     password = request.form.get("password", "")
-    return _change(lambda: users().set_password(name, password, by=g.user.name) or f"{name}'s password was reset")
+
+    def reset():
+        users().set_password(name, password, by=g.user.name)
+        if name == g.user.name:
+            log_in(name)
+        return f"{name}'s password was reset"
+    return _change(reset)
 
 
 @bp.route("/accounts/<name>/remove", methods=["POST"])
@@ -79,6 +88,7 @@ def own_password():
     except AccountError as exc:
         flash(f"{exc}: nothing was changed", "error")
         return render_template("password.html"), 400
+    log_in(g.user.name)
     flash("your password was changed", "info")
     return redirect(url_for(current_app.config["HOME"])), 303
 

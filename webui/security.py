@@ -1,18 +1,17 @@
-"""Login, roles, CSRF tokens and login rate limiting for every blueprint.
+"""Login, roles and CSRF tokens for every blueprint.
 
 Everything but the login and first-start pages and static files needs a login
-(``before_request``); routes that need more than a nurse say so with
-:func:`requires`. Every state-changing request carries the session's CSRF token
-(form field ``csrf_token`` or header ``X-CSRF-Token``), compared in constant time.
+(``before_request``): a session still open in :class:`webui.sessions.SessionStore`,
+so a logged-out or superseded cookie counts as none. Routes that need more than a
+nurse say so with :func:`requires`. Every state-changing request carries the
+session's CSRF token (form field ``csrf_token`` or header ``X-CSRF-Token``),
+compared in constant time. Failed logins are limited by :mod:`webui.limiter`.
 """
 
 from __future__ import annotations
 
 import functools
 import secrets
-import threading
-import time
-from collections import defaultdict, deque
 
 from flask import abort, current_app, g, redirect, request, session, url_for
 
@@ -20,7 +19,6 @@ from webui.users import User
 
 PUBLIC_ENDPOINTS = {"auth.login", "auth.setup", "static"}
 STATE_CHANGING = {"POST", "PUT", "PATCH", "DELETE"}
-LOGIN_ATTEMPTS, LOGIN_WINDOW_S = 5, 300.0
 
 
 def csrf_token() -> str:
@@ -37,10 +35,8 @@ def guard() -> object | None:
         if not session.get("csrf") or not secrets.compare_digest(sent, session["csrf"]):
             abort(400, description="missing or wrong CSRF token: reload the page and try again")
     users = current_app.extensions["users"]
-    g.user = None
-    name = session.get("user")
-    if name:
-        g.user = users.get(name)
+    token = session.get("sid")
+    g.user = current_app.extensions["sessions"].user(token) if token else None
     if request.endpoint in PUBLIC_ENDPOINTS:
         return None
     if users.count() == 0:
@@ -63,36 +59,3 @@ def requires(role: str):
             return view(*args, **kwargs)
         return checked
     return wrap
-
-
-class LoginLimiter:
-    """At most ``LOGIN_ATTEMPTS`` failed logins per user name and per address in ``LOGIN_WINDOW_S``."""
-
-    def __init__(self, attempts: int = LOGIN_ATTEMPTS, window_s: float = LOGIN_WINDOW_S):
-        self.attempts, self.window_s = attempts, window_s
-        self._failures: dict[str, deque] = defaultdict(deque)
-        self._lock = threading.Lock()
-
-    def blocked_for_s(self, *keys: str, now: float | None = None) -> float:
-        """Seconds until a login may be tried again for any of ``keys`` (0: now)."""
-        now = time.monotonic() if now is None else now
-        with self._lock:
-            wait = 0.0
-            for key in keys:
-                failures = self._failures[key]
-                while failures and failures[0] <= now - self.window_s:
-                    failures.popleft()
-                if len(failures) >= self.attempts:
-                    wait = max(wait, failures[0] + self.window_s - now)
-            return wait
-
-    def failed(self, *keys: str, now: float | None = None) -> None:
-        now = time.monotonic() if now is None else now
-        with self._lock:
-            for key in keys:
-                self._failures[key].append(now)
-
-    def succeeded(self, *keys: str) -> None:
-        with self._lock:
-            for key in keys:
-                self._failures.pop(key, None)

@@ -5,7 +5,10 @@ count) and sends the shared event for each new key. A comment line every
 ``HEARTBEAT_S`` keeps proxies from closing an idle stream, and a stream ends
 after ``STREAM_MAX_S`` (the browser reconnects after ``RECONNECT_MS``), so a
 client that vanished without closing its connection holds a server thread for
-at most that long.
+at most that long. Each open stream holds a server thread, so at most
+``MAX_STREAMS`` (app config) are open at once; one more is answered 503 with a
+Retry-After, and the threads left over still serve page loads, logins and
+acknowledgements.
 """
 
 from __future__ import annotations
@@ -15,11 +18,13 @@ import threading
 import time
 from collections.abc import Callable, Hashable
 
-from flask import Response, current_app
+from flask import Flask, Response, current_app
 
 HEARTBEAT_S = 15.0
 STREAM_MAX_S = 600.0
 RECONNECT_MS = 1000
+MAX_STREAMS = 40            # the default server's 48 threads less 8 for everything else
+RETRY_AFTER_S = 10
 
 
 class SharedEvents:
@@ -46,6 +51,11 @@ def event_stream(name: str, make: Callable[[], dict], key_of: Callable[[], Hasha
     ``key_of`` run in the app's context.
     """
     app = current_app._get_current_object()
+    slots = _slots(app)
+    if not slots.acquire(blocking=False):
+        return Response(f"all {app.config.get('MAX_STREAMS', MAX_STREAMS)} live streams are open: "
+                        f"try again shortly\n", status=503, mimetype="text/plain",
+                        headers={"Retry-After": str(RETRY_AFTER_S), "Cache-Control": "no-store"})
     shared = app.extensions.setdefault(name, SharedEvents(make))
     max_s = app.config.get("STREAM_MAX_S", STREAM_MAX_S)
 
@@ -65,4 +75,16 @@ def event_stream(name: str, make: Callable[[], dict], key_of: Callable[[], Hasha
                     last_beat = time.monotonic()
             time.sleep(poll_s)
 
-    return Response(events(), mimetype="text/event-stream", headers={"Cache-Control": "no-store"})
+    response = Response(events(), mimetype="text/event-stream", headers={"Cache-Control": "no-store"})
+    response.call_on_close(slots.release)          # the server closes every response, streamed to its end or not
+    return response
+
+
+def _slots(app: Flask) -> threading.BoundedSemaphore:
+    """The app's semaphore of open streams (made at the first stream, from ``MAX_STREAMS``)."""
+    with _SLOTS_LOCK:
+        return app.extensions.setdefault(
+            "stream_slots", threading.BoundedSemaphore(app.config.get("MAX_STREAMS", MAX_STREAMS)))
+
+
+_SLOTS_LOCK = threading.Lock()

@@ -4,7 +4,10 @@ Passwords are hashed with Argon2id (argon2-cffi, the OWASP-recommended memory-ha
 hash); nothing else about a password is kept. Roles are ordered: a nurse sees and
 acknowledges, an engineer also calibrates and diagnoses, an admin also manages
 accounts. Every acknowledgement and settings change is appended to the audit log
-with who did it and when.
+with who did it and when; its entries are bounded in size, so a request cannot
+fill the disk through it. Each account has a generation, raised whenever its
+password is set, that ends every session opened before (:mod:`webui.sessions`).
+The file is readable by its owner alone (:mod:`webui.private`).
 """
 
 from __future__ import annotations
@@ -18,12 +21,17 @@ from pathlib import Path
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError
 
+from webui import passwords
+from webui.private import narrow, private_file
+
 ROLES = ("nurse", "engineer", "admin")
-MIN_PASSWORD_LENGTH = 10
+MIN_PASSWORD_LENGTH = passwords.MIN_LENGTH
+MAX_AUDIT_USER, MAX_AUDIT_DETAIL = 64, 512
+"""Longest user name and detail kept in an audit entry; longer ones are cut and marked."""
 _NAME = re.compile(r"^[a-z0-9][a-z0-9._-]{1,31}$")
 _SCHEMA = (
     "CREATE TABLE IF NOT EXISTS users (name TEXT PRIMARY KEY, role TEXT NOT NULL, hash TEXT NOT NULL,"
-    " created_s REAL NOT NULL)",
+    " created_s REAL NOT NULL, generation INTEGER NOT NULL DEFAULT 0)",
     "CREATE TABLE IF NOT EXISTS audit (id INTEGER PRIMARY KEY, time_s REAL NOT NULL, user TEXT NOT NULL,"
     " action TEXT NOT NULL, detail TEXT NOT NULL)",
 )
@@ -47,15 +55,21 @@ class UserStore:
     """Accounts and the audit log in ``path``; one connection per call, so any thread may use it."""
 
     def __init__(self, path: Path):
-        self.path = Path(path)
+        self.path = private_file(Path(path))
         self.hasher = PasswordHasher()
         with self._db() as db:
             for statement in _SCHEMA:
                 db.execute(statement)
+            columns = [row[1] for row in db.execute("PRAGMA table_info(users)")]
+            if "generation" not in columns:            # a store made before sessions could be ended
+                db.execute("ALTER TABLE users ADD COLUMN generation INTEGER NOT NULL DEFAULT 0")
+        for suffix in ("-wal", "-shm"):                # SQLite gives these the main file's mode once it is narrow
+            narrow(self.path.with_name(self.path.name + suffix))
 
     def _db(self) -> sqlite3.Connection:
         db = sqlite3.connect(self.path, timeout=5.0)
         db.execute("PRAGMA journal_mode=WAL")
+        db.execute("PRAGMA foreign_keys=ON")           # removing an account removes its sessions
         return db
 
     def count(self) -> int:
@@ -94,11 +108,13 @@ class UserStore:
             return [User(*row) for row in db.execute("SELECT name, role FROM users ORDER BY name")]
 
     def set_password(self, name: str, password: str, *, by: str) -> None:
-        """A new password for ``name`` (by an admin, or the user after giving the old one)."""
+        """A new password for ``name`` (by an admin, or the user after giving the old one); every session of
+        ``name`` ends, since whoever knew the old password may hold one."""
         self._existing(name)
         _check_password(name, password)
         with self._db() as db:
-            db.execute("UPDATE users SET hash = ? WHERE name = ?", (self.hasher.hash(password), name))
+            db.execute("UPDATE users SET hash = ?, generation = generation + 1 WHERE name = ?",
+                       (self.hasher.hash(password), name))
         self.audit(by, "password changed", name)
 
     def set_role(self, name: str, role: str, *, by: str) -> None:
@@ -138,9 +154,10 @@ class UserStore:
         return User(name, row[0]) if row else None
 
     def audit(self, user: str, action: str, detail: str = "") -> None:
+        """Append an entry; a user name or detail too long to keep is cut (see :func:`bounded`)."""
         with self._db() as db:
             db.execute("INSERT INTO audit (time_s, user, action, detail) VALUES (?, ?, ?, ?)",
-                       (time.time(), user, action, detail))
+                       (time.time(), bounded(user, MAX_AUDIT_USER), action, bounded(detail, MAX_AUDIT_DETAIL)))
 
     def audit_log(self, limit: int = 200) -> list[dict]:
         with self._db() as db:
@@ -154,10 +171,19 @@ def _check_role(role: str) -> None:
 
 
 def _check_password(name: str, password: str) -> None:
-    if len(password or "") < MIN_PASSWORD_LENGTH:
-        raise AccountError(f"a password needs at least {MIN_PASSWORD_LENGTH} characters")
-    if password.lower() == name.lower():
-        raise AccountError("the password must not be the user name")
+    try:
+        passwords.check(name, password)
+    except passwords.WeakPassword as exc:
+        raise AccountError(str(exc)) from None
+
+
+def bounded(text: str, limit: int) -> str:
+    """``text``, or its first ``limit`` characters and how many more there were.
+
+    >>> bounded("abcdef", 4)
+    'abcd...(+2 chars)'
+    """
+    return text if len(text) <= limit else f"{text[:limit]}...(+{len(text) - limit} chars)"
 
 
 _DUMMY_HASH = PasswordHasher().hash("no such user: equal time for unknown names")

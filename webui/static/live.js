@@ -70,7 +70,17 @@ function scale() {
 
 scale();
 fetch("/api/live").then(r => r.json()).then(draw);
-const source = new EventSource("/api/live/stream");
-source.onmessage = event => draw(JSON.parse(event.data));
-source.onerror = () => { document.getElementById("status").textContent = "connection lost: retrying..."; };
+const REFUSED_RETRY_MS = 10000;     // the server's Retry-After when all its live streams are taken
+
+function listen() {
+  const source = new EventSource("/api/live/stream");
+  source.onmessage = event => draw(JSON.parse(event.data));
+  source.onerror = () => {
+    document.getElementById("status").textContent = "connection lost: retrying...";
+    // The browser retries a stream that ended by itself; one refused (503) is closed for good, so ask again later.
+    if (source.readyState === EventSource.CLOSED) setTimeout(listen, REFUSED_RETRY_MS);
+  };
+}
+
+listen();
 setInterval(() => fetch("/api/live").then(r => r.json()).then(s => { if (s.stale) draw(s); }), 5000);

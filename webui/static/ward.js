@@ -50,6 +50,16 @@ function draw(ward) {
 }
 
 fetch("/api/ward").then(r => r.json()).then(draw);
-const source = new EventSource("/api/ward/stream");
-source.onmessage = event => draw(JSON.parse(event.data));
-source.onerror = () => { document.getElementById("lost").hidden = false; };
+const REFUSED_RETRY_MS = 10000;     // the server's Retry-After when all its live streams are taken
+
+function listen() {
+  const source = new EventSource("/api/ward/stream");
+  source.onmessage = event => draw(JSON.parse(event.data));
+  source.onerror = () => {
+    document.getElementById("lost").hidden = false;
+    // The browser retries a stream that ended by itself; one refused (503) is closed for good, so ask again later.
+    if (source.readyState === EventSource.CLOSED) setTimeout(listen, REFUSED_RETRY_MS);
+  };
+}
+
+listen();
