@@ -60,7 +60,7 @@ def test_a_ward_file_is_read_with_paths_relative_to_it(tmp_path):
 
 @pytest.mark.parametrize("text, message", [
     ('[monitor]\nlayuot = "grid-4x4"\n', "[monitor]: unknown key 'layuot'"),
-    ('[alerts]\nthreshold_mmhg = 3\n', "[alerts]: threshold_mmhg must be from 10 to 200, got 3"),
+    ('[alerts]\nthreshold_mmhg = 3\n', "[alerts]: threshold_mmhg must be from 20 to 60 mmHg (its safe range), got 3"),
     ('[alerts]\nturn_interval_min = "2h"\n', "[alerts]: turn_interval_min must be a number, got '2h'"),
     ('[alerts]\ncurve = "braden"\n', "[alerts]: curve must be one of reswick-rogers, linder-ganz, got 'braden'"),
     ('[alerts]\ncurve_points = [[30, 200]]\n', "[alerts] curve_points: tolerance curve 'custom' needs at least 2"),
