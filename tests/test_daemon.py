@@ -367,3 +367,18 @@ def test_after_a_crash_the_last_frames_events_are_notified_again(small_mat_calib
     restarted.start()
     assert again.events == last_frame and restarted.resumed_from_s == daemon.pipeline.last_time_s
     restarted.close()
+
+
+def test_the_live_view_names_each_setting_that_is_not_the_default(small_mat_calibration, tmp_path):
+    (tmp_path / "a").mkdir()
+    plain, _ = small_daemon(small_mat_calibration, tmp_path / "a", FlakySource(failing=()))
+    plain.run(1)
+    plain.close()
+    assert read_live(tmp_path / "a" / "live.json")["settings_changed"] == []
+    daemon, _ = small_daemon(small_mat_calibration, tmp_path, FlakySource(failing=()), threshold_mmhg=40,
+                             turn_interval_min=90)
+    daemon.run(1)
+    daemon.close()
+    changed = read_live(tmp_path / "live.json")["settings_changed"]
+    assert [c["text"] for c in changed] == ["threshold 40 mmHg (default 32)", "turn interval 90 min (default 120)"]
+    assert (changed[0]["key"], changed[0]["value"], changed[0]["default"]) == ("threshold_mmhg", 40, 32)
