@@ -318,6 +318,27 @@ def test_the_monitor_applies_a_change_at_its_next_frame_and_carries_doses_and_al
     assert not [e for e in events if e.kind == "ended" and e.alarm_id in open_before]
 
 
+def test_an_open_pressure_alarm_outlives_a_change_of_settings_until_the_site_is_relieved(small_mat_calibration,
+                                                                                         tmp_path):
+    daemon, events = running_monitor(small_mat_calibration, tmp_path)
+    while not daemon.pipeline.engine.alarms("clinical"):
+        daemon.run(1)
+    [alarm] = daemon.pipeline.engine.alarms("clinical")
+    assert alarm.key.startswith("pressure:") and daemon.pipeline.dose.doses()["mat"] < 1.0
+    # The 45 mmHg load is below a 60 mmHg threshold, and the dose far below a whole tolerance: by the new
+    # rules alone the site is relieved and its dose decays, and the alarm would end at the next frame.
+    _, result = settings.apply_settings(daemon, daemon.source.now(), {"alerts": {
+        "threshold_mmhg": 60, "alarm_dose": 1.0, "recovery": "decay", "relief_min": 30}})
+    assert result.startswith("applied threshold_mmhg 32 -> 60")
+    daemon.run(1)
+    assert [a.alarm_id for a in daemon.pipeline.engine.alarms("clinical")] == [alarm.alarm_id]
+    assert daemon.pipeline.state()["held"] == ["mat"]
+    daemon.run(3)                                            # relieved for the 30 min relief: it ends as usual
+    daemon.close()
+    assert [e.alarm_id for e in events if e.kind == "ended"] == [alarm.alarm_id]
+    assert daemon.pipeline.state()["held"] == []
+
+
 def test_a_new_bed_id_shows_at_once_and_a_new_layout_waits_for_a_restart(small_mat_calibration, tmp_path):
     daemon, _ = running_monitor(small_mat_calibration, tmp_path)
     app = create_app(tmp_path, secure_cookies=False, TESTING=True)
