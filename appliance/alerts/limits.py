@@ -36,8 +36,8 @@ class SafeRange:
 SAFE_RANGES = {
     "threshold_mmhg": SafeRange(20.0, 60.0, "mmHg",
                                 "capillary closing pressure is about 32 mmHg (Landis 1930), quoted 20-30+; above "
-                                "60 mmHg the heels and sacrum of most patients on a standard mattress never count "
-                                "as loaded"),
+                                "60 mmHg the usual peaks on standard foam (sacrum 40, heel 46-59 mmHg, Hermans "
+                                "2012) would never count as loaded"),
     "alarm_dose": SafeRange(0.05, 1.0, "",
                             "1.0 is the whole tolerance of the curve; beyond it the alarm comes after the curve's "
                             "own limit of harm; a lower dose only warns earlier"),
@@ -45,9 +45,9 @@ SAFE_RANGES = {
                             "LS-HAPI counts tissue recovered after 15 min offloaded; under 5 min a brief lift "
                             "would clear a site's dose, over 30 min a real offload would not count"),
     "turn_interval_min": SafeRange(15.0, 240.0, "min",
-                                   "EPUAP/NPIAP 2019 individualised repositioning; the longest interval studied "
-                                   "on pressure-redistributing surfaces and NICE's interval for high risk is 4 h; "
-                                   "a turn counts only after 15 min in the new posture"),
+                                   "EPUAP/NPIAP 2019 individualised repositioning; 4 h is NICE's interval for high "
+                                   "risk and the longest of the individualised schedules studied (q1-q4h); a turn "
+                                   "counts only after 15 min in the new posture"),
     "turn_grace_min": SafeRange(0.0, 60.0, "min",
                                 "a due turn is overdue (HIGH, escalated) at most an hour later: LEAF's grading "
                                 "calls a turn severely overdue well within that"),

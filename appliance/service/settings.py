@@ -26,7 +26,9 @@ old one), so a power cut leaves the old file or the new one, never half of one.
 The screen is another process: it writes the file and queues an
 ``apply-settings`` command (args: the file's tables), which the monitor applies
 at its next frame. Patient settings rebuild the alert pipeline from its state,
-so doses, the turn clock and open alarms carry over; a new bed id shows at once;
+so doses, the turn clock and open alarms carry over (an open pressure alarm is
+held until its site has been relieved for the relief time, whatever the new
+threshold or alarm dose says); a new bed id shows at once;
 a new layout needs another reconstruction model and applies when the monitor
 restarts. The monitor keeps the settings it runs with in its store (state
 ``settings``) for the screen to show.
