@@ -49,8 +49,8 @@ SAFE_RANGES = {
                                    "risk and the longest of the individualised schedules studied (q1-q4h); a turn "
                                    "counts only after 15 min in the new posture"),
     "turn_grace_min": SafeRange(0.0, 60.0, "min",
-                                "a due turn is overdue (HIGH, escalated) at most an hour later: LEAF's grading "
-                                "calls a turn severely overdue well within that"),
+                                "the due reminder sounds at the interval whatever the grace; the grace only delays "
+                                "the overdue one (HIGH, escalated), by an hour at most"),
     "reminder_repeat_min": SafeRange(5.0, 60.0, "min",
                                      "an overdue reminder repeats at least hourly until a turn; more often than "
                                      "every 5 min is alarm fatigue"),
