@@ -64,6 +64,8 @@ def test_a_ward_file_is_read_with_paths_relative_to_it(tmp_path):
     ('[alerts]\nturn_interval_min = "2h"\n', "[alerts]: turn_interval_min must be a number, got '2h'"),
     ('[alerts]\ncurve = "braden"\n', "[alerts]: curve must be one of reswick-rogers, linder-ganz, got 'braden'"),
     ('[alerts]\ncurve_points = [[30, 200]]\n', "[alerts] curve_points: tolerance curve 'custom' needs at least 2"),
+    ('[alerts]\ncurve_points = [[60, 200], [6000, 100]]\n',
+     "[alerts] curve_points: the curve tolerates 60 mmHg for 100 h; a ward's curve may tolerate it for at most 12 h"),
     ('[monitor]\nsource = "serial"\n', "[monitor]: source must be one of virtual, emulated, hardware"),
     ('[monitor]\nbed_id = "bed/7"\n', "[monitor] bed_id must be 1-64 characters without spaces"),
     ('[notify.mqtt]\nport = 1883\n', "[notify.mqtt] is missing 'host'"),

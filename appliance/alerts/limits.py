@@ -12,6 +12,7 @@ gives each range's source.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -60,6 +61,11 @@ SAFE_RANGES = {
 }
 """Each setting that can blind the monitor (as the settings file names it) and its safe range."""
 
+CURVE_MAX_HOURS_AT = (60.0, 12.0)
+"""A ward's own tolerance curve (``curve_points``) may tolerate the top of the threshold's safe range, 60 mmHg,
+for at most 12 hours: Reswick & Rogers tolerate it 6.3 h and their data end at about 12 h. A curve's time falls as
+pressure rises, so every higher pressure is bounded too; a curve beyond this would alarm long after the harm."""
+
 POLICY = "policy"
 """The settings file's table holding the ward's policy: ``threshold_mmhg = [28, 40]``, one span per setting."""
 
@@ -96,6 +102,16 @@ def check_safe(key: str, value, where: str = "[alerts]") -> float:
         raise ConfigError(f"{where}: {key} must be from {safe.low:g} to {safe.high:g}"
                           f"{' ' + safe.unit if safe.unit else ''} (its safe range), got {value:g}")
     return float(value)
+
+
+def check_curve(curve, where: str = "[alerts] curve_points") -> None:
+    """A ward's own tolerance curve (a ``ToleranceCurve``) refused, naming what it tolerates, when it
+    tolerates ``CURVE_MAX_HOURS_AT`` longer than allowed."""
+    mmhg, hours = CURVE_MAX_HOURS_AT
+    tolerated = float(dataclasses.replace(curve, floor_kpa=0.0).tolerable_s(mmhg * KPA_PER_MMHG)) / 3600.0
+    if not tolerated <= hours:
+        raise ConfigError(f"{where}: the curve tolerates {mmhg:g} mmHg for {tolerated:.3g} h; a ward's curve may "
+                          f"tolerate it for at most {hours:g} h (Reswick & Rogers: 6.3 h)")
 
 
 def default_policy() -> dict[str, tuple[float, float]]:

@@ -64,7 +64,7 @@ from pathlib import Path
 
 from appliance.alerts.dose import BUILT_IN as BUILT_IN_CURVES
 from appliance.alerts.dose import RECOVERY_MODES, custom_curve
-from appliance.alerts.limits import check_safe
+from appliance.alerts.limits import check_curve, check_safe
 from appliance.alerts.pipeline import AlertSettings
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.core.toml_files import read_toml
@@ -205,6 +205,7 @@ def _alerts(table: dict) -> AlertSettings:
             curve = custom_curve(table["curve_points"])
         except (CurveInvalid, TypeError) as exc:
             raise ConfigError(f"{where} curve_points: {exc}") from None
+        check_curve(curve, f"{where} curve_points")
         points = tuple((float(m), float(p)) for m, p in table["curve_points"])
         name = curve.name
     else:
