@@ -408,6 +408,21 @@ def test_a_bad_command_queued_directly_is_refused_with_the_reason_and_changes_no
         assert store.load_state("settings") == settings.settings_values(config)
 
 
+def test_a_command_queued_directly_outside_the_ward_policy_is_refused_by_the_monitor(small_mat_calibration,
+                                                                                       tmp_path):
+    import dataclasses
+
+    daemon, _ = running_monitor(small_mat_calibration, tmp_path)
+    daemon.config = dataclasses.replace(daemon.config, data_dir=tmp_path)
+    settings.write_settings(tmp_path / "settings.toml", {"policy": {"threshold_mmhg": [28, 40]}})
+    pipeline = daemon.pipeline
+    with pytest.raises(ConfigError, match="threshold_mmhg 50 is outside the ward policy 28-40 mmHg"):
+        settings.apply_settings(daemon, 0.0, {"alerts": {"threshold_mmhg": 50}})
+    assert daemon.pipeline is pipeline
+    assert settings.apply_settings(daemon, 0.0, {"alerts": {"threshold_mmhg": 36}})[1] == "applied threshold_mmhg 32 -> 36"
+    daemon.close()
+
+
 def test_a_command_restating_the_settings_changes_nothing(small_mat_calibration, tmp_path):
     daemon, _ = running_monitor(small_mat_calibration, tmp_path)
     pipeline, config = daemon.pipeline, daemon.config
