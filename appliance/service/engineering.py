@@ -53,8 +53,8 @@ IMAGE_FULL_SCALE_MMHG = 100.0       # the darkest colour, as on the live view
 IMAGE_SIDE_PX = 320                 # a saved map is enlarged to about this many pixels on its longer side
 EMPTY_MAT_MMHG = 10.0
 """A new empty-mat reference is refused when the frame, imaged against the present reference, peaks at or above
-this: the empty virtual mat images to at most 2 mmHg against a fresh reference of its own, and a 1 kPa (7.5 mmHg)
-load of 40 mm already to 12 mmHg. Fixed, not the alert threshold: a light patient whose load stays below the
+this: the empty 4x4 virtual mat imaged to at most 2 mmHg against a fresh reference of its own (two noise seeds),
+and a 40 mm square of 1 kPa (7.5 mmHg) on it to 12 mmHg. Fixed, not the alert threshold: a light patient whose load stays below the
 threshold would otherwise become the zero every later map is measured from, and the monitor would read that
 patient as an empty mat. It is half the lowest threshold a ward may set (20 mmHg)."""
 MAX_PAUSE_S = 30 * 60.0
