@@ -60,10 +60,12 @@ def test_a_ward_file_is_read_with_paths_relative_to_it(tmp_path):
 
 @pytest.mark.parametrize("text, message", [
     ('[monitor]\nlayuot = "grid-4x4"\n', "[monitor]: unknown key 'layuot'"),
-    ('[alerts]\nthreshold_mmhg = 3\n', "[alerts]: threshold_mmhg must be from 10 to 200, got 3"),
+    ('[alerts]\nthreshold_mmhg = 3\n', "[alerts]: threshold_mmhg must be from 20 to 60 mmHg (its safe range), got 3"),
     ('[alerts]\nturn_interval_min = "2h"\n', "[alerts]: turn_interval_min must be a number, got '2h'"),
     ('[alerts]\ncurve = "braden"\n', "[alerts]: curve must be one of reswick-rogers, linder-ganz, got 'braden'"),
     ('[alerts]\ncurve_points = [[30, 200]]\n', "[alerts] curve_points: tolerance curve 'custom' needs at least 2"),
+    ('[alerts]\ncurve_points = [[60, 200], [6000, 100]]\n',
+     "[alerts] curve_points: the curve tolerates 60 mmHg for 100 h; a ward's curve may tolerate it for at most 12 h"),
     ('[monitor]\nsource = "serial"\n', "[monitor]: source must be one of virtual, emulated, hardware"),
     ('[monitor]\nbed_id = "bed/7"\n', "[monitor] bed_id must be 1-64 characters without spaces"),
     ('[notify.mqtt]\nport = 1883\n', "[notify.mqtt] is missing 'host'"),
@@ -367,3 +369,18 @@ def test_after_a_crash_the_last_frames_events_are_notified_again(small_mat_calib
     restarted.start()
     assert again.events == last_frame and restarted.resumed_from_s == daemon.pipeline.last_time_s
     restarted.close()
+
+
+def test_the_live_view_names_each_setting_that_is_not_the_default(small_mat_calibration, tmp_path):
+    (tmp_path / "a").mkdir()
+    plain, _ = small_daemon(small_mat_calibration, tmp_path / "a", FlakySource(failing=()))
+    plain.run(1)
+    plain.close()
+    assert read_live(tmp_path / "a" / "live.json")["settings_changed"] == []
+    daemon, _ = small_daemon(small_mat_calibration, tmp_path, FlakySource(failing=()), threshold_mmhg=40,
+                             turn_interval_min=90)
+    daemon.run(1)
+    daemon.close()
+    changed = read_live(tmp_path / "live.json")["settings_changed"]
+    assert [c["text"] for c in changed] == ["threshold 40 mmHg (default 32)", "turn interval 90 min (default 120)"]
+    assert (changed[0]["key"], changed[0]["value"], changed[0]["default"]) == ("threshold_mmhg", 40, 32)

@@ -175,6 +175,74 @@ def test_an_uploaded_calibration_is_saved_listed_and_downloadable(app, tmp_path,
     assert audited(app) == ["engineering upload"]
 
 
+def implausible_variants(calibration) -> list[tuple[str, object, str]]:
+    """(file name, a calibration a monitor must not read through, what the refusal names)."""
+    from appliance.core.pressure import PressureCurve
+
+    change, pressure = calibration.curve.change, calibration.curve.pressure
+    swapped = pressure.copy()
+    swapped[1] = pressure[2] + 1.0                                   # falls between the second and third knots
+    return [("flat.json", dataclasses.replace(calibration, curve=PressureCurve(change, np.zeros_like(pressure))),
+             "the curve is constant: it reads every change as 0 kPa"),
+            ("falling.json", dataclasses.replace(calibration, curve=PressureCurve(change, swapped)),
+             "the curve is not monotonic: it falls from"),
+            ("scaled.json", dataclasses.replace(calibration, curve=PressureCurve(change, pressure * 0.02)),
+             "reads a change of 1 (the liquid film's whole conductance) as"),
+            ("stretched.json", dataclasses.replace(calibration, curve=PressureCurve(change * 20, pressure)),
+             "a mat's curve reads 40 to 1500 mmHg there")]
+
+
+def test_an_implausible_calibration_upload_is_refused_naming_what_is_wrong(app, tmp_path, small_mat):
+    _, calibration = small_mat
+    engineer = client_as(app, "engineer")
+    csrf = token(engineer, "/engineering")
+    for name, bad, message in implausible_variants(calibration):
+        save_pressure_calibration(tmp_path / name, bad)
+        answer = engineer.post("/engineering/upload",
+                               data={"file": (io.BytesIO((tmp_path / name).read_bytes()), name), "csrf_token": csrf})
+        assert answer.status_code == 400 and message in html.unescape(answer.get_data(as_text=True)), name
+    assert not (tmp_path / "engineering").exists() or not any((tmp_path / "engineering").iterdir())
+    assert audited(app) == []
+
+
+def test_load_refuses_an_implausible_calibration_and_keeps_the_running_one(small_mat, tmp_path):
+    daemon = daemon_for(small_mat, tmp_path)
+    running = daemon.monitor.calibration
+    (tmp_path / "engineering").mkdir()
+    for name, bad, message in implausible_variants(running):
+        save_pressure_calibration(tmp_path / "engineering" / name, bad)
+        refused = run(daemon, tmp_path, "load", {"what": "calibration", "file": name})
+        assert refused["state"] == "refused" and message in refused["result"], name
+        assert daemon.monitor.calibration is running
+    daemon.close()
+
+
+def test_an_open_pressure_alarm_outlives_a_calibration_that_reads_less_until_the_site_is_relieved(small_mat,
+                                                                                                 tmp_path):
+    from appliance.core.pressure import PressureCurve
+    from test_daemon import FlakySource, small_daemon
+
+    daemon, events = small_daemon(small_mat, tmp_path, FlakySource(failing=()), alarm_dose=0.05,
+                                  recovery="decay", relief_min=30)
+    daemon.add_commands(engineering_commands(daemon, data_dir=tmp_path, cache_dir=tmp_path / "models"))
+    while not daemon.pipeline.engine.alarms("clinical"):
+        daemon.run(1)
+    [alarm] = daemon.pipeline.engine.alarms("clinical")
+    peak_mmhg = max(s.peak_kpa for s in daemon.pipeline.sites) / 0.133322
+    running = daemon.monitor.calibration
+    lower = dataclasses.replace(running, curve=PressureCurve(running.curve.change,
+                                                             running.curve.pressure * 0.8 * 32 / peak_mmhg))
+    (tmp_path / "engineering").mkdir()
+    save_pressure_calibration(tmp_path / "engineering" / "lower.json", lower)
+    result(run(daemon, tmp_path, "load", {"what": "calibration", "file": "lower.json"}))
+    assert max(s.peak_kpa for s in daemon.pipeline.sites) / 0.133322 < 32          # the site reads relieved now
+    assert daemon.pipeline.dose.doses()["mat"] < 0.05                     # and its dose has decayed below the alarm
+    assert [a.alarm_id for a in daemon.pipeline.engine.alarms("clinical")] == [alarm.alarm_id]  # still open
+    daemon.run(3)                                                   # relieved for the relief time: it ends as usual
+    daemon.close()
+    assert [e.alarm_id for e in events if e.kind == "ended"] == [alarm.alarm_id]
+
+
 # The tasks, run by the monitor daemon.
 
 def daemon_for(small_mat, tmp_path, source=None):
@@ -296,7 +364,7 @@ def test_capture_reference_refuses_a_loaded_mat_and_replaces_an_empty_ones(small
     with Store.open(tmp_path / "appliance.db") as store:
         saved = store.load_state("reference")
     daemon.close()
-    assert done["usable"] == 448 and done["peak_mmhg_before"] < 32
+    assert done["usable"] == 448 and done["peak_mmhg_before"] < 10
     assert not np.array_equal(daemon.monitor.reference, before)                 # a new frame: new noise
     assert np.array_equal(np.array(saved["volts"], dtype=float), daemon.monitor.reference)
     assert saved["layout"] == "grid-4x4"
@@ -306,6 +374,27 @@ def test_capture_reference_refuses_a_loaded_mat_and_replaces_an_empty_ones(small
     assert 0.005 < fit["contact_over_nominal"][1] < 0.015 and fit["misfit"] < fit["misfit_nominal"]
     in_use = daemon.monitor.model.for_reference(daemon.monitor.reference)
     assert in_use.contact_fit.summary() == fit and in_use.setup.fitted_contact_ohm_m2 is None    # tracked only
+
+
+def test_capture_reference_refuses_a_light_load_below_the_alert_threshold_and_takes_a_first_one_as_it_is(
+        small_mat, tmp_path):
+    from appliance.sim.loads import square_load_scene
+
+    (tmp_path / "light").mkdir()
+    light = VirtualBedSource(GRID, square_load_scene(100, 100, 30, 70, 40, 2.0), PROTOCOL, frame_interval_s=60.0)
+    daemon = daemon_for(small_mat, tmp_path / "light", light)         # a light patient: about 25 mmHg at the peak
+    daemon.monitor.reference = empty_source().acquire().volts          # the reference of the mat before they lay down
+    before = daemon.monitor.reference.copy()
+    peak = daemon.monitor.next_map().peak_kpa / 0.133322
+    assert 10 < peak < 32                                               # below the alert threshold
+    refused = run(daemon, tmp_path / "light", "capture-reference")
+    assert refused["state"] == "refused" and "the mat is loaded" in refused["result"]
+    assert "at or above the 10 mmHg an empty mat may show" in refused["result"]
+    assert np.array_equal(daemon.monitor.reference, before)
+    daemon.monitor.reference = None                                     # no reference yet: nothing to compare with
+    first = result(run(daemon, tmp_path / "light", "capture-reference"))
+    daemon.close()
+    assert first["peak_mmhg_before"] is None and daemon.monitor.reference is not None
 
 
 def test_calibrate_reports_progress_to_1_and_load_takes_its_file_into_use(small_mat, tmp_path):

@@ -87,7 +87,7 @@ def test_a_calibration_never_fits_another_layout_or_reconstruction():
 @pytest.mark.parametrize(("mutate", "message"), [
     (lambda d: d.pop("curve"), "missing or malformed"),
     (lambda d: d.update(format="other"), "is not a pressure calibration"),
-    (lambda d: d["curve"].update(pressure_kpa=[0, 5, 4]), "must start at"),
+    (lambda d: d["curve"].update(pressure_kpa=[0, 5, 4]), "the curve is not monotonic: it falls from 5 kPa"),
     (lambda d: d.update(flat_field=[[1.0]]), "flat field shape"),
     (lambda d: d.update(zones=[{"name": "foot-end", "mask": [[1]],
                                 "curve": {"change": [0, 1], "pressure_kpa": [0, 2]}}]), "zone's mask does not match"),
@@ -129,3 +129,20 @@ def test_heel_size_loads_go_to_the_foot_end_of_a_bed_only():
     mask = foot_end_mask(bed, pixel_grid(bed))
     assert mask[:, -1].all() and not mask[:, :25].any()
     assert foot_end_loads(get_layout("grid-4x4")) == []
+
+
+def test_the_shipped_calibration_is_plausible_and_a_flat_or_scaled_away_one_is_not():
+    import dataclasses
+    from pathlib import Path
+
+    from appliance.core.pressure import check_plausible, implausible
+
+    shipped = load_pressure_calibration(Path(__file__).parents[1] / "appliance/sim/calibrations/grid-16x32.json")
+    assert implausible(shipped) is None
+    change, pressure = shipped.curve.change, shipped.curve.pressure
+    flat = dataclasses.replace(shipped, curve=PressureCurve(change, np.zeros_like(pressure)))
+    assert implausible(flat) == "the curve is constant: it reads every change as 0 kPa"
+    tiny = dataclasses.replace(shipped, curve=PressureCurve(change, pressure / 30))   # 100 mmHg read as about 3
+    assert implausible(tiny).startswith("the curve reads a change of 1 (the liquid film's whole conductance) as 4.94")
+    with pytest.raises(ConfigError, match="bench.json is implausible: the curve reads a change of 1"):
+        check_plausible(tiny, "bench.json")

@@ -68,10 +68,11 @@ def test_a_nurse_changes_patient_settings_but_not_the_bed(app, tmp_path):
 
 @pytest.mark.parametrize("path, fields, message", [
     ("/settings/patient", {"threshold_mmhg": "forty"}, "threshold_mmhg must be a number, got 'forty'"),
-    ("/settings/patient", {"threshold_mmhg": "5"}, "threshold_mmhg must be from 10 to 200, got 5"),
+    ("/settings/patient", {"threshold_mmhg": "5"}, "threshold_mmhg must be from 20 to 60 mmHg (its safe range), got 5"),
     ("/settings/patient", {"threshold_mmhg": ""}, "threshold_mmhg must be a number, got ''"),
-    ("/settings/patient", {"alarm_dose": "9"}, "alarm_dose must be from 0.05 to 5, got 9"),
-    ("/settings/patient", {"turn_interval_min": "10"}, "turn_interval_min must be from 15 to 720, got 10"),
+    ("/settings/patient", {"alarm_dose": "9"}, "alarm_dose must be from 0.05 to 1 (its safe range), got 9"),
+    ("/settings/patient", {"turn_interval_min": "10"},
+     "turn_interval_min must be from 15 to 240 min (its safe range), got 10"),
     ("/settings/patient", {"escalate_after_min": "nan"}, "escalate_after_min must be a number, got nan"),
     ("/settings/patient", {"curve": "made-up"}, "curve must be one of reswick-rogers, linder-ganz, got 'made-up'"),
     ("/settings/patient", {"recovery": "forget"}, "recovery must be one of reset, decay, got 'forget'"),
@@ -98,7 +99,7 @@ def test_the_json_api_answers_a_bad_value_in_json(app, tmp_path):
                          headers={"X-CSRF-Token": token(client, "/settings")})
     assert answer.status_code == 400
     assert answer.get_json() == {"error": "patient settings not changed: [alerts]: turn_interval_min must be from "
-                                          "15 to 720, got 1000"}
+                                          "15 to 240 min (its safe range), got 1000"}
     assert not (tmp_path / "settings.toml").exists() and commands(tmp_path) == []
 
 
@@ -164,7 +165,7 @@ def test_the_file_survives_a_reload_and_overlays_only_what_it_holds(tmp_path):
 
 @pytest.mark.parametrize("text, message", [
     ("[alerts]\nthreshold_mmhg = [", "is not valid TOML"),
-    ("[alerts]\nthreshold_mmhg = 5\n", "[alerts]: threshold_mmhg must be from 10 to 200, got 5"),
+    ("[alerts]\nthreshold_mmhg = 5\n", "[alerts]: threshold_mmhg must be from 20 to 60 mmHg (its safe range), got 5"),
     ("[alerts]\ncurve_points = [[60, 100]]\n", "[alerts]: unknown key 'curve_points'; settings allowed"),
     ("[board]\nname = \"x\"\n", "unknown table [board]"),
     ("alerts = 3\n", "[alerts] must be a table, got 3"),
@@ -183,10 +184,88 @@ def test_the_screen_shows_a_broken_file_and_refuses_to_change_over_it(app, tmp_p
     (tmp_path / "settings.toml").write_text("[alerts]\nthreshold_mmhg = 5\n")
     client = client_as(app, "nurse")
     page = client.get("/settings")
-    assert page.status_code == 200 and "threshold_mmhg must be from 10 to 200" in page.get_data(as_text=True)
+    assert page.status_code == 200 and "threshold_mmhg must be from 20 to 60 mmHg" in page.get_data(as_text=True)
     answer = post(client, "/settings/patient", threshold_mmhg="40")
     assert answer.status_code == 409 and "fix or remove it" in answer.get_data(as_text=True)
     assert (tmp_path / "settings.toml").read_text() == "[alerts]\nthreshold_mmhg = 5\n" and commands(tmp_path) == []
+
+
+# Safe ranges and the ward policy.
+
+@pytest.mark.parametrize("fields, message", [
+    ({"threshold_mmhg": "200"}, "threshold_mmhg must be from 20 to 60 mmHg (its safe range), got 200"),
+    ({"alarm_dose": "5"}, "alarm_dose must be from 0.05 to 1 (its safe range), got 5"),
+    ({"turn_interval_min": "720"}, "turn_interval_min must be from 15 to 240 min (its safe range), got 720"),
+    ({"relief_min": "60"}, "relief_min must be from 5 to 30 min (its safe range), got 60"),
+    ({"turn_grace_min": "120"}, "turn_grace_min must be from 0 to 60 min (its safe range), got 120"),
+    ({"reminder_repeat_min": "240"}, "reminder_repeat_min must be from 5 to 60 min (its safe range), got 240"),
+    ({"escalate_after_min": "120"}, "escalate_after_min must be from 1 to 30 min (its safe range), got 120"),
+])
+def test_a_setting_that_would_blind_the_monitor_is_refused_naming_it_its_value_and_its_range(app, tmp_path,
+                                                                                           fields, message):
+    answer = post(client_as(app, "admin"), "/settings/patient", **fields)
+    assert answer.status_code == 400 and message in answer.get_data(as_text=True)
+    assert not (tmp_path / "settings.toml").exists() and commands(tmp_path) == []
+
+
+def test_a_configuration_file_outside_the_safe_range_stops_the_monitor_at_start_with_exit_2(tmp_path, capsys):
+    from appliance.cli import main
+
+    path = tmp_path / "appliance.toml"
+    path.write_text("[alerts]\nthreshold_mmhg = 200\n")
+    assert main(["run", "--config", str(path), "--check-config"]) == 2
+    assert "threshold_mmhg must be from 20 to 60 mmHg (its safe range), got 200" in capsys.readouterr().err
+
+
+def policy(client, **fields):
+    return client.post("/settings/policy", data={"csrf_token": token(client, "/settings"), **fields})
+
+
+def test_only_an_admin_sets_the_ward_policy_and_it_bounds_what_a_nurse_may_set(app, tmp_path):
+    nurse, engineer, admin = (client_as(app, role) for role in ("nurse", "engineer", "admin"))
+    for client in (nurse, engineer):
+        assert policy(client, threshold_mmhg_low="20", threshold_mmhg_high="60").status_code == 403
+    assert not (tmp_path / "settings.toml").exists()
+    assert post(nurse, "/settings/patient", threshold_mmhg="45").status_code == 303     # the safe range allows it
+    answer = policy(admin, threshold_mmhg_low="28", threshold_mmhg_high="40")
+    assert answer.status_code == 400                                 # the 45 in use would lie outside the new policy
+    assert "threshold_mmhg 45 is outside the ward policy 28-40 mmHg" in answer.get_data(as_text=True)
+    assert post(nurse, "/settings/patient", threshold_mmhg="36").status_code == 303
+    assert policy(admin, threshold_mmhg_low="28", threshold_mmhg_high="40", turn_interval_min_low="60",
+                  turn_interval_min_high="180").status_code == 303
+    assert settings.read_settings(tmp_path / "settings.toml")["policy"] == {"threshold_mmhg": [28, 40],
+                                                                           "turn_interval_min": [60, 180]}
+    who, action, detail = audits(app)[0]
+    assert (who, action) == ("admin.test", "changed ward policy")
+    assert detail == "threshold_mmhg 20-60 -> 28-40 mmHg, turn_interval_min 15-240 -> 60-180 min"
+    assert isinstance(app.extensions["users"].audit_log()[0]["time_s"], float)
+    refused = post(nurse, "/settings/patient", threshold_mmhg="45")
+    assert refused.status_code == 400
+    assert "threshold_mmhg 45 is outside the ward policy 28-40 mmHg" in refused.get_data(as_text=True)
+    assert settings.read_settings(tmp_path / "settings.toml")["alerts"] == {"threshold_mmhg": 36}
+    as_json = nurse.post("/settings/patient", json={"turn_interval_min": 200},
+                         headers={"X-CSRF-Token": token(nurse, "/settings")})
+    assert as_json.status_code == 400 and "turn_interval_min 200 is outside the ward policy 60-180 min" in \
+        as_json.get_json()["error"]
+    assert post(nurse, "/settings/patient", threshold_mmhg="40").status_code == 303
+    assert nurse.get("/api/settings").get_json()["policy"]["threshold_mmhg"]["high"] == 40
+    assert "28-40 mmHg" in nurse.get("/settings").get_data(as_text=True)
+
+
+def test_a_policy_outside_the_safe_range_is_refused_and_a_file_cannot_carry_one(app, tmp_path):
+    admin = client_as(app, "admin")
+    answer = policy(admin, threshold_mmhg_low="10", threshold_mmhg_high="80")
+    assert answer.status_code == 400
+    assert "threshold_mmhg 10-80 mmHg is outside its safe range 20-60 mmHg" in answer.get_data(as_text=True)
+    inverted = admin.post("/settings/policy", json={"alarm_dose": [1.0, 0.5]},
+                          headers={"X-CSRF-Token": token(admin, "/settings")})
+    assert inverted.status_code == 400 and "alarm_dose 1-0.5: low is above high" in inverted.get_json()["error"]
+    assert not (tmp_path / "settings.toml").exists()
+    loaded = upload(admin, b"[policy]\nthreshold_mmhg = [20, 60]\n")
+    assert loaded.status_code == 400 and "the ward policy is set on this page by an admin" in \
+        loaded.get_data(as_text=True)
+    with pytest.raises(ConfigError, match=r"threshold_mmhg 50 is outside the ward policy 28-40 mmHg"):
+        settings.check_settings({"alerts": {"threshold_mmhg": 50}, "policy": {"threshold_mmhg": [28, 40]}})
 
 
 # The running monitor.
@@ -240,6 +319,27 @@ def test_the_monitor_applies_a_change_at_its_next_frame_and_carries_doses_and_al
     assert not [e for e in events if e.kind == "ended" and e.alarm_id in open_before]
 
 
+def test_an_open_pressure_alarm_outlives_a_change_of_settings_until_the_site_is_relieved(small_mat_calibration,
+                                                                                         tmp_path):
+    daemon, events = running_monitor(small_mat_calibration, tmp_path)
+    while not daemon.pipeline.engine.alarms("clinical"):
+        daemon.run(1)
+    [alarm] = daemon.pipeline.engine.alarms("clinical")
+    assert alarm.key.startswith("pressure:") and daemon.pipeline.dose.doses()["mat"] < 1.0
+    # The 45 mmHg load is below a 60 mmHg threshold, and the dose far below a whole tolerance: by the new
+    # rules alone the site is relieved and its dose decays, and the alarm would end at the next frame.
+    _, result = settings.apply_settings(daemon, daemon.source.now(), {"alerts": {
+        "threshold_mmhg": 60, "alarm_dose": 1.0, "recovery": "decay", "relief_min": 30}})
+    assert result.startswith("applied threshold_mmhg 32 -> 60")
+    daemon.run(1)
+    assert [a.alarm_id for a in daemon.pipeline.engine.alarms("clinical")] == [alarm.alarm_id]
+    assert daemon.pipeline.state()["held"] == ["mat"]
+    daemon.run(3)                                            # relieved for the 30 min relief: it ends as usual
+    daemon.close()
+    assert [e.alarm_id for e in events if e.kind == "ended"] == [alarm.alarm_id]
+    assert daemon.pipeline.state()["held"] == []
+
+
 def test_a_new_bed_id_shows_at_once_and_a_new_layout_waits_for_a_restart(small_mat_calibration, tmp_path):
     daemon, _ = running_monitor(small_mat_calibration, tmp_path)
     app = create_app(tmp_path, secure_cookies=False, TESTING=True)
@@ -286,7 +386,7 @@ def test_a_restart_resumes_the_doses_under_settings_changed_while_the_monitor_wa
 
 
 @pytest.mark.parametrize("args, reason", [
-    ({"alerts": {"threshold_mmhg": 5}}, "[alerts]: threshold_mmhg must be from 10 to 200, got 5"),
+    ({"alerts": {"threshold_mmhg": 5}}, "[alerts]: threshold_mmhg must be from 20 to 60 mmHg (its safe range), got 5"),
     ({"alerts": {"escalation_channel": "icu"}}, "[alerts]: unknown key 'escalation_channel'"),
     ({"monitor": {"data_dir": "/tmp"}}, "[monitor]: unknown key 'data_dir'"),
     ({"board": {}}, "unknown table [board]"),
@@ -306,6 +406,21 @@ def test_a_bad_command_queued_directly_is_refused_with_the_reason_and_changes_no
         refused = store.command(command)
         assert refused["state"] == "refused" and reason in refused["result"]
         assert store.load_state("settings") == settings.settings_values(config)
+
+
+def test_a_command_queued_directly_outside_the_ward_policy_is_refused_by_the_monitor(small_mat_calibration,
+                                                                                       tmp_path):
+    import dataclasses
+
+    daemon, _ = running_monitor(small_mat_calibration, tmp_path)
+    daemon.config = dataclasses.replace(daemon.config, data_dir=tmp_path)
+    settings.write_settings(tmp_path / "settings.toml", {"policy": {"threshold_mmhg": [28, 40]}})
+    pipeline = daemon.pipeline
+    with pytest.raises(ConfigError, match="threshold_mmhg 50 is outside the ward policy 28-40 mmHg"):
+        settings.apply_settings(daemon, 0.0, {"alerts": {"threshold_mmhg": 50}})
+    assert daemon.pipeline is pipeline
+    assert settings.apply_settings(daemon, 0.0, {"alerts": {"threshold_mmhg": 36}})[1] == "applied threshold_mmhg 32 -> 36"
+    daemon.close()
 
 
 def test_a_command_restating_the_settings_changes_nothing(small_mat_calibration, tmp_path):
@@ -345,7 +460,7 @@ def test_an_engineer_saves_the_settings_and_loads_them_back_changed(app, tmp_pat
 
 
 @pytest.mark.parametrize("content, message", [
-    (b"[alerts]\nthreshold_mmhg = 5\n", "threshold_mmhg must be from 10 to 200, got 5"),
+    (b"[alerts]\nthreshold_mmhg = 5\n", "threshold_mmhg must be from 20 to 60 mmHg (its safe range), got 5"),
     (b"[alerts]\nbogus = 1\n", "bogus"),
     (b"[alerts\n", "settings file"),
     (b"", None),

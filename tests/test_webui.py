@@ -7,7 +7,7 @@ import time
 import pytest
 from flask import url_for
 from mqtt_broker import free_port
-from webui_client import PASSWORD, log_in, set_up, token
+from webui_client import PASSWORD, client_as, log_in, set_up, token
 
 from appliance.service.config import MqttSettings
 from appliance.service.live import LiveChannel, read_live
@@ -294,3 +294,11 @@ def test_behind_the_proxy_the_limiter_counts_each_browser_not_the_proxy(tmp_path
         server.close()
     if behind_proxy:
         assert "from 10.0.0.12" in app.extensions["users"].audit_log()[0]["detail"]
+
+
+def test_the_live_page_has_a_line_for_settings_that_are_not_the_default(app):
+    page = client_as(app, "nurse").get("/").get_data(as_text=True)
+    assert 'id="changed"' in page and "Not the default" in page
+    answer = app.test_client().get("/static/live.js")
+    assert "settings_changed" in answer.get_data(as_text=True)
+    answer.close()

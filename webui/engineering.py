@@ -28,7 +28,7 @@ from flask import (Blueprint, abort, current_app, flash, g, jsonify, redirect, r
 
 from appliance.core.csv_files import read_rows
 from appliance.core.frames import FRAME_HEADER, load_frame
-from appliance.core.pressure import load_pressure_calibration
+from appliance.core.pressure import check_plausible, load_pressure_calibration
 from appliance.errors import ApplianceError
 from appliance.files import write_atomic
 from appliance.service.config import load_config
@@ -211,7 +211,7 @@ def _check_upload(name: str, content: bytes) -> None:
         path.write_bytes(content)
         try:
             if name.lower().endswith(".json"):
-                load_pressure_calibration(path)
+                check_plausible(load_pressure_calibration(path), name)
             else:
                 load_config(path)
         except (ApplianceError, ValueError) as exc:

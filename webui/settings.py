@@ -7,6 +7,12 @@ audited with each old and new value. A value that is not accepted is answered
 with HTTP 400 naming the field and what it may be, and nothing is written,
 queued or audited; a form sent back unchanged queues nothing. A new mat layout
 needs another reconstruction model, so it applies when the monitor restarts.
+
+Each patient setting that could blind the monitor has a safe range
+(``appliance.alerts.limits``); inside it the ward's policy, which only an admin
+changes (audited with the old and new spans), bounds what a nurse may set. Both
+are checked where the settings file is, so a form, a JSON body and a loaded file
+meet the same limits.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from flask import Blueprint, Response, current_app, flash, g, jsonify, redirect,
 
 from appliance.alerts.dose import BUILT_IN as BUILT_IN_CURVES
 from appliance.alerts.dose import RECOVERY_MODES
+from appliance.alerts.limits import POLICY, SAFE_RANGES, check_policy, check_within_policy, span_text
 from appliance.core.layouts import BUILTIN_NAMES
 from appliance.errors import ConfigError
 from appliance.service import settings as monitor_settings
@@ -76,7 +83,11 @@ def current() -> dict:
             else:
                 values[section][key] = {"value": default, "source": "default"}
     running_layout = running["monitor"]["layout"] if running is not None else None
+    policy = monitor_settings.policy_of(saved) if file_error is None else check_policy({})
     return {"settings": values, "file": str(settings_file()), "file_error": file_error, "saved": saved,
+            "policy": {key: {"low": low, "high": high, "safe_low": SAFE_RANGES[key].low,
+                             "safe_high": SAFE_RANGES[key].high, "unit": SAFE_RANGES[key].unit}
+                       for key, (low, high) in policy.items()},
             "running_layout": running_layout,
             "restart_pending": running_layout is not None and values["monitor"]["layout"]["value"] != running_layout}
 
@@ -89,7 +100,7 @@ def page():
 @bp.route("/api/settings")
 def api():
     state = current()
-    return jsonify({key: state[key] for key in ("settings", "file", "file_error", "running_layout",
+    return jsonify({key: state[key] for key in ("settings", "policy", "file", "file_error", "running_layout",
                                                 "restart_pending")})
 
 
@@ -102,6 +113,86 @@ def patient():
 @requires("engineer")
 def bed():
     return _change("monitor")
+
+
+@bp.route("/settings/policy", methods=["POST"])
+@requires("admin")
+def policy():
+    """The ward policy: a [low, high] span per setting inside its safe range; only an admin changes it."""
+    try:
+        changed = _apply_policy()
+    except SettingsRefused as exc:
+        message = f"ward policy not changed: {exc}"
+        if request.is_json:
+            return jsonify({"error": message}), exc.status
+        return _page(error=message, status=exc.status)
+    message = (f"ward policy changed: {_describe_spans(changed)}" if changed else "nothing changed in the ward policy")
+    if request.is_json:
+        return jsonify({"message": message, "changed": [{"key": k, "old": list(old), "new": list(new)}
+                                                        for k, old, new in changed]})
+    flash(message, "info")
+    return redirect(url_for("settings.page")), 303
+
+
+def _apply_policy() -> list[tuple[str, tuple, tuple]]:
+    """The spans changed (key, old, new); the policy written to the settings file and audited."""
+    state = current()
+    if state["file_error"]:
+        raise SettingsRefused(f"{state['file_error']}: an engineer must fix or remove it first", 409)
+    old = {key: (entry["low"], entry["high"]) for key, entry in state["policy"].items()}
+    wanted = dict(old)
+    for key, span in _submitted_policy(old).items():
+        wanted[key] = span
+    try:
+        table = {key: list(span) for key, span in wanted.items()
+                 if span != (SAFE_RANGES[key].low, SAFE_RANGES[key].high)}
+        check_policy(table)
+        check_within_policy({key: entry["value"] for key, entry in state["settings"]["alerts"].items()},
+                            check_policy(table))
+    except ConfigError as exc:
+        raise SettingsRefused(f"{exc}; change the setting first" if "outside the ward policy" in str(exc)
+                              else str(exc)) from None
+    changed = [(key, old[key], wanted[key]) for key in wanted if wanted[key] != old[key]]
+    if not changed:
+        return []
+    saved = {**state["saved"], POLICY: table}
+    monitor_settings.write_settings(settings_file(), {k: v for k, v in saved.items() if v})
+    current_app.extensions["users"].audit(g.user.name, "changed ward policy", _describe_spans(changed))
+    return changed
+
+
+def _submitted_policy(old: dict) -> dict[str, tuple[float, float]]:
+    """The spans sent: a JSON object ``{key: [low, high]}``, or a form's ``<key>_low`` and ``<key>_high``."""
+    if request.is_json:
+        data = request.get_json(silent=True)
+        if not isinstance(data, dict):
+            raise SettingsRefused("send the policy as a form or a JSON object")
+        sent = data
+    else:
+        form = request.form.to_dict()
+        form.pop("csrf_token", None)
+        sent = {}
+        for name, value in form.items():
+            key, _, end = name.rpartition("_")
+            if key not in SAFE_RANGES or end not in ("low", "high"):
+                raise SettingsRefused(f"unknown field {name!r}; the policy has <setting>_low and <setting>_high")
+            span = list(sent.get(key, old[key]))
+            span[0 if end == "low" else 1] = _as_number(value)
+            sent[key] = span
+    unknown = sorted(set(sent) - set(SAFE_RANGES))
+    if unknown:
+        raise SettingsRefused(f"unknown setting {unknown[0]!r}; a policy bounds {', '.join(SAFE_RANGES)}")
+    try:
+        checked = check_policy(sent)
+    except ConfigError as exc:
+        raise SettingsRefused(str(exc)) from None
+    return {key: checked[key] for key in sent}
+
+
+def _describe_spans(changed) -> str:
+    """``threshold_mmhg 20-60 -> 28-40 mmHg``."""
+    return ", ".join(f"{key} {span_text(*old)} -> {span_text(*new, SAFE_RANGES[key].unit)}"
+                     for key, old, new in changed)
 
 
 @bp.route("/settings/file")
@@ -147,6 +238,9 @@ def _load(sent) -> tuple[list, int | None]:
             loaded = monitor_settings.read_settings(path)
         except ConfigError as exc:
             raise SettingsRefused(str(exc).replace(str(path), sent.filename)) from None
+    if POLICY in loaded:
+        raise SettingsRefused(f"{sent.filename} holds a [{POLICY}]: the ward policy is set on this page by an "
+                              "admin, not loaded from a file")
     state = current()
     if state["file_error"]:
         raise SettingsRefused(f"{state['file_error']}: an engineer must fix or remove it first", 409)
@@ -160,7 +254,11 @@ def _load(sent) -> tuple[list, int | None]:
     if not changed:
         return [], None
     saved = {section: {**state["saved"].get(section, {}), **tables.get(section, {})} for section in GROUPS}
-    monitor_settings.write_settings(settings_file(), {k: v for k, v in saved.items() if v})
+    try:
+        monitor_settings.write_settings(settings_file(), {k: v for k, v in {**saved, POLICY: state["saved"].get(
+            POLICY, {})}.items() if v})
+    except ConfigError as exc:
+        raise SettingsRefused(str(exc)) from None
     with store() as s:
         command = s.queue_command(monitor_settings.COMMAND, {k: v for k, v in saved.items() if v}, g.user.name)
     current_app.extensions["users"].audit(g.user.name, "loaded settings",
@@ -245,7 +343,7 @@ def _page(error: str | None = None, status: int = 200):
         history = s.commands_since(time.time() - HISTORY_S, [monitor_settings.COMMAND])
     return render_template("settings.html", state=state, error=error, labels=LABELS, choices=_choices(state),
                            history=history, restart_note=monitor_settings.RESTART_NOTE,
-                           shown=monitor_settings.shown), status
+                           shown=monitor_settings.shown, span_text=span_text), status
 
 
 def _choices(state: dict) -> dict:

@@ -167,6 +167,7 @@ class AlertPipeline:
         self.sites: list[LocatedSite] = []                       # the last map's located sites
         self.places: dict[str, tuple[float, float]] = {}         # where each site was last found, mm
         self.place_groups: dict[str, str] = {}                   # and in which posture group
+        self.held: set[str] = set()                              # sites whose alarm outlives a settings change
 
     # --- frames ----------------------------------------------------------
 
@@ -196,6 +197,7 @@ class AlertPipeline:
             if dose >= self.settings.alarm_dose:
                 condition = self._pressure_condition(site)
                 active[condition.key] = (condition, f"{dose:.2f} of the tolerance used")
+        active.update(self._held_conditions(active))
         active.update(self._turn_conditions(now))
         active.update(self._bed_exit_condition(now))
         self.clinical = dict(active)
@@ -273,6 +275,25 @@ class AlertPipeline:
                               f"sustained pressure at the {site_words(site)}: reposition the patient",
                               (Escalation(s.escalate_after_s, s.escalation_channel),))
 
+    def hold_open_alarms(self) -> None:
+        """Keep each site's open pressure alarm until the site has been relieved for the relief time, whatever
+        the dose says now: called when the settings or the pressure calibration change, so that no alarm ends
+        because the rules or the scale it was measured by did, only because the tissue was offloaded."""
+        self.held |= {alarm.key.split(":", 1)[1] for alarm in self.engine.alarms("clinical")
+                      if alarm.key.startswith("pressure:")}
+
+    def _held_conditions(self, active: dict) -> dict:
+        """The held sites' alarms still owed (a site stays held until relieved for the relief time)."""
+        relieved = self.dose.relieved_s()
+        self.held = {site for site in self.held if relieved.get(site, 0.0) < self.settings.relief_s}
+        out = {}
+        for site in sorted(self.held):
+            condition = self._pressure_condition(site)
+            if condition.key not in active:
+                out[condition.key] = (condition, "held since the settings or calibration changed: relieve the site "
+                                                 f"for {self.settings.relief_s / 60:g} min")
+        return out
+
     def _turn_conditions(self, now_s: float) -> dict:
         owed = self.turns.reminder(now_s) if self.bed else None
         if owed is None:
@@ -348,7 +369,8 @@ class AlertPipeline:
                 "alarms": self.engine.state(), "last_time_s": self.last_time_s, "posture": self.posture,
                 "places": {site: list(xy) for site, xy in self.places.items()}, "place_groups": self.place_groups,
                 "episode": None if self.episode is None else self.episode.to_dict(),
-                "clinical": [[c.to_dict(), detail] for c, detail in self.clinical.values()]}
+                "clinical": [[c.to_dict(), detail] for c, detail in self.clinical.values()],
+                "held": sorted(self.held), "settings": settings_record(self.settings)}
 
     @classmethod
     def from_state(cls, grid: PixelGrid, state: dict, settings: AlertSettings = AlertSettings(),
@@ -358,7 +380,9 @@ class AlertPipeline:
         Patient settings changed since (by a nurse, or in the configuration while
         the monitor was down) apply from now on: the doses take the new curve,
         recovery and relief, and each site's dose, the share of its tolerance
-        already used, carries over unchanged.
+        already used, carries over unchanged. An open pressure alarm is held
+        (:meth:`hold_open_alarms`) when the settings differ from those saved: a
+        new threshold or alarm dose must not end it.
         """
         pipeline = cls(grid, settings, **body)
         episode = state.get("episode")
@@ -373,4 +397,14 @@ class AlertPipeline:
         pipeline.places = {site: (float(x), float(y)) for site, (x, y) in (state.get("places") or {}).items()}
         pipeline.place_groups = {str(site): str(group) for site, group in (state.get("place_groups") or {}).items()}
         pipeline.clinical = {c["key"]: (AlarmCondition.from_dict(c), detail) for c, detail in state.get("clinical", [])}
+        pipeline.held = {str(site) for site in state.get("held", [])}
+        if state.get("settings") is not None and state["settings"] != settings_record(settings):
+            pipeline.hold_open_alarms()
         return pipeline
+
+
+def settings_record(settings: AlertSettings) -> dict:
+    """``settings`` as plain JSON types, saved with the state to tell whether they changed since."""
+    record = dataclasses.asdict(settings)
+    record["curve_points"] = None if settings.curve_points is None else [list(p) for p in settings.curve_points]
+    return record

@@ -43,6 +43,11 @@ FORMAT = "appliance-pressure-calibration/1"
 KPA_PER_MMHG = 0.133322
 SALINE_COEFFICIENT_PER_C = 0.02
 CURVE_KNOTS = 24
+PLAUSIBLE_FULL_CHANGE_MMHG = (40.0, 1500.0)
+"""What a plausible curve reads at a change of 1 (the liquid film's whole conductance gone under the load): the
+calibrations made here read 148 mmHg (the bed) and about 155 mmHg (the 4x4 bench mat) there. Under 40 mmHg a
+curve reads a real load at a quarter or less of itself (a scale slipped, a curve made with no weights on); over
+1500 mmHg, ten times the measured, the image's noise would read as load."""
 
 
 @dataclass(frozen=True)
@@ -201,13 +206,59 @@ def load_pressure_calibration(path: Path) -> PressureCalibration:
             None if flat is None else np.array(flat, dtype=float), dict(data.get("notes", {})), zones)
     except (KeyError, TypeError, ValueError) as exc:
         raise DataFileInvalid(f"pressure calibration {path}: missing or malformed field ({exc})") from None
-    for name, curve in [("curve", calibration.curve)] + [(f"zone {z.name}", z.curve) for z in calibration.zones]:
-        c, p = curve.change, curve.pressure
-        if len(c) < 2 or len(c) != len(p) or np.any(np.diff(c) <= 0) or np.any(np.diff(p) < 0) \
-                or c[0] != 0 or p[0] != 0:
-            raise DataFileInvalid(f"pressure calibration {path}: the {name} must start at (0, 0) and rise")
+    for name, curve in _curves(calibration):
+        problem = _shape_problem(name, curve)
+        if problem:
+            raise DataFileInvalid(f"pressure calibration {path}: {problem}")
     if any(z.mask.shape != calibration.pixels for z in calibration.zones):
         raise DataFileInvalid(f"pressure calibration {path}: a zone's mask does not match the pixels")
     if calibration.flat_field is not None and calibration.flat_field.shape != calibration.pixels:
         raise DataFileInvalid(f"pressure calibration {path}: flat field shape does not match the pixels")
     return calibration
+
+
+def _curves(calibration: PressureCalibration) -> list[tuple[str, PressureCurve]]:
+    return [("curve", calibration.curve)] + [(f"zone {z.name}", z.curve) for z in calibration.zones]
+
+
+def _shape_problem(name: str, curve: PressureCurve) -> str | None:
+    """What is wrong with the knots of ``curve`` as knots (start at (0, 0), change rising, pressure never
+    falling), named; None when nothing is."""
+    c, p = np.asarray(curve.change, dtype=float), np.asarray(curve.pressure, dtype=float)
+    if len(c) < 2 or len(c) != len(p) or not (np.isfinite(c).all() and np.isfinite(p).all()) or c[0] != 0 \
+            or p[0] != 0 or np.any(np.diff(c) <= 0):
+        return f"the {name} must start at (0, 0) and rise"
+    falls = np.flatnonzero(np.diff(p) < 0)
+    if falls.size:
+        k = int(falls[0])
+        return (f"the {name} is not monotonic: it falls from {p[k]:g} kPa at change {c[k]:g} to {p[k + 1]:g} kPa "
+                f"at change {c[k + 1]:g}")
+    return None
+
+
+def implausible(calibration: PressureCalibration) -> str | None:
+    """Why ``calibration`` cannot be a mat's (a curve constant, falling, or reading a change of 1 outside
+    ``PLAUSIBLE_FULL_CHANGE_MMHG``; a flat field not finite and positive), or None. A monitor reading through
+    such a curve would show an empty mat under a patient and end their alarms with no technical alarm."""
+    low, high = PLAUSIBLE_FULL_CHANGE_MMHG
+    for name, curve in _curves(calibration):
+        problem = _shape_problem(name, curve)
+        if problem:
+            return problem
+        if np.all(curve.pressure == curve.pressure[0]):
+            return f"the {name} is constant: it reads every change as {curve.pressure[0]:g} kPa"
+        full = float(curve.pressure_kpa(np.array([-1.0]))[0]) / KPA_PER_MMHG
+        if not low <= full <= high:
+            return (f"the {name} reads a change of 1 (the liquid film's whole conductance) as {full:.3g} mmHg; a "
+                    f"mat's curve reads {low:g} to {high:g} mmHg there")
+    flat = calibration.flat_field
+    if flat is not None and not (np.isfinite(flat).all() and (flat > 0).all()):
+        return "the flat field holds values that are not finite and positive"
+    return None
+
+
+def check_plausible(calibration: PressureCalibration, name: str = "the pressure calibration") -> None:
+    """Refuse (ConfigError naming what is wrong) a calibration :func:`implausible` finds fault with."""
+    problem = implausible(calibration)
+    if problem:
+        raise ConfigError(f"{name} is implausible: {problem}; it is not taken into use")

@@ -75,11 +75,13 @@ def _source(config: MonitorConfig, layout, protocol):
 def _calibration(config: MonitorConfig, source, model, cache_dir: Path, say):
     """The configured calibration; on the virtual bed, its own: made once and kept with the built models,
     since like them it follows from the simulated mat alone."""
-    from appliance.core.pressure import load_pressure_calibration
+    from appliance.core.pressure import check_plausible, load_pressure_calibration
     from appliance.errors import ConfigError
 
     if config.calibration is not None:
-        return load_pressure_calibration(config.calibration)
+        calibration = load_pressure_calibration(config.calibration)
+        check_plausible(calibration, f"[monitor] calibration {config.calibration}")
+        return calibration
     if config.source != "virtual":
         raise ConfigError("[monitor] calibration is needed with a board: make one with `appliance calibrate "
                           "pressure --source hardware`")

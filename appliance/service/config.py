@@ -20,7 +20,8 @@ runs, not after it silently ignored it::
 
     [board]                       # source = "emulated" or "hardware": as in drivers/profile.py
 
-    [alerts]                      # defaults: appliance.alerts.pipeline.AlertSettings, sources in the README
+    [alerts]                      # defaults: appliance.alerts.pipeline.AlertSettings; safe ranges:
+                                  # appliance.alerts.limits.SAFE_RANGES; sources in the README
     threshold_mmhg = 32
     curve = "reswick-rogers"      # or linder-ganz, or curve_points = [[minutes, mmHg], ...]
     alarm_dose = 1.0
@@ -63,6 +64,7 @@ from pathlib import Path
 
 from appliance.alerts.dose import BUILT_IN as BUILT_IN_CURVES
 from appliance.alerts.dose import RECOVERY_MODES, custom_curve
+from appliance.alerts.limits import check_curve, check_safe
 from appliance.alerts.pipeline import AlertSettings
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.core.toml_files import read_toml
@@ -203,26 +205,27 @@ def _alerts(table: dict) -> AlertSettings:
             curve = custom_curve(table["curve_points"])
         except (CurveInvalid, TypeError) as exc:
             raise ConfigError(f"{where} curve_points: {exc}") from None
+        check_curve(curve, f"{where} curve_points")
         points = tuple((float(m), float(p)) for m, p in table["curve_points"])
         name = curve.name
     else:
         name = _choice(table, "curve", tuple(BUILT_IN_CURVES), "reswick-rogers", where)
     d = AlertSettings()                                  # the one definition of each clinical default
 
-    def minutes(key: str, default_s: float, low: float, high: float) -> float:
-        return 60.0 * _number(table, key, default_s / 60.0, where, low=low, high=high)
+    def safe(key: str, default: float) -> float:
+        """``key`` (its default when absent) inside its safe range (alerts/limits.py)."""
+        return check_safe(key, table.get(key, default), where)
 
     return AlertSettings(
-        threshold_kpa=_number(table, "threshold_mmhg", d.threshold_kpa / KPA_PER_MMHG, where, low=10.0,
-                              high=200.0) * KPA_PER_MMHG,
+        threshold_kpa=safe("threshold_mmhg", d.threshold_kpa / KPA_PER_MMHG) * KPA_PER_MMHG,
         curve=name, curve_points=points,
-        alarm_dose=_number(table, "alarm_dose", d.alarm_dose, where, low=0.05, high=5.0),
+        alarm_dose=safe("alarm_dose", d.alarm_dose),
         recovery=_choice(table, "recovery", RECOVERY_MODES, d.recovery, where),
-        relief_s=minutes("relief_min", d.relief_s, 1.0, 240.0),
-        turn_interval_s=minutes("turn_interval_min", d.turn_interval_s, 15.0, 720.0),
-        turn_grace_s=minutes("turn_grace_min", d.turn_grace_s, 0.0, 240.0),
-        reminder_repeat_s=minutes("reminder_repeat_min", d.reminder_repeat_s, 5.0, 240.0),
-        escalate_after_s=minutes("escalate_after_min", d.escalate_after_s, 1.0, 240.0),
+        relief_s=60.0 * safe("relief_min", d.relief_s / 60.0),
+        turn_interval_s=60.0 * safe("turn_interval_min", d.turn_interval_s / 60.0),
+        turn_grace_s=60.0 * safe("turn_grace_min", d.turn_grace_s / 60.0),
+        reminder_repeat_s=60.0 * safe("reminder_repeat_min", d.reminder_repeat_s / 60.0),
+        escalate_after_s=60.0 * safe("escalate_after_min", d.escalate_after_s / 60.0),
         escalation_channel=_text(table, "escalation_channel", d.escalation_channel, where))
 
 

@@ -34,6 +34,7 @@ import numpy as np
 from appliance.alerts.anatomy import POSTURE_WORDS, site_words
 from appliance.alerts.episodes import Episode
 from appliance.alerts.events import Event
+from appliance.alerts.limits import not_default
 from appliance.alerts.notifiers import Notifier
 from appliance.alerts.pipeline import AlertPipeline, FrameAlerts, technical_alarms
 from appliance.core.pressure import KPA_PER_MMHG
@@ -310,6 +311,7 @@ class MonitorDaemon:
                         "audio_paused": a.audio_paused_until is not None and a.audio_paused_until > now}
                        for a in engine.alarms()],
             "audible": engine.audible(now),
+            "settings_changed": not_default(self.pipeline.settings),   # on screen while any is not the default
         }
         if pressure_map is not None:
             g = self.grid

@@ -35,7 +35,8 @@ import numpy as np
 from appliance.calibration import calibration_loads, pressure_calibration
 from appliance.core.frames import frame_to_csv
 from appliance.core.model_cache import build_model, default_cache_dir, model_path, save_model
-from appliance.core.pressure import KPA_PER_MMHG, load_pressure_calibration, save_pressure_calibration
+from appliance.core.pressure import (KPA_PER_MMHG, check_plausible, load_pressure_calibration,
+                                     save_pressure_calibration)
 from appliance.core.render import write_png
 from appliance.drivers.recording import series_paths
 from appliance.drivers.scan import UNUSABLE
@@ -50,6 +51,12 @@ ENGINEERING_DIR = "engineering"
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 IMAGE_FULL_SCALE_MMHG = 100.0       # the darkest colour, as on the live view
 IMAGE_SIDE_PX = 320                 # a saved map is enlarged to about this many pixels on its longer side
+EMPTY_MAT_MMHG = 10.0
+"""A new empty-mat reference is refused when the frame, imaged against the present reference, peaks at or above
+this: the empty 4x4 virtual mat imaged to at most 2 mmHg against a fresh reference of its own (two noise seeds),
+and a 40 mm square of 1 kPa (7.5 mmHg) on it to 12 mmHg. Fixed, not the alert threshold: a light patient whose load stays below the
+threshold would otherwise become the zero every later map is measured from, and the monitor would read that
+patient as an empty mat. It is half the lowest threshold a ward may set (20 mmHg)."""
 MAX_PAUSE_S = 30 * 60.0
 """The longest a series may hold monitoring up, on the monitor's clock: nobody watches the patient meanwhile
 (the next map's dose counts the pause as its pressure held)."""
@@ -375,24 +382,29 @@ class EngineeringTasks:
 
     def capture_reference(self, now: float, _args: dict, report: Report) -> dict:
         """A new empty-mat reference, refused while the mat is loaded: when the frame, imaged against the
-        present reference, peaks at or above the alert threshold."""
+        present reference, peaks at or above ``EMPTY_MAT_MMHG``. With no reference yet there is nothing to
+        compare with, and the frame is taken as it is."""
         daemon = self.daemon
-        monitor, threshold = daemon.monitor, daemon.config.alerts.threshold_kpa
+        monitor = daemon.monitor
         frame = daemon.source.acquire()
         report(0.5, "frame taken; checking the mat is empty")
-        probe = Monitor(lambda: frame, daemon.model, monitor.calibration)
-        probe.reference, probe.reference_temperature_c = monitor.reference, monitor.reference_temperature_c
-        peak = probe.next_map().peak_kpa
-        if peak >= threshold:
-            raise ConfigError(f"the mat is loaded: it reads {peak / KPA_PER_MMHG:.0f} mmHg at its peak, at or above "
-                              f"the {threshold / KPA_PER_MMHG:.0f} mmHg alert threshold; clear the mat and capture "
-                              "again (the reference is unchanged)")
+        peak = None
+        if monitor.reference is not None:
+            probe = Monitor(lambda: frame, daemon.model, monitor.calibration)
+            probe.reference, probe.reference_temperature_c = monitor.reference, monitor.reference_temperature_c
+            peak = probe.next_map().peak_kpa
+            if not peak < EMPTY_MAT_MMHG * KPA_PER_MMHG:       # NaN (nothing readable) is not an empty mat either
+                raise ConfigError(f"the mat is loaded: it reads {peak / KPA_PER_MMHG:.0f} mmHg at its peak against "
+                                  f"the present reference, at or above the {EMPTY_MAT_MMHG:g} mmHg an empty mat may "
+                                  "show; clear the mat and capture again (the reference is unchanged)")
         report(0.6, "the mat is empty; fitting the contacts and the sheet to it")
         fit = monitor.take_reference(frame, lambda step, share: report(0.6 + 0.4 * share, f"relinearising: {step}"))
         daemon.store.save_state("reference", reference_state(daemon.model, frame, fit), now)
+        daemon.pipeline.hold_open_alarms()                   # a new zero may read less: no alarm ends by that alone
         report(1.0, "reference replaced")
         return {"usable": int(np.isfinite(frame.volts).sum()), "readings": len(frame.volts),
-                "temperature_c": frame.temperature_c, "peak_mmhg_before": peak / KPA_PER_MMHG,
+                "temperature_c": frame.temperature_c,
+                "peak_mmhg_before": None if peak is None else peak / KPA_PER_MMHG,
                 "contact_fit": None if fit is None else fit.summary()}
 
     def calibrate(self, _now: float, args: dict, report: Report) -> dict:
@@ -447,6 +459,7 @@ class EngineeringTasks:
         running mat and reconstruction; otherwise refused, the running one kept."""
         path = engineering_file(self.folder.parent, args["file"])
         calibration = load_pressure_calibration(path)
+        check_plausible(calibration, path.name)                        # a flat or scaled-away curve blinds
         self._replace_monitor(self.daemon.model, calibration)        # refuses one for another mat
         report(1.0, f"{path.name} in use")
         return {"file": path.name, "in_use": True, "layout": calibration.layout_name,
@@ -460,6 +473,7 @@ class EngineeringTasks:
             fresh.set_reference(old.reference, old.reference_temperature_c)     # a new model is fitted to it now
         fresh.conditions = old.conditions
         self.daemon.model, self.daemon.monitor = model, fresh
+        self.daemon.pipeline.hold_open_alarms()          # a new scale may read less: no alarm ends by that alone
 
 
 def engineering_commands(daemon, *, data_dir: Path | None = None, cache_dir: Path | None = None) -> dict:

@@ -16,14 +16,19 @@ file holds the same tables and keys as the configuration it overrides::
     layout = "grid-16x32"
 
 and is checked by the configuration's own parser, so a value refused in the
-configuration file is refused here with the same message. It is written only
+configuration file is refused here with the same message. A ``[policy]`` table
+(``threshold_mmhg = [28, 40]``), the ward's narrower limits inside each setting's
+safe range (:mod:`appliance.alerts.limits`), bounds the patient settings the file
+may hold; only an admin changes it on the screen. It is written only
 through :func:`write_settings` (a whole new file, fsynced, then renamed over the
 old one), so a power cut leaves the old file or the new one, never half of one.
 
 The screen is another process: it writes the file and queues an
 ``apply-settings`` command (args: the file's tables), which the monitor applies
 at its next frame. Patient settings rebuild the alert pipeline from its state,
-so doses, the turn clock and open alarms carry over; a new bed id shows at once;
+so doses, the turn clock and open alarms carry over (an open pressure alarm is
+held until its site has been relieved for the relief time, whatever the new
+threshold or alarm dose says); a new bed id shows at once;
 a new layout needs another reconstruction model and applies when the monitor
 restarts. The monitor keeps the settings it runs with in its store (state
 ``settings``) for the screen to show.
@@ -34,9 +39,9 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+from appliance.alerts.limits import POLICY, alert_values, check_policy, check_within_policy
 from appliance.alerts.pipeline import AlertPipeline
 from appliance.core.layouts import BUILTIN_NAMES
-from appliance.core.pressure import KPA_PER_MMHG
 from appliance.core.toml_files import read_toml
 from appliance.errors import ConfigError
 from appliance.files import write_atomic
@@ -57,7 +62,9 @@ PATIENT_FIELDS = {"threshold_mmhg": "threshold_kpa", "curve": "curve", "alarm_do
 BED_KEYS = ("bed_id", "layout")
 """Bed settings (keys of the configuration's ``[monitor]``)."""
 SECTIONS = {"alerts": tuple(PATIENT_FIELDS), "monitor": BED_KEYS}
-"""The settings file's tables and the keys each may hold."""
+"""The settings file's tables of settings and the keys each may hold."""
+TABLES = (*SECTIONS, POLICY)
+"""Every table the settings file may hold: the settings and the ward policy that bounds the patient's."""
 
 
 def settings_path(data_dir) -> Path:
@@ -68,9 +75,10 @@ def settings_path(data_dir) -> Path:
 def check_settings(settings: dict) -> MonitorConfig:
     """``settings`` (tables ``alerts`` and ``monitor`` as in the file) checked by the configuration's rules: the
     configuration they describe on their own; a wrong table, key or value raises ConfigError naming it."""
-    unknown = sorted(set(settings) - set(SECTIONS))
+    unknown = sorted(set(settings) - set(TABLES))
     if unknown:
-        raise ConfigError(f"unknown table [{unknown[0]}]; settings have {', '.join(f'[{s}]' for s in SECTIONS)}")
+        raise ConfigError(f"unknown table [{unknown[0]}]; settings have {', '.join(f'[{s}]' for s in TABLES)}")
+    policy = check_policy(settings.get(POLICY, {}))
     for section, keys in SECTIONS.items():
         table = settings.get(section, {})
         if not isinstance(table, dict):
@@ -81,7 +89,13 @@ def check_settings(settings: dict) -> MonitorConfig:
     checked = config_from_mapping({section: dict(settings[section]) for section in SECTIONS if section in settings})
     if "layout" in settings.get("monitor", {}) and checked.layout not in BUILTIN_NAMES:
         raise ConfigError(f"[monitor]: layout must be one of {', '.join(BUILTIN_NAMES)}, got {checked.layout!r}")
+    check_within_policy(settings.get("alerts", {}), policy)
     return checked
+
+
+def policy_of(settings: dict) -> dict[str, tuple[float, float]]:
+    """The ward policy a settings file holds (each setting's safe range where it sets none)."""
+    return check_policy(settings.get(POLICY, {}))
 
 
 def overlay(config: MonitorConfig, settings: dict) -> MonitorConfig:
@@ -97,14 +111,7 @@ def overlay(config: MonitorConfig, settings: dict) -> MonitorConfig:
 
 def settings_values(config: MonitorConfig) -> dict:
     """The patient and bed settings of ``config`` in the file's tables and units (mmHg, minutes)."""
-    a = config.alerts
-    return {"alerts": {"threshold_mmhg": round(a.threshold_kpa / KPA_PER_MMHG, 6), "curve": a.curve,
-                       "alarm_dose": a.alarm_dose, "recovery": a.recovery,
-                       "relief_min": round(a.relief_s / 60, 6),
-                       "turn_interval_min": round(a.turn_interval_s / 60, 6),
-                       "turn_grace_min": round(a.turn_grace_s / 60, 6),
-                       "reminder_repeat_min": round(a.reminder_repeat_s / 60, 6),
-                       "escalate_after_min": round(a.escalate_after_s / 60, 6)},
+    return {"alerts": alert_values(config.alerts),
             "monitor": {"bed_id": config.bed_id, "layout": config.layout}}
 
 
@@ -148,7 +155,7 @@ def settings_text(settings: dict) -> str:
     """``settings`` (checked first) as a settings file's TOML."""
     check_settings(settings)
     lines = ["# Patient and bed settings made on the bedside screen; they override the configuration file.\n"]
-    for section in SECTIONS:
+    for section in TABLES:
         if settings.get(section):
             lines.append(f"\n[{section}]\n")
             lines += [f"{key} = {_toml_value(value)}\n" for key, value in settings[section].items()]
@@ -175,8 +182,11 @@ def publish(daemon, now: float) -> None:
 def apply_settings(daemon, now: float, args: dict) -> tuple[list, str]:
     """The ``apply-settings`` command: lay ``args`` (tables as in the settings file) over the running
     configuration; patient settings take effect now, the pipeline rebuilt from its state so doses, turn
-    clock and open alarms carry over. A wrong value raises ConfigError, which refuses the command."""
+    clock and open alarms carry over. A wrong value, or a patient setting outside the ward policy in the
+    settings file, raises ConfigError, which refuses the command (the store takes whatever any process queues)."""
     wanted = overlay(daemon.config, args)
+    if daemon.config.data_dir is not None:
+        check_within_policy(args.get("alerts", {}), policy_of(read_settings(settings_path(daemon.config.data_dir))))
     changed = changes(settings_values(daemon.config), settings_values(wanted))
     if not changed:
         return [], "nothing changed"
@@ -204,6 +214,8 @@ def _toml_value(value) -> str:
     if isinstance(value, str):
         escaped = "".join(f"\\u{ord(c):04x}" if c in '"\\' or ord(c) < 0x20 or ord(c) == 0x7f else c for c in value)
         return f'"{escaped}"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise TypeError(f"a setting is text or a number, got {value!r}")
+        raise TypeError(f"a setting is text, a number or a list of them, got {value!r}")
     return repr(value)

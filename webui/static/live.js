@@ -51,6 +51,9 @@ function draw(snapshot) {
   const turn = snapshot.turn || {};
   document.getElementById("turn").textContent = turn.turning_since_s == null ? clock(turn.due_in_s)
     : `${clock(turn.due_in_s)} (a turn is being held: counted once it lasts)`;
+  const changed = document.getElementById("changed"), differing = snapshot.settings_changed || [];
+  changed.hidden = !differing.length;
+  changed.querySelector("strong").textContent = differing.map(s => s.text).join(", ");
   const alarms = document.getElementById("alarms");
   alarms.innerHTML = "";
   for (const a of snapshot.alarms || []) {
