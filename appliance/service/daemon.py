@@ -80,7 +80,8 @@ class MonitorDaemon:
     def __init__(self, config: MonitorConfig, source, model, calibration, store, *, notifiers=(), gpio=None,
                  live: LiveChannel | None = None, on_event: Callable[[Event], None] | None = None,
                  on_map: Callable | None = None, say: Callable[[str], None] = log.info,
-                 systemd: SystemdNotifier | None = None):
+                 systemd: SystemdNotifier | None = None, lock=None):
+        self.lock = lock            # the data folder's, given up last on close
         self.config, self.source, self.model, self.store = config, source, model, store
         self.notifiers, self.gpio, self.live = list(notifiers), gpio, live
         self._summarised = [n for n in self.notifiers if isinstance(n, Notifier)]  # those with summarise()
@@ -331,4 +332,6 @@ class MonitorDaemon:
         if self.live is not None:
             self.live.close()
         self.store.close()
+        if self.lock is not None:
+            self.lock.release()
 
