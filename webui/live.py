@@ -24,7 +24,11 @@ POLL_S = 0.2
 
 def snapshot() -> dict:
     """The newest snapshot with ``stale`` and ``age_s`` added; ``{"stale": True}`` before the first one."""
-    data = read_live(current_app.config["LIVE_PATH"])
+    path = current_app.config["LIVE_PATH"]
+    try:
+        data = read_live(path)
+    except ValueError as exc:           # damaged (a disk fault): shown as stale until the monitor rewrites it
+        return {"stale": True, "age_s": None, "message": f"the live view {path} cannot be read: {exc}"}
     if data is None:
         return {"stale": True, "age_s": None, "message": "the monitor has not written a frame yet"}
     age = time.time() - data["written_at"]
