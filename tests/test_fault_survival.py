@@ -2,15 +2,24 @@
 wall-clock steps, a background thread that fails and a full disk. Each is a technical alarm or a refusal
 naming what is wrong; none kills the monitor with a traceback or loses a record."""
 
+import errno
 import os
 import signal
+import sqlite3
 import subprocess
 
 import pytest
 
+from appliance.cli import main
 from appliance.errors import DataDirInUse
+from appliance.service.config import config_from_mapping
+from appliance.service.daemon import MonitorDaemon
 from appliance.service.datalock import lock_data_dir
+from appliance.service.live import LiveChannel, read_live
+from appliance.store import Store
 from monitor_process import MINUTE, command, start_monitoring
+from mqtt_broker import wait_until
+from test_daemon import INTERVAL, FlakySource
 
 
 # One data folder per monitor.
@@ -42,3 +51,115 @@ def test_a_second_monitor_on_a_folder_exits_2_and_one_after_a_sigkill_starts(tmp
     after = subprocess.run(command(data, model_cache, speed=0) + ["--frames", "1"], capture_output=True, text=True,
                            timeout=600)
     assert after.returncode == 0, after.stderr
+
+
+# Damaged files: a refusal naming the file (exit 2, one line, the file left as found) or a technical alarm.
+
+def run_monitor(data, model_cache, *options, frames=3):
+    """``appliance run`` in this process on the virtual bed: (exit status, stderr's lines)."""
+    return main(["run", "--scenario", "supine-unturned", "--interval", str(MINUTE), "--speed", "0",
+                 "--data-dir", str(data), "--cache-dir", str(model_cache), "--frames", str(frames), *options])
+
+
+def garble(path, offset, length=3 * 4096):
+    with open(path, "r+b") as f:
+        f.seek(offset)
+        f.write(bytes(range(256)) * (length // 256))
+
+
+@pytest.mark.parametrize("damage", ["pages", "header"])
+def test_a_damaged_store_is_refused_naming_it_and_left_as_found(tmp_path, bed_monitoring, model_cache, capsys,
+                                                                damage):
+    data = tmp_path / "data"
+    assert run_monitor(data, model_cache, frames=8) == 0
+    store = data / "appliance.db"
+    garble(store, 2 * 4096 if damage == "pages" else 0)
+    before = store.read_bytes()
+    capsys.readouterr()
+    assert run_monitor(data, model_cache) == 2
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert last.startswith(f"appliance: error: store {store} is damaged (") and "move it aside" in last
+    assert store.read_bytes() == before
+
+
+@pytest.mark.parametrize("name, what", [("monitor.toml", "configuration file"), ("settings.toml", "settings file"),
+                                        ("pressure.json", "pressure calibration")])
+def test_a_damaged_configuration_settings_or_calibration_file_is_refused_naming_it(tmp_path, bed_monitoring,
+                                                                                  model_cache, capsys, name, what):
+    data = tmp_path / "data"
+    data.mkdir()
+    path = (data if name == "settings.toml" else tmp_path) / name
+    path.write_bytes(b"\x00\xff[monitor\n\x89PNG")
+    option = {"monitor.toml": ["--config", str(path)], "pressure.json": ["--calibration", str(path)]}.get(name, [])
+    assert run_monitor(data, model_cache, *option) == 2
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert last.startswith(f"appliance: error: {what} {path} is not valid ")
+    assert not (data / "appliance.db").exists() or name == "settings.toml"
+
+
+def test_a_damaged_saved_alert_state_starts_afresh_under_a_technical_alarm(tmp_path, bed_monitoring, model_cache,
+                                                                         capsys):
+    data = tmp_path / "data"
+    assert run_monitor(data, model_cache) == 0
+    with sqlite3.connect(data / "appliance.db") as db:
+        db.execute("UPDATE state SET value = '{\"alarms\": [' WHERE name = 'alerts'")
+    db.close()
+    assert run_monitor(data, model_cache) == 0
+    out = capsys.readouterr()
+    assert f"store {data / 'appliance.db'}: the saved state 'alerts' is not valid JSON" in out.err
+    with Store.open(data / "appliance.db") as store:
+        raised = [e for e in store.events_since(0) if e["kind"] == "raised" and e["key"] == "technical:saved-state"]
+    assert len(raised) == 1 and "started afresh" in raised[0]["message"] and "appliance.db" in raised[0]["message"]
+
+
+def test_a_damaged_live_view_shows_the_screen_stale_naming_the_file(tmp_path):
+    from webui import create_app
+    from webui.live import snapshot
+
+    (tmp_path / "live.json").write_bytes(b'{"format": "appliance-live/1", "seq')
+    app = create_app(tmp_path, secure_cookies=False)
+    with app.app_context():
+        shown = snapshot()
+    assert shown["stale"] and str(tmp_path / "live.json") in shown["message"]
+
+
+# Supervised helper threads.
+
+class FailingLive(LiveChannel):
+    """The live view on a disk whose first ``failing`` writes fail."""
+
+    def __init__(self, path, failing):
+        self.failing = failing
+        super().__init__(path, backoff_s=0.01)
+
+    def _write(self, snapshot):
+        if self.failing > 0:
+            self.failing -= 1
+            raise OSError(errno.EIO, "Input/output error", str(self.path))
+        super()._write(snapshot)
+
+
+def test_a_failing_helper_thread_is_a_technical_alarm_and_is_restarted(small_mat_calibration, tmp_path):
+    model, calibration = small_mat_calibration
+    config = config_from_mapping({"monitor": {"layout": "grid-4x4", "frame_interval_s": INTERVAL}})
+    live = FailingLive(tmp_path / "live.json", failing=3)
+    events = []
+    daemon = MonitorDaemon(config, FlakySource(failing=()), model, calibration, Store.open(tmp_path / "a.db"),
+                           live=live, on_event=events.append, say=lambda text: None)
+    daemon.start()
+    daemon.step()
+    assert wait_until(lambda: live.fault is not None)
+    daemon.step()
+    raised = [e for e in events if e.key == "technical:live-view" and e.kind == "raised"]
+    assert len(raised) == 1 and "Input/output error" in raised[0].message
+    frames = 2
+    while live.fault is not None or live.written == 0:      # restarted: the next snapshots are written
+        assert frames < 30 and live._worker.is_alive()
+        daemon.step()
+        frames += 1
+        wait_until(lambda: live.written > 0, timeout_s=0.2)
+    daemon.step()
+    daemon.close()
+    assert [e.kind for e in events if e.key == "technical:live-view"] == ["raised", "ended"]
+    assert read_live(tmp_path / "live.json")["sequence"] == frames + 1
+    assert daemon.maps == frames + 1                          # every frame made its map throughout

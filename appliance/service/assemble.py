@@ -56,7 +56,7 @@ def _assemble(config: MonitorConfig, lock, *, say, on_event, on_map, live: bool)
         calibration = _calibration(config, source, model, config.cache_dir or default_cache_dir(), say)
         store = Store.open(data_dir / STORE_FILE, history_interval_s=config.store.history_interval_s,
                            history_days=config.store.history_days, event_days=config.store.event_days,
-                           max_bytes=int(config.store.max_mb * 1024 * 1024))
+                           max_bytes=int(config.store.max_mb * 1024 * 1024), check=True)
         closers.append(store.close)
         notifiers = _notifiers(config, data_dir / DEAD_LETTER_FILE)
         closers += [n.close for n in notifiers]
