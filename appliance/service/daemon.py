@@ -37,7 +37,7 @@ from appliance.alerts.events import Event
 from appliance.alerts.notifiers import Notifier
 from appliance.alerts.pipeline import AlertPipeline, FrameAlerts, technical_alarms
 from appliance.core.pressure import KPA_PER_MMHG
-from appliance.errors import ApplianceError, ConfigError, DataFileInvalid, ReconstructionError
+from appliance.errors import ApplianceError, ConfigError, DataFileInvalid, ReconstructionError, StoreCorrupt
 from appliance.service.config import MonitorConfig
 from appliance.service.live import LiveChannel, map_mmhg
 from appliance.service.monitor import Monitor, reference_state
@@ -94,7 +94,9 @@ class MonitorDaemon:
         self.stop_requested = threading.Event()
         self.maps = self.faults = self.consecutive_faults = 0
         self.last_fault: str | None = None
+        self.map_fault: str | None = None
         self.resumed_from_s: float | None = None
+        self.start_faults: dict[str, tuple[str, float]] = {}   # technical alarm key -> (message, shown until)
         self._ready = False
         self.commands: dict[str, CommandHandler] = {"acknowledge": self._acknowledge,
                                                      "pause-audio": self._pause_audio,
@@ -120,7 +122,11 @@ class MonitorDaemon:
 
     def start(self) -> None:
         """Resume the reference and alert state from the store, or take a fresh reference and start clean."""
-        state, reference = self.store.load_state("alerts"), self.store.load_state("reference")
+        try:
+            state, reference = self.store.load_state("alerts"), self.store.load_state("reference")
+        except StoreCorrupt as exc:
+            self._lost_state(str(exc))
+            state = reference = None
         if state is not None and reference is not None and self._restore(state, reference):
             return
         frame = self.source.reference()
@@ -141,7 +147,7 @@ class MonitorDaemon:
         try:
             pipeline = AlertPipeline.from_state(self.grid, state, self.config.alerts)
         except (DataFileInvalid, ConfigError, KeyError, TypeError, ValueError) as exc:
-            self.say(f"the saved alert state cannot be continued ({exc}): starting afresh")
+            self._lost_state(f"the saved alert state in {self.store.path} cannot be continued ({exc})")
             return False
         try:
             self.monitor.set_reference(volts, reference.get("temperature_c"))    # the same fit as when it was taken
@@ -157,16 +163,29 @@ class MonitorDaemon:
         self._resend_last_frame()
         return True
 
+    def _lost_state(self, why: str) -> None:
+        """Start afresh without the saved doses, turn clock and open alarms, and say so with a technical alarm
+        for one turn interval, by which time the turn clock is whole again: monitoring goes on, but a nurse
+        must know that what the screen shows began now."""
+        self.say(f"{why}: starting afresh")
+        until = self.source.now() + self.config.alerts.turn_interval_s
+        self.start_faults["technical:saved-state"] = (
+            f"saved state lost ({why}): doses, the turn clock and open alarms started afresh", until)
+
     def _resend_last_frame(self) -> None:
         """Notify the last committed frame's events again: the crash may have come before they were handed
         over. Receivers de-duplicate on (alarm_id, kind, time_s), so a repeat is harmless and a loss is not."""
-        outbox = self.store.load_state("outbox") or {"events": []}
-        for fields in outbox["events"]:
-            event = Event(**fields)
+        try:
+            outbox = self.store.load_state("outbox") or {"events": []}
+            events = [Event(**fields) for fields in outbox["events"]]
+        except (StoreCorrupt, KeyError, TypeError) as exc:
+            self.say(f"the last frame's events cannot be notified again: {exc}")
+            return
+        for event in events:
             for notifier in self.notifiers:
                 notifier.notify(event)
-        if outbox["events"] and self.notifiers:
-            self.say(f"notified the last frame's {len(outbox['events'])} event(s) again")
+        if events and self.notifiers:
+            self.say(f"notified the last frame's {len(events)} event(s) again")
 
     # The loop.
 
@@ -205,6 +224,8 @@ class MonitorDaemon:
             self.last_fault = f"{type(exc).__name__}: {exc}"
             self.say(f"FAULT ({self.consecutive_faults} in a row): {self.last_fault}")
         technical = technical_alarms(self.monitor.conditions)          # during a gap, as the last frame left them
+        technical.update({key: message for key, (message, until) in self.start_faults.items() if now < until})
+        technical.update(self._helper_faults())
         if pressure_map is None:
             technical["technical:front-end"] = f"no frame from the front end: {self.last_fault}"
             if self.consecutive_faults >= NO_DATA_FRAMES:
@@ -223,7 +244,7 @@ class MonitorDaemon:
                                               "outbox": {"events": [e.to_dict() for e in events]}}, outcomes)
         self._tell(events, now)
         if pressure_map is not None and self.on_map is not None:
-            self.on_map(pressure_map)
+            self._show_map(pressure_map)
         if self.live is not None:
             self.live.publish(snapshot)
         if self._summarised:
@@ -286,6 +307,32 @@ class MonitorDaemon:
                 self.on_event(event)
         if self.gpio is not None:
             self.gpio.show(self.pipeline.engine.audible(now), now)
+
+    def _helper_faults(self) -> dict[str, str]:
+        """A technical alarm for each helper that is failing: the live view's writer, a notifier's threads
+        (restarted with a back-off by their supervisors), the newest map's files."""
+        faults = {}
+        if self.live is not None and self.live.fault is not None:
+            faults["technical:live-view"] = f"the live view cannot be written (retrying): {self.live.fault}"
+        for notifier in self.notifiers:
+            if (fault := getattr(notifier, "fault", None)) is not None:
+                faults[f"technical:notifier:{notifier.name}"] = f"the {notifier.name} notifier is failing " \
+                                                                 f"(restarting): {fault}"
+        if self.map_fault is not None:
+            faults["technical:map-files"] = f"the newest map's files cannot be written: {self.map_fault}"
+        return faults
+
+    def _show_map(self, pressure_map) -> None:
+        """Hand the map to ``on_map`` (files for anyone to look at): a failure is a technical alarm, not the
+        end of monitoring."""
+        try:
+            self.on_map(pressure_map)
+        except OSError as exc:
+            if self.map_fault is None:
+                self.say(f"the newest map's files cannot be written: {exc}")
+            self.map_fault = f"{type(exc).__name__}: {exc}"
+        else:
+            self.map_fault = None
 
     def _snapshot(self, now: float, pressure_map, alerts: FrameAlerts) -> dict:
         """What the live view shows: the map, regions with their dose, the turn clock, alarms and status."""
