@@ -163,3 +163,64 @@ def test_a_failing_helper_thread_is_a_technical_alarm_and_is_restarted(small_mat
     assert [e.kind for e in events if e.key == "technical:live-view"] == ["raised", "ended"]
     assert read_live(tmp_path / "live.json")["sequence"] == frames + 1
     assert daemon.maps == frames + 1                          # every frame made its map throughout
+
+
+# A full disk.
+
+class FillingStore(Store):
+    """A store on a disk that fills while ``full`` is set: every write fails as SQLite reports it."""
+
+    full = False
+
+    def _transaction(self, synchronous):
+        if self.full:
+            raise sqlite3.OperationalError("database or disk is full")
+        return super()._transaction(synchronous)
+
+
+def fill(store, full):
+    """Fill the disk under ``store`` (or free it): ``FillingStore``'s switch, or SQLite's own page limit, which
+    fails a write that would grow the file with SQLITE_FULL, as a full file system does."""
+    if isinstance(store, FillingStore):
+        store.full = full
+    else:
+        pages = store._db.execute("PRAGMA page_count").fetchone()[0]
+        store._db.execute(f"PRAGMA max_page_count = {pages if full else 2 ** 30}")
+
+
+@pytest.mark.parametrize("disk", ["injected", "page-limit"])
+def test_a_full_disk_is_a_technical_alarm_and_every_record_is_written_once_it_has_room(small_mat_calibration,
+                                                                                        tmp_path, disk):
+    model, calibration = small_mat_calibration
+    config = config_from_mapping({"monitor": {"layout": "grid-4x4", "frame_interval_s": INTERVAL},
+                                  "alerts": {"alarm_dose": 0.05}, "store": {"history_interval_s": 0}})
+    path = tmp_path / "appliance.db"
+    store = (FillingStore if disk == "injected" else Store).open(path, history_interval_s=0)
+    events = []
+    daemon = MonitorDaemon(config, FlakySource(failing=()), model, calibration, store, on_event=events.append,
+                           say=lambda text: None)
+    daemon.start()
+    daemon.run(2)
+    fill(store, True)
+    while not any(e.kind == "raised" and e.key.startswith("pressure:") for e in events):
+        assert daemon.step() is not None and daemon.maps < 20         # clinical alarms go on from memory
+    alarm = next(e for e in events if e.kind == "raised" and e.key.startswith("pressure:"))
+    with Store.open(path) as screen:                                   # the screen's own connection
+        acknowledge = screen.queue_command("acknowledge", {"alarm_id": alarm.alarm_id}, "nurse.jones")
+    daemon.run(3)
+    storage = [e for e in events if e.key == "technical:storage"]
+    assert [e.kind for e in storage] == ["raised"]
+    assert storage[0].message.startswith("storage full: records kept in memory (")
+    assert daemon.writes.held > 0
+    fill(store, False)
+    daemon.run(2)
+    assert [e.kind for e in events if e.key == "technical:storage"] == ["raised", "ended"]
+    maps = daemon.maps
+    daemon.close()
+    with Store.open(path) as kept:
+        logged = [(e["kind"], e["key"], e["time_s"]) for e in kept.events_since(0)]
+        assert logged == [(e.kind, e.key, e.time_s) for e in events]            # all of them, in order
+        assert [e.kind for e in events].count("acknowledged") == 1
+        assert kept.command(acknowledge)["state"] == "done"
+        assert len(kept.history_between(0, 1e9)) == maps
+        assert kept.load_state("alerts")["last_time_s"] == daemon.pipeline.last_time_s

@@ -26,6 +26,7 @@ notifiers, closes the store and exits 0.
 from __future__ import annotations
 
 import logging
+import sqlite3
 import threading
 from collections.abc import Callable
 
@@ -42,6 +43,7 @@ from appliance.service.config import MonitorConfig
 from appliance.service.live import LiveChannel, map_mmhg
 from appliance.service.monitor import Monitor, reference_state
 from appliance.service.systemd import SystemdNotifier
+from appliance.store.holding import HeldWrites
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +85,7 @@ class MonitorDaemon:
                  systemd: SystemdNotifier | None = None, lock=None):
         self.lock = lock            # the data folder's, given up last on close
         self.config, self.source, self.model, self.store = config, source, model, store
+        self.writes = HeldWrites(store)         # a full disk holds the records in memory; monitoring goes on
         self.notifiers, self.gpio, self.live = list(notifiers), gpio, live
         self._summarised = [n for n in self.notifiers if isinstance(n, Notifier)]  # those with summarise()
         self.on_event, self.on_map, self.say = on_event, on_map, say
@@ -114,7 +117,10 @@ class MonitorDaemon:
         """A progress callback for a long command: records the share done for screens and keeps the systemd
         watchdog fed, since the loop is busy but alive."""
         def report(share: float, note: str = "") -> None:
-            self.store.set_progress(command_id, share, note)
+            try:
+                self.store.set_progress(command_id, share, note)
+            except sqlite3.OperationalError:
+                pass                    # only a progress bar: a full disk shows as the storage alarm
             self.systemd.ping()
         return report
 
@@ -136,7 +142,7 @@ class MonitorDaemon:
             self.monitor.reference = np.asarray(frame.volts, dtype=float)
             self.monitor.reference_temperature_c, fit = frame.temperature_c, None
             self.say(f"the empty-mat reference does not fit the model: {exc}")
-        self.store.save_state("reference", reference_state(self.model, frame, fit), 0.0)
+        self.writes.save_state("reference", reference_state(self.model, frame, fit), 0.0)
         self.say("took the empty-mat reference" + ("" if fit is None else f"; fitted {fit.describe()}"))
 
     def _restore(self, state: dict, reference: dict) -> bool:
@@ -226,6 +232,7 @@ class MonitorDaemon:
         technical = technical_alarms(self.monitor.conditions)          # during a gap, as the last frame left them
         technical.update({key: message for key, (message, until) in self.start_faults.items() if now < until})
         technical.update(self._helper_faults())
+        technical.update(self.writes.condition())
         if pressure_map is None:
             technical["technical:front-end"] = f"no frame from the front end: {self.last_fault}"
             if self.consecutive_faults >= NO_DATA_FRAMES:
@@ -239,8 +246,8 @@ class MonitorDaemon:
         events += [self.pipeline.record(e) for e in alerts.turn_events + alerts.alarm_events]
         snapshot = self._snapshot(now, pressure_map, alerts)
         if pressure_map is not None:
-            self.store.record_map(now, np.nan_to_num(pressure_map.pressure_kpa), snapshot["regions"])
-        self.store.commit_frame(now, events, {"alerts": self.pipeline.state(),
+            self.writes.record_map(now, np.nan_to_num(pressure_map.pressure_kpa), snapshot["regions"])
+        self.writes.commit_frame(now, events, {"alerts": self.pipeline.state(),
                                               "outbox": {"events": [e.to_dict() for e in events]}}, outcomes)
         self._tell(events, now)
         if pressure_map is not None and self.on_map is not None:
@@ -260,14 +267,17 @@ class MonitorDaemon:
     def _apply_commands(self, now: float) -> tuple[list[Event], list[tuple[int, bool, str]]]:
         """The queued commands, each through its handler: their events, and each one's outcome."""
         events, outcomes = [], []
+        held = self.writes.held_commands          # applied, their outcome not yet written
         for command in self.store.pending_commands():
+            if command["id"] in held:
+                continue
             kind, args, user = command["kind"], command["args"], command["user"]
             try:
                 handler = self.commands.get(kind)
                 if handler is None:
                     raise ValueError(f"unknown command {kind!r}")
                 done, result = handler(now, args, user, command["id"])
-            except (ApplianceError, OSError, ValueError, KeyError, TypeError) as exc:
+            except (ApplianceError, OSError, sqlite3.OperationalError, ValueError, KeyError, TypeError) as exc:
                 self.say(f"command {kind} by {user} refused: {exc}")
                 outcomes.append((command["id"], False, str(exc)))
                 continue
@@ -378,7 +388,13 @@ class MonitorDaemon:
             self.gpio.close()
         if self.live is not None:
             self.live.close()
-        self.store.close()
+        if not self.writes.flush():
+            self.say(f"the store still refuses writes ({self.writes.failure}): {self.writes.held} record(s) held "
+                     f"in memory are lost")
+        try:
+            self.store.close()
+        except sqlite3.OperationalError as exc:
+            self.say(f"the store could not be closed cleanly ({exc}); it recovers its journal at the next start")
         if self.lock is not None:
             self.lock.release()
 

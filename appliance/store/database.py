@@ -263,6 +263,11 @@ class Store:
 
     # Pressure history: down-sampled, not fsynced per map.
 
+    @property
+    def last_map_s(self) -> float | None:
+        """The time of the last map kept in the history (the next is kept ``history_interval_s`` after it)."""
+        return self._last_map_s
+
     def record_map(self, time_s: float, pressure_kpa, regions: Iterable[Mapping] = ()) -> bool:
         """Keep the map, and the loaded regions it shows, if ``history_interval_s`` has passed since the last kept
         one; returns whether it was kept.
