@@ -224,3 +224,89 @@ def test_a_full_disk_is_a_technical_alarm_and_every_record_is_written_once_it_ha
         assert kept.command(acknowledge)["state"] == "done"
         assert len(kept.history_between(0, 1e9)) == maps
         assert kept.load_state("alerts")["last_time_s"] == daemon.pipeline.last_time_s
+
+
+# Wall-clock steps.
+
+class Clocks:
+    """A wall clock a test can step and a monotonic clock it moves on by hand."""
+
+    def __init__(self, wall=1_780_000_000.0):
+        self.shift, self.steady, self.start = 0.0, 0.0, wall
+
+    def wall(self):
+        return self.start + self.steady + self.shift
+
+    def monotonic(self):
+        return self.steady
+
+
+def test_frame_times_follow_the_monotonic_clock_and_a_step_is_reported_once():
+    from appliance.service.clock import FrameClock
+
+    clocks = Clocks()
+    clock = FrameClock(wall=clocks.wall, monotonic=clocks.monotonic)
+    times = [clock.now()]
+    clocks.steady += 1.0
+    assert clock.step() is None                    # no step: nothing to report
+    clocks.shift -= 3600.0
+    clocks.steady += 1.0
+    times.append(clock.now())
+    assert clock.step() == pytest.approx(-3600.0) and clock.step() is None
+    clocks.steady += 1.0
+    clocks.shift += 3.0                            # a few seconds of drift correction: not a step
+    times.append(clock.now())
+    assert clock.step() is None
+    assert times == [clocks.start, clocks.start + 2.0, clocks.start + 3.0]
+    clock.not_before(clocks.start + 100.0)         # a restart after records later than the wall clock
+    assert clock.now() > clocks.start + 100.0
+
+
+def test_the_board_monitor_carries_on_over_a_wall_clock_step_back_and_logs_it(small_mat_calibration, tmp_path):
+    from appliance.core.pressure import save_pressure_calibration
+    from appliance.service.assemble import assemble
+    from appliance.service.clock import FrameClock
+
+    model, calibration = small_mat_calibration
+    save_pressure_calibration(tmp_path / "pressure.json", calibration)
+    config = config_from_mapping({"monitor": {"layout": "grid-4x4", "source": "hardware", "frame_interval_s": 0.05,
+                                              "calibration": str(tmp_path / "pressure.json"),
+                                              "data_dir": str(tmp_path / "data"),
+                                              "cache_dir": str(tmp_path / "models")},
+                                  "board": {"backend": "emulated"}})
+    maps = []
+    daemon = assemble(config, say=lambda text: None, on_map=maps.append)
+    clocks = Clocks(wall=daemon.source.now() + 1.0)
+    daemon.source.clock = FrameClock(wall=clocks.wall, monotonic=clocks.monotonic)
+    try:
+        for n in range(4):
+            clocks.steady += 60.0
+            if n == 2:
+                clocks.shift = -3600.0             # the wall clock is set back an hour
+            daemon.step()
+    finally:
+        daemon.close()
+    times = [m.time_s for m in maps]
+    assert len(times) == 4 and times == sorted(times) and times[-1] - times[0] == pytest.approx(180.0)
+    with Store.open(tmp_path / "data" / "appliance.db") as store:
+        steps = [e for e in store.events_since(0) if e["kind"] == "clock-step"]
+    assert len(steps) == 1 and "stepped back 3600 s" in steps[0]["message"]
+
+
+def test_the_screen_goes_stale_when_the_monitor_stops_even_if_the_clock_was_set_back(tmp_path, monkeypatch):
+    import json
+
+    import webui.live
+    from webui import create_app
+
+    clocks = Clocks()
+    monkeypatch.setattr(webui.live, "wall", clocks.wall)
+    monkeypatch.setattr(webui.live, "monotonic", clocks.monotonic)
+    (tmp_path / "live.json").write_text(json.dumps({"format": "appliance-live/1", "sequence": 7,
+                                                    "wall_interval_s": 1.0, "written_at": clocks.wall()}))
+    clocks.shift = -3600.0                      # then the monitor stops and the clock is set back an hour
+    app = create_app(tmp_path, secure_cookies=False)
+    with app.app_context():
+        assert not webui.live.snapshot()["stale"]
+        clocks.steady += 10 * webui.live.STALE_AFTER_FRAMES
+        assert webui.live.snapshot()["stale"]

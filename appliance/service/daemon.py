@@ -247,7 +247,7 @@ class MonitorDaemon:
         snapshot = self._snapshot(now, pressure_map, alerts)
         if pressure_map is not None:
             self.writes.record_map(now, np.nan_to_num(pressure_map.pressure_kpa), snapshot["regions"])
-        self.writes.commit_frame(now, events, {"alerts": self.pipeline.state(),
+        self.writes.commit_frame(now, events + self._clock_steps(now), {"alerts": self.pipeline.state(),
                                               "outbox": {"events": [e.to_dict() for e in events]}}, outcomes)
         self._tell(events, now)
         if pressure_map is not None and self.on_map is not None:
@@ -317,6 +317,17 @@ class MonitorDaemon:
                 self.on_event(event)
         if self.gpio is not None:
             self.gpio.show(self.pipeline.engine.audible(now), now)
+
+    def _clock_steps(self, now: float) -> list[Event]:
+        """A wall-clock step since the last frame, as a record for the log (not a notification: the frame
+        times, kept on the monotonic clock, did not step)."""
+        step = getattr(self.source, "clock_step", lambda: None)()
+        if step is None:
+            return []
+        message = f"the wall clock stepped {'forward' if step > 0 else 'back'} {abs(step):.0f} s; frame times " \
+                  f"carry on from the monotonic clock"
+        self.say(message)
+        return [Event(now, "clock", "clock-step", message=message)]
 
     def _helper_faults(self) -> dict[str, str]:
         """A technical alarm for each helper that is failing: the live view's writer, a notifier's threads
