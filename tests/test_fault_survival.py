@@ -310,3 +310,11 @@ def test_the_screen_goes_stale_when_the_monitor_stops_even_if_the_clock_was_set_
         assert not webui.live.snapshot()["stale"]
         clocks.steady += 10 * webui.live.STALE_AFTER_FRAMES
         assert webui.live.snapshot()["stale"]
+
+
+def test_the_ward_station_judges_a_bed_silent_on_the_monotonic_clock():
+    from appliance.ward.station import BedState
+
+    bed = BedState("bed7", status="online", last_heard_at=1_780_000_000.0, last_heard_steady=100.0)
+    assert bed.online(101.0, stale_after_s=5.0)
+    assert not bed.online(106.0, stale_after_s=5.0)      # silent for 6 s, whatever the wall clock says now
