@@ -318,3 +318,41 @@ def test_the_ward_station_judges_a_bed_silent_on_the_monotonic_clock():
     bed = BedState("bed7", status="online", last_heard_at=1_780_000_000.0, last_heard_steady=100.0)
     assert bed.online(101.0, stale_after_s=5.0)
     assert not bed.online(106.0, stale_after_s=5.0)      # silent for 6 s, whatever the wall clock says now
+
+
+def test_a_supervised_thread_is_restarted_after_each_failure_until_its_work_is_done():
+    from appliance.supervise import Supervised
+
+    runs = []
+
+    def work():
+        runs.append(len(runs))
+        if len(runs) <= 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        worker.ok()
+
+    worker = Supervised("writer", work, backoff_s=0.001)
+    worker.start().join(10)
+    assert not worker.is_alive() and runs == [0, 1, 2]
+    assert worker.failures == 2 and worker.fault is None         # the fault ended with the first success
+
+
+def test_what_a_full_disk_holds_is_bounded_and_what_is_dropped_is_counted(tmp_path):
+    import numpy as np
+
+    from appliance.store.holding import HeldWrites
+
+    store = FillingStore.open(tmp_path / "a.db", history_interval_s=0)
+    writes = HeldWrites(store, max_events=5, max_maps=3)
+    store.full = True
+    for t in range(8):
+        writes.record_map(float(t), np.full((2, 2), float(t)))
+        writes.commit_frame(float(t), [{"time_s": float(t), "kind": "raised", "key": f"k{t}"}], {"alerts": {"t": t}})
+    assert writes.condition() == {"technical:storage": "storage full: records kept in memory (8 held; 3 event(s) "
+                                                       "and 5 map(s) dropped)"}
+    store.full = False
+    assert writes.flush() and writes.condition() == {}
+    assert [e["key"] for e in store.events_since(0)] == ["k3", "k4", "k5", "k6", "k7"]       # the newest, in order
+    assert [t for t, _ in store.history_between(0, 10)] == [5.0, 6.0, 7.0]
+    assert store.load_state("alerts") == {"t": 7}
+    store.close()
