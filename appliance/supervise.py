@@ -59,7 +59,7 @@ class Supervised:
             try:
                 self.work()
                 return
-            except Exception as exc:  # noqa: BLE001  (whatever kills the work is reported, never fatal)
+            except Exception as exc:        # whatever kills the work is reported, never fatal
                 self.failures += 1
                 self.fault = f"{type(exc).__name__}: {exc}"
                 if self._stopping.is_set():

@@ -18,6 +18,11 @@ store by whoever asks (the web screen is another process), applied at the start
 of the next frame, and marked done in the commit of the events they caused, so
 each is applied exactly once even across a crash.
 
+Faults around the loop are technical alarms too, never its end: a full or
+failing disk (the store's writes held in memory, :mod:`appliance.store.holding`),
+a helper thread that fails (restarted by its supervisor), map files that cannot
+be written, and a saved state that cannot be continued.
+
 Under systemd (``Type=notify``) it reports ready once the first map is made,
 pings the watchdog every frame, and on SIGTERM finishes the frame, flushes the
 notifiers, closes the store and exits 0.
@@ -247,8 +252,9 @@ class MonitorDaemon:
         snapshot = self._snapshot(now, pressure_map, alerts)
         if pressure_map is not None:
             self.writes.record_map(now, np.nan_to_num(pressure_map.pressure_kpa), snapshot["regions"])
-        self.writes.commit_frame(now, events + self._clock_steps(now), {"alerts": self.pipeline.state(),
-                                              "outbox": {"events": [e.to_dict() for e in events]}}, outcomes)
+        self.writes.commit_frame(now, events + self._clock_steps(now),
+                                 {"alerts": self.pipeline.state(), "outbox": {"events": [e.to_dict() for e in events]}},
+                                 outcomes)
         self._tell(events, now)
         if pressure_map is not None and self.on_map is not None:
             self._show_map(pressure_map)
