@@ -97,3 +97,7 @@ class SchemaTooNew(StoreError, RuntimeError):
 
 class StoreClosed(StoreError, RuntimeError):
     """A write or query reached a store after ``close()``: it would silently be lost."""
+
+
+class DataDirInUse(ApplianceError, RuntimeError):
+    """Another monitor holds the data folder: two writers of one store and one live view would mix two beds."""

@@ -5,33 +5,16 @@ repeated, against an uninterrupted night."""
 import os
 import signal
 import subprocess
-import sys
 import time
 
 import numpy as np
 import pytest
 
 from appliance.store import Store
+from monitor_process import MINUTE, admit, command, start_monitoring
 
-MINUTE = 60.0
 NIGHT_S = 43200.0               # supine-unturned: 12 h, one map per simulated minute
 KILLS = 20
-
-
-def command(data_dir, model_cache, speed):
-    return [sys.executable, "-m", "appliance", "run", "--scenario", "supine-unturned", "--interval", str(MINUTE),
-            "--speed", str(speed), "--data-dir", str(data_dir), "--cache-dir", str(model_cache)]
-
-
-ADMISSION = {"patient_id": "MRN-0042", "name": "A. Patient", "braden": 13, "bed_exit_alert": True}
-
-
-def admit(data_dir):
-    """A nurse admits the patient before the monitor starts: the command waits in the store for its first
-    frame."""
-    data_dir.mkdir(parents=True, exist_ok=True)
-    with Store.open(data_dir / "appliance.db") as store:
-        store.queue_command("admit", ADMISSION, "nurse.jones")
 
 
 def night(data_dir):
@@ -66,9 +49,7 @@ def test_sigkill_at_20_random_moments_loses_and_repeats_nothing(tmp_path, uninte
     admit(data)
     progress = []
     for _ in range(KILLS):
-        process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-        while not process.stdout.readline()[:1].isdigit():
-            assert process.poll() is None, "the monitor ended before its first map"
+        process = start_monitoring(args)
         time.sleep(rng.uniform(0.0, 1.0))
         os.kill(process.pid, signal.SIGKILL)
         process.wait()

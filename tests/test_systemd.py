@@ -73,6 +73,7 @@ def test_the_monitor_is_watched_restarted_and_confined_to_its_devices():
     # The daemon pings every frame; the watchdog must outlast the frames a no-data alarm waits for.
     assert int(unit["WatchdogSec"][0]) > 2 * NO_DATA_FRAMES
     assert int(unit["StartLimitBurst"][0]) > 0 and int(unit["StartLimitIntervalSec"][0]) > 0
+    assert unit["RestartPreventExitStatus"] == ["2"]        # a refusal to start is not retried in a loop
     assert unit["User"] == ["appliance"] and unit["SupplementaryGroups"][0].split() == ["gpio", "spi", "i2c"]
     assert unit["DevicePolicy"] == ["closed"]
     assert {d.split()[0] for d in unit["DeviceAllow"]} == {"char-gpiochip", "/dev/spidev0.0", "/dev/spidev0.1",

@@ -5,7 +5,9 @@ reads it, so any number of screens costs the monitor nothing. The stream checks
 the file five times a second and sends each new snapshot once
 (``webui.streams``). A snapshot older than
 ``STALE_AFTER_FRAMES`` frames is marked stale, so a screen never shows an old map
-as if it were live.
+as if it were live. Its age is the larger of the wall clock's (``written_at``)
+and how long this process has seen the same snapshot on the monotonic clock: a
+wall clock set back makes the first negative, and the second still grows.
 """
 
 from __future__ import annotations
@@ -20,14 +22,23 @@ from webui.streams import event_stream
 bp = Blueprint("live", __name__)
 STALE_AFTER_FRAMES = 3
 POLL_S = 0.2
+wall, monotonic = time.time, time.monotonic             # the clocks, replaceable by a test
+_first_seen: dict = {}                                   # live file -> (its snapshot's identity, monotonic time)
 
 
 def snapshot() -> dict:
     """The newest snapshot with ``stale`` and ``age_s`` added; ``{"stale": True}`` before the first one."""
-    data = read_live(current_app.config["LIVE_PATH"])
+    path = current_app.config["LIVE_PATH"]
+    try:
+        data = read_live(path)
+    except ValueError as exc:           # damaged (a disk fault): shown as stale until the monitor rewrites it
+        return {"stale": True, "age_s": None, "message": f"the live view {path} cannot be read: {exc}"}
     if data is None:
         return {"stale": True, "age_s": None, "message": "the monitor has not written a frame yet"}
-    age = time.time() - data["written_at"]
+    identity = (data.get("sequence"), data["written_at"])
+    if _first_seen.get(path, (None,))[0] != identity:
+        _first_seen[path] = (identity, monotonic())
+    age = max(wall() - data["written_at"], monotonic() - _first_seen[path][1])
     data["age_s"] = age
     period = data.get("wall_interval_s") or data.get("frame_interval_s", 1.0)     # wall seconds between frames
     data["stale"] = age > STALE_AFTER_FRAMES * max(float(period), 1.0)

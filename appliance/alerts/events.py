@@ -23,7 +23,8 @@ EVENT_TYPES = ("alarm", "turn", "episode")
 @dataclass(frozen=True)
 class Event:
     """``type`` alarm (kind raised, escalated, acknowledged, ended, audio-paused, ...), turn (lay-down,
-    repositioned, recorded, still-loaded, bed-empty) or episode (admitted, discharged)."""
+    repositioned, recorded, still-loaded, bed-empty) or episode (admitted, discharged); the log also keeps type
+    clock (kind clock-step), which is not sent to the notifiers."""
 
     time_s: float
     type: str

@@ -54,6 +54,7 @@ import paho.mqtt.client as mqtt
 
 from appliance.alerts.alarms import PRIORITIES
 from appliance.alerts.events import EVENT_TYPES, Event
+from appliance.supervise import Supervised
 from appliance.drivers.bus import GPIOLines, LineRequest
 
 log = logging.getLogger(__name__)
@@ -88,11 +89,16 @@ class Notifier(ABC):
         self._count_lock = threading.Lock()  # notify() and the worker both dead-letter
         self._closing = threading.Event()
         self._abort = threading.Event()
-        self._worker = threading.Thread(target=self._run, name=f"{self.name}-notifier", daemon=True)
-        self._writer = threading.Thread(target=self._write_dead_letters, name=f"{self.name}-dead-letters",
-                                        daemon=True)
+        self._worker = Supervised(f"{self.name}-notifier", self._run)       # restarted if it ever fails
+        self._writer = Supervised(f"{self.name}-dead-letters", self._write_dead_letters)
         self._worker.start()
         self._writer.start()
+
+    @property
+    def fault(self) -> str | None:
+        """What a failing thread of this notifier last raised, while it fails (a technical alarm)."""
+        failing = [f"{t.name}: {t.fault}" for t in (self._worker, self._writer) if t.fault is not None]
+        return "; ".join(failing) or None
 
     def notify(self, event: Event) -> bool:
         """Queue ``event`` for delivery and return at once; False if it went to the dead letters instead."""
@@ -118,6 +124,7 @@ class Notifier(ABC):
     def close(self, timeout_s: float = 5.0) -> None:
         """Deliver what is queued for up to ``timeout_s``, dead-letter the rest, and release the channel."""
         self._closing.set()
+        self._worker.stop()
         self._worker.join(timeout_s)
         if self._worker.is_alive():
             self._abort.set()
@@ -129,6 +136,7 @@ class Notifier(ABC):
                 break
         self._closed = True  # from now on dead letters are written at once: no writer thread is left
         self._dead_letters.put(None)
+        self._writer.stop()
         self._writer.join()
         self._shutdown()
 
@@ -157,6 +165,7 @@ class Notifier(ABC):
                 self._dead_letter(event, "notifier closed before delivery", 0)
             else:
                 self._send(event)
+            self._worker.ok()
 
     def _send(self, event) -> None:
         for attempt in range(1, self.max_attempts + 1):
@@ -197,6 +206,7 @@ class Notifier(ABC):
                   "event": event.to_dict()}
         with self.dead_letter_path.open("a", encoding="utf-8") as f:
             f.write(json.dumps(record) + "\n")
+        self._writer.ok()
 
 
 class MqttNotifier(Notifier):

@@ -22,16 +22,29 @@ DEAD_LETTER_FILE = "dead-letters.jsonl"
 def assemble(config: MonitorConfig, *, say: Callable[[str], None], on_event=None, on_map=None,
              live: bool = True) -> MonitorDaemon:
     """The daemon, started (reference taken or state resumed) and ready to ``run``."""
+    from appliance.service.datalock import lock_data_dir
+    from appliance.service.virtual_bed import default_data_dir
+
+    data_dir = Path(config.data_dir or default_data_dir())
+    data_dir.mkdir(parents=True, exist_ok=True)
+    lock = lock_data_dir(data_dir)          # before anything in the folder is read or written
+    try:
+        return _assemble(dataclasses.replace(config, data_dir=data_dir), lock, say=say, on_event=on_event,
+                         on_map=on_map, live=live)
+    except BaseException:
+        lock.release()
+        raise
+
+
+def _assemble(config: MonitorConfig, lock, *, say, on_event, on_map, live: bool) -> MonitorDaemon:
     from appliance.core.layouts import get_layout
     from appliance.core.model_cache import cached_model, default_cache_dir, default_setup
     from appliance.service import settings
     from appliance.service.engineering import engineering_commands
-    from appliance.service.virtual_bed import default_data_dir
     from appliance.store import Store
 
-    data_dir = Path(config.data_dir or default_data_dir())
-    data_dir.mkdir(parents=True, exist_ok=True)
-    config = settings.load_overlaid(dataclasses.replace(config, data_dir=data_dir), data_dir)   # the screen's settings
+    data_dir = config.data_dir
+    config = settings.load_overlaid(config, data_dir)   # the screen's settings
     layout = get_layout(config.layout)
     setup = default_setup(layout)
     protocol = setup.protocol
@@ -43,13 +56,13 @@ def assemble(config: MonitorConfig, *, say: Callable[[str], None], on_event=None
         calibration = _calibration(config, source, model, config.cache_dir or default_cache_dir(), say)
         store = Store.open(data_dir / STORE_FILE, history_interval_s=config.store.history_interval_s,
                            history_days=config.store.history_days, event_days=config.store.event_days,
-                           max_bytes=int(config.store.max_mb * 1024 * 1024))
+                           max_bytes=int(config.store.max_mb * 1024 * 1024), check=True)
         closers.append(store.close)
         notifiers = _notifiers(config, data_dir / DEAD_LETTER_FILE)
         closers += [n.close for n in notifiers]
         daemon = MonitorDaemon(config, source, model, calibration, store, notifiers=notifiers,
                                gpio=_gpio(config, source), live=LiveChannel(data_dir / LIVE_FILE) if live else None,
-                               on_event=on_event, on_map=on_map, say=say)
+                               on_event=on_event, on_map=on_map, say=say, lock=lock)
         settings.attach(daemon)
         daemon.add_commands(engineering_commands(daemon))
         daemon.start()

@@ -3,19 +3,22 @@
 ``[board] backend = "linux"`` reads the real chips; ``"emulated"`` runs the
 register-level emulators on a still, empty mat of the layout (for trying a
 configuration without hardware). Frames are stamped with the wall clock, so
-the dose and turn clock carry on across a restart by real elapsed time.
+the dose and turn clock carry on across a restart by real elapsed time; while
+running, the wall clock only sets the start and the monotonic clock moves it on
+(:class:`~appliance.service.clock.FrameClock`), so a step of the wall clock
+cannot stop the alarm engine.
 """
 
 from __future__ import annotations
 
 import threading
-import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from appliance.core.layouts import Layout
 from appliance.drivers.scan import TechnicalCondition
+from appliance.service.clock import FrameClock
 from appliance.service.pace import Pace
 
 
@@ -31,7 +34,8 @@ class BoardFrame:
 class BoardSource:
     """A scan every ``frame_interval_s`` of wall time (or as fast as the scan goes, if that is slower)."""
 
-    def __init__(self, board_table: dict, layout: Layout, protocol, *, frame_interval_s: float, seed: int = 0):
+    def __init__(self, board_table: dict, layout: Layout, protocol, *, frame_interval_s: float, seed: int = 0,
+                 clock: FrameClock | None = None):
         from appliance.drivers import open_board
         from appliance.drivers.emulated.sensor import ForwardSensor
         from appliance.drivers.frontend import open_front_end
@@ -41,6 +45,7 @@ class BoardSource:
         self.front_end = open_front_end(self.board, profile)
         self.engine = ScanEngine(self.front_end, protocol)
         self.pace = Pace(frame_interval_s)
+        self.clock = clock or FrameClock()
 
     @property
     def adaptive(self) -> bool:
@@ -49,16 +54,22 @@ class BoardSource:
 
     def acquire(self, loaded=None) -> BoardFrame:
         frame = self.engine.scan(loaded)
-        return BoardFrame(frame.volts, frame.flags, frame.temperature_c, time.time(), frame.conditions)
+        return BoardFrame(frame.volts, frame.flags, frame.temperature_c, self.clock.now(), frame.conditions)
 
     def now(self) -> float:
-        return time.time()
+        return self.clock.now()
+
+    def clock_step(self) -> float | None:
+        """The wall clock's step since the last frame, if larger than a few seconds (for the log)."""
+        return self.clock.step()
 
     def wait_for_frame(self, stop: threading.Event) -> bool:
         return self.pace.wait(stop)
 
     def resume_after(self, time_s: float) -> None:
-        """Nothing to do: the wall clock went on while the monitor was down."""
+        """Carry on after the last time recorded: the wall clock went on while the monitor was down, unless it
+        was set back, when the records still go forward."""
+        self.clock.not_before(time_s)
 
     def reference(self) -> BoardFrame:
         """The next frame, taken as the empty mat's (the installer clears the mat before the first start)."""

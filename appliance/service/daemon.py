@@ -18,6 +18,11 @@ store by whoever asks (the web screen is another process), applied at the start
 of the next frame, and marked done in the commit of the events they caused, so
 each is applied exactly once even across a crash.
 
+Faults around the loop are technical alarms too, never its end: a full or
+failing disk (the store's writes held in memory, :mod:`appliance.store.holding`),
+a helper thread that fails (restarted by its supervisor), map files that cannot
+be written, and a saved state that cannot be continued.
+
 Under systemd (``Type=notify``) it reports ready once the first map is made,
 pings the watchdog every frame, and on SIGTERM finishes the frame, flushes the
 notifiers, closes the store and exits 0.
@@ -26,6 +31,7 @@ notifiers, closes the store and exits 0.
 from __future__ import annotations
 
 import logging
+import sqlite3
 import threading
 from collections.abc import Callable
 
@@ -38,11 +44,12 @@ from appliance.alerts.limits import not_default
 from appliance.alerts.notifiers import Notifier
 from appliance.alerts.pipeline import AlertPipeline, FrameAlerts, technical_alarms
 from appliance.core.pressure import KPA_PER_MMHG
-from appliance.errors import ApplianceError, ConfigError, DataFileInvalid, ReconstructionError
+from appliance.errors import ApplianceError, ConfigError, DataFileInvalid, ReconstructionError, StoreCorrupt
 from appliance.service.config import MonitorConfig
 from appliance.service.live import LiveChannel, map_mmhg
 from appliance.service.monitor import Monitor, reference_state
 from appliance.service.systemd import SystemdNotifier
+from appliance.store.holding import HeldWrites
 
 log = logging.getLogger(__name__)
 
@@ -81,8 +88,10 @@ class MonitorDaemon:
     def __init__(self, config: MonitorConfig, source, model, calibration, store, *, notifiers=(), gpio=None,
                  live: LiveChannel | None = None, on_event: Callable[[Event], None] | None = None,
                  on_map: Callable | None = None, say: Callable[[str], None] = log.info,
-                 systemd: SystemdNotifier | None = None):
+                 systemd: SystemdNotifier | None = None, lock=None):
+        self.lock = lock            # the data folder's, given up last on close
         self.config, self.source, self.model, self.store = config, source, model, store
+        self.writes = HeldWrites(store)         # a full disk holds the records in memory; monitoring goes on
         self.notifiers, self.gpio, self.live = list(notifiers), gpio, live
         self._summarised = [n for n in self.notifiers if isinstance(n, Notifier)]  # those with summarise()
         self.on_event, self.on_map, self.say = on_event, on_map, say
@@ -94,7 +103,9 @@ class MonitorDaemon:
         self.stop_requested = threading.Event()
         self.maps = self.faults = self.consecutive_faults = 0
         self.last_fault: str | None = None
+        self.map_fault: str | None = None
         self.resumed_from_s: float | None = None
+        self.start_faults: dict[str, tuple[str, float]] = {}   # technical alarm key -> (message, shown until)
         self._ready = False
         self.commands: dict[str, CommandHandler] = {"acknowledge": self._acknowledge,
                                                      "pause-audio": self._pause_audio,
@@ -112,7 +123,10 @@ class MonitorDaemon:
         """A progress callback for a long command: records the share done for screens and keeps the systemd
         watchdog fed, since the loop is busy but alive."""
         def report(share: float, note: str = "") -> None:
-            self.store.set_progress(command_id, share, note)
+            try:
+                self.store.set_progress(command_id, share, note)
+            except sqlite3.OperationalError:
+                pass                    # only a progress bar: a full disk shows as the storage alarm
             self.systemd.ping()
         return report
 
@@ -120,7 +134,11 @@ class MonitorDaemon:
 
     def start(self) -> None:
         """Resume the reference and alert state from the store, or take a fresh reference and start clean."""
-        state, reference = self.store.load_state("alerts"), self.store.load_state("reference")
+        try:
+            state, reference = self.store.load_state("alerts"), self.store.load_state("reference")
+        except StoreCorrupt as exc:
+            self._lost_state(str(exc))
+            state = reference = None
         if state is not None and reference is not None and self._restore(state, reference):
             return
         frame = self.source.reference()
@@ -130,7 +148,7 @@ class MonitorDaemon:
             self.monitor.reference = np.asarray(frame.volts, dtype=float)
             self.monitor.reference_temperature_c, fit = frame.temperature_c, None
             self.say(f"the empty-mat reference does not fit the model: {exc}")
-        self.store.save_state("reference", reference_state(self.model, frame, fit), 0.0)
+        self.writes.save_state("reference", reference_state(self.model, frame, fit), 0.0)
         self.say("took the empty-mat reference" + ("" if fit is None else f"; fitted {fit.describe()}"))
 
     def _restore(self, state: dict, reference: dict) -> bool:
@@ -141,7 +159,7 @@ class MonitorDaemon:
         try:
             pipeline = AlertPipeline.from_state(self.grid, state, self.config.alerts)
         except (DataFileInvalid, ConfigError, KeyError, TypeError, ValueError) as exc:
-            self.say(f"the saved alert state cannot be continued ({exc}): starting afresh")
+            self._lost_state(f"the saved alert state in {self.store.path} cannot be continued ({exc})")
             return False
         try:
             self.monitor.set_reference(volts, reference.get("temperature_c"))    # the same fit as when it was taken
@@ -157,16 +175,29 @@ class MonitorDaemon:
         self._resend_last_frame()
         return True
 
+    def _lost_state(self, why: str) -> None:
+        """Start afresh without the saved doses, turn clock and open alarms, and say so with a technical alarm
+        for one turn interval, by which time the turn clock is whole again: monitoring goes on, but a nurse
+        must know that what the screen shows began now."""
+        self.say(f"{why}: starting afresh")
+        until = self.source.now() + self.config.alerts.turn_interval_s
+        self.start_faults["technical:saved-state"] = (
+            f"saved state lost ({why}): doses, the turn clock and open alarms started afresh", until)
+
     def _resend_last_frame(self) -> None:
         """Notify the last committed frame's events again: the crash may have come before they were handed
         over. Receivers de-duplicate on (alarm_id, kind, time_s), so a repeat is harmless and a loss is not."""
-        outbox = self.store.load_state("outbox") or {"events": []}
-        for fields in outbox["events"]:
-            event = Event(**fields)
+        try:
+            outbox = self.store.load_state("outbox") or {"events": []}
+            events = [Event(**fields) for fields in outbox["events"]]
+        except (StoreCorrupt, KeyError, TypeError) as exc:
+            self.say(f"the last frame's events cannot be notified again: {exc}")
+            return
+        for event in events:
             for notifier in self.notifiers:
                 notifier.notify(event)
-        if outbox["events"] and self.notifiers:
-            self.say(f"notified the last frame's {len(outbox['events'])} event(s) again")
+        if events and self.notifiers:
+            self.say(f"notified the last frame's {len(events)} event(s) again")
 
     # The loop.
 
@@ -205,6 +236,9 @@ class MonitorDaemon:
             self.last_fault = f"{type(exc).__name__}: {exc}"
             self.say(f"FAULT ({self.consecutive_faults} in a row): {self.last_fault}")
         technical = technical_alarms(self.monitor.conditions)          # during a gap, as the last frame left them
+        technical.update({key: message for key, (message, until) in self.start_faults.items() if now < until})
+        technical.update(self._helper_faults())
+        technical.update(self.writes.condition())
         if pressure_map is None:
             technical["technical:front-end"] = f"no frame from the front end: {self.last_fault}"
             if self.consecutive_faults >= NO_DATA_FRAMES:
@@ -218,12 +252,13 @@ class MonitorDaemon:
         events += [self.pipeline.record(e) for e in alerts.turn_events + alerts.alarm_events]
         snapshot = self._snapshot(now, pressure_map, alerts)
         if pressure_map is not None:
-            self.store.record_map(now, np.nan_to_num(pressure_map.pressure_kpa), snapshot["regions"])
-        self.store.commit_frame(now, events, {"alerts": self.pipeline.state(),
-                                              "outbox": {"events": [e.to_dict() for e in events]}}, outcomes)
+            self.writes.record_map(now, np.nan_to_num(pressure_map.pressure_kpa), snapshot["regions"])
+        self.writes.commit_frame(now, events + self._clock_steps(now),
+                                 {"alerts": self.pipeline.state(), "outbox": {"events": [e.to_dict() for e in events]}},
+                                 outcomes)
         self._tell(events, now)
         if pressure_map is not None and self.on_map is not None:
-            self.on_map(pressure_map)
+            self._show_map(pressure_map)
         if self.live is not None:
             self.live.publish(snapshot)
         if self._summarised:
@@ -239,14 +274,17 @@ class MonitorDaemon:
     def _apply_commands(self, now: float) -> tuple[list[Event], list[tuple[int, bool, str]]]:
         """The queued commands, each through its handler: their events, and each one's outcome."""
         events, outcomes = [], []
+        held = self.writes.held_commands          # applied, their outcome not yet written
         for command in self.store.pending_commands():
+            if command["id"] in held:
+                continue
             kind, args, user = command["kind"], command["args"], command["user"]
             try:
                 handler = self.commands.get(kind)
                 if handler is None:
                     raise ValueError(f"unknown command {kind!r}")
                 done, result = handler(now, args, user, command["id"])
-            except (ApplianceError, OSError, ValueError, KeyError, TypeError) as exc:
+            except (ApplianceError, OSError, sqlite3.OperationalError, ValueError, KeyError, TypeError) as exc:
                 self.say(f"command {kind} by {user} refused: {exc}")
                 outcomes.append((command["id"], False, str(exc)))
                 continue
@@ -286,6 +324,43 @@ class MonitorDaemon:
                 self.on_event(event)
         if self.gpio is not None:
             self.gpio.show(self.pipeline.engine.audible(now), now)
+
+    def _clock_steps(self, now: float) -> list[Event]:
+        """A wall-clock step since the last frame, as a record for the log (not a notification: the frame
+        times, kept on the monotonic clock, did not step)."""
+        step = getattr(self.source, "clock_step", lambda: None)()
+        if step is None:
+            return []
+        message = f"the wall clock stepped {'forward' if step > 0 else 'back'} {abs(step):.0f} s; frame times " \
+                  f"carry on from the monotonic clock"
+        self.say(message)
+        return [Event(now, "clock", "clock-step", message=message)]
+
+    def _helper_faults(self) -> dict[str, str]:
+        """A technical alarm for each helper that is failing: the live view's writer, a notifier's threads
+        (restarted with a back-off by their supervisors), the newest map's files."""
+        faults = {}
+        if self.live is not None and self.live.fault is not None:
+            faults["technical:live-view"] = f"the live view cannot be written (retrying): {self.live.fault}"
+        for notifier in self.notifiers:
+            if (fault := getattr(notifier, "fault", None)) is not None:
+                faults[f"technical:notifier:{notifier.name}"] = f"the {notifier.name} notifier is failing " \
+                                                                 f"(restarting): {fault}"
+        if self.map_fault is not None:
+            faults["technical:map-files"] = f"the newest map's files cannot be written: {self.map_fault}"
+        return faults
+
+    def _show_map(self, pressure_map) -> None:
+        """Hand the map to ``on_map`` (files for anyone to look at): a failure is a technical alarm, not the
+        end of monitoring."""
+        try:
+            self.on_map(pressure_map)
+        except OSError as exc:
+            if self.map_fault is None:
+                self.say(f"the newest map's files cannot be written: {exc}")
+            self.map_fault = f"{type(exc).__name__}: {exc}"
+        else:
+            self.map_fault = None
 
     def _snapshot(self, now: float, pressure_map, alerts: FrameAlerts) -> dict:
         """What the live view shows: the map, regions with their dose, the turn clock, alarms and status."""
@@ -332,5 +407,13 @@ class MonitorDaemon:
             self.gpio.close()
         if self.live is not None:
             self.live.close()
-        self.store.close()
+        if not self.writes.flush():
+            self.say(f"the store still refuses writes ({self.writes.failure}): {self.writes.held} record(s) held "
+                     f"in memory are lost")
+        try:
+            self.store.close()
+        except sqlite3.OperationalError as exc:
+            self.say(f"the store could not be closed cleanly ({exc}); it recovers its journal at the next start")
+        if self.lock is not None:
+            self.lock.release()
 

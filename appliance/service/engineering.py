@@ -399,7 +399,7 @@ class EngineeringTasks:
                                   "show; clear the mat and capture again (the reference is unchanged)")
         report(0.6, "the mat is empty; fitting the contacts and the sheet to it")
         fit = monitor.take_reference(frame, lambda step, share: report(0.6 + 0.4 * share, f"relinearising: {step}"))
-        daemon.store.save_state("reference", reference_state(daemon.model, frame, fit), now)
+        daemon.writes.save_state("reference", reference_state(daemon.model, frame, fit), now)
         daemon.pipeline.hold_open_alarms()                   # a new zero may read less: no alarm ends by that alone
         report(1.0, "reference replaced")
         return {"usable": int(np.isfinite(frame.volts).sum()), "readings": len(frame.volts),

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from appliance.core.pressure import KPA_PER_MMHG
+from appliance.supervise import Supervised
 
 FORMAT = "appliance-live/1"
 
@@ -26,15 +27,20 @@ FORMAT = "appliance-live/1"
 class LiveChannel:
     """Publishes snapshots to ``path`` from its own thread; ``publish`` never waits on the disk."""
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, *, backoff_s: float = 0.5):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.written = self.skipped = 0
         self._pending: dict | None = None
         self._wake = threading.Condition()
         self._closing = False
-        self._thread = threading.Thread(target=self._run, name="live-channel", daemon=True)
-        self._thread.start()
+        self._worker = Supervised("live-view writer", self._run, backoff_s=backoff_s)   # a failed write: retried
+        self._worker.start()
+
+    @property
+    def fault(self) -> str | None:
+        """The writer's last failure while it is failing (the daemon shows it as a technical alarm)."""
+        return self._worker.fault
 
     def publish(self, snapshot: dict) -> None:
         """Hand over the newest snapshot; one not yet written is replaced (counted in ``skipped``)."""
@@ -49,7 +55,8 @@ class LiveChannel:
         with self._wake:
             self._closing = True
             self._wake.notify()
-        self._thread.join()
+        self._worker.stop()
+        self._worker.join()
 
     def _run(self) -> None:
         while True:
@@ -67,6 +74,7 @@ class LiveChannel:
         tmp.write_text(text, encoding="utf-8")
         os.replace(tmp, self.path)        # no fsync: a live view lost in a power cut is rewritten next frame
         self.written += 1
+        self._worker.ok()
 
 
 def read_live(path: Path) -> dict | None:

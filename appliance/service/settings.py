@@ -176,7 +176,7 @@ def attach(daemon) -> None:
 
 def publish(daemon, now: float) -> None:
     """Save the settings ``daemon`` runs with in its store (state ``settings``), where the screen reads them."""
-    daemon.store.save_state(STATE, settings_values(daemon.config), now)
+    daemon.writes.save_state(STATE, settings_values(daemon.config), now)
 
 
 def apply_settings(daemon, now: float, args: dict) -> tuple[list, str]:

@@ -105,8 +105,9 @@ class Store:
 
     @classmethod
     def open(cls, path, *, history_interval_s: float = 60.0, history_days: float = 30.0, event_days: float = 365.0,
-             max_bytes: int = 512 * 1024 * 1024) -> Store:
-        """Open or create the file at ``path`` and bring its schema up to date."""
+             max_bytes: int = 512 * 1024 * 1024, check: bool = False) -> Store:
+        """Open or create the file at ``path`` and bring its schema up to date; ``check`` (the monitor, once at
+        start) also reads every page, so a damaged file is refused before the monitor relies on it."""
         if not (history_interval_s >= 0 and history_days > 0 and event_days > 0 and max_bytes > 0):
             raise ValueError(f"store {path}: history interval {history_interval_s!r} s must not be negative; "
                              f"history days {history_days!r}, event days {event_days!r} and max bytes "
@@ -118,9 +119,14 @@ class Store:
             raise StoreError(f"cannot open store {path}: {exc}") from exc
         try:
             _configure(db, path)
+            if check:
+                _check_pages(db, path)
             _migrate(db, path)
             return cls(db, path, history_interval_s=history_interval_s, history_days=history_days,
                        event_days=event_days, max_bytes=max_bytes)
+        except sqlite3.DatabaseError as exc:
+            db.close()
+            raise _damage(path, exc) from exc
         except BaseException:
             db.close()
             raise
@@ -155,10 +161,12 @@ class Store:
         self._wrote = True
         try:
             yield db
+            db.execute("COMMIT")          # may fail too (a full disk): the transaction must not stay open
         except BaseException:
-            db.execute("ROLLBACK")
+            if db.in_transaction:
+                with contextlib.suppress(sqlite3.Error):
+                    db.execute("ROLLBACK")
             raise
-        db.execute("COMMIT")
 
     # Events and alert state: durable.
 
@@ -221,7 +229,12 @@ class Store:
     def load_state(self, name: str) -> dict | None:
         """The last checkpoint saved under ``name``, or None if there is none."""
         row = self._conn().execute("SELECT value FROM state WHERE name = ?", (name,)).fetchone()
-        return None if row is None else json.loads(row[0])
+        if row is None:
+            return None
+        try:
+            return json.loads(row[0])
+        except (TypeError, ValueError) as exc:
+            raise StoreCorrupt(f"store {self.path}: the saved state {name!r} is not valid JSON ({exc})") from None
 
     def events_since(self, t: float) -> list[dict]:
         """Events at or after ``t`` in the order logged: the columns, plus the extra fields kept in ``detail``."""
@@ -249,6 +262,11 @@ class Store:
         return self._events("json_extract(detail, '$.patient') = ?", (patient,))
 
     # Pressure history: down-sampled, not fsynced per map.
+
+    @property
+    def last_map_s(self) -> float | None:
+        """The time of the last map kept in the history (the next is kept ``history_interval_s`` after it)."""
+        return self._last_map_s
 
     def record_map(self, time_s: float, pressure_kpa, regions: Iterable[Mapping] = ()) -> bool:
         """Keep the map, and the loaded regions it shows, if ``history_interval_s`` has passed since the last kept
@@ -357,14 +375,31 @@ def _upsert_state(db: sqlite3.Connection, name: str, state: dict, now_s: float) 
                (name, float(now_s), json.dumps(state, allow_nan=False)))
 
 
+RECOVERY = ("left as found, since it may hold records: move it aside (with any -wal and -shm files beside it) to "
+            "start with an empty store, and keep it to recover what it holds")
+
+
+def _damage(path: str, exc: sqlite3.DatabaseError) -> StoreError:
+    """The error for a database error while opening: StoreCorrupt, saying how to recover, if the file is
+    damaged; StoreError for anything else (locked, unreadable)."""
+    if getattr(exc, "sqlite_errorcode", None) in (sqlite3.SQLITE_NOTADB, sqlite3.SQLITE_CORRUPT):
+        return StoreCorrupt(f"store {path} is damaged ({exc}); {RECOVERY}")
+    return StoreError(f"cannot read store {path}: {exc}")
+
+
+def _check_pages(db: sqlite3.Connection, path: str) -> None:
+    """``PRAGMA quick_check``: every page read and its structure checked (not the indexes' contents)."""
+    problems = [" ".join(str(row[0]).split()) for row in db.execute("PRAGMA quick_check(3)")]   # one line
+    if problems != ["ok"]:
+        raise StoreCorrupt(f"store {path} is damaged ({'; '.join(problems)}); {RECOVERY}")
+
+
 def _configure(db: sqlite3.Connection, path: str) -> None:
     """Check the file really is a database before anything writes to it, then set the connection's pragmas."""
     try:
         fresh = db.execute("SELECT count(*) FROM sqlite_master").fetchone()[0] == 0
     except sqlite3.DatabaseError as exc:
-        if getattr(exc, "sqlite_errorcode", None) in (sqlite3.SQLITE_NOTADB, sqlite3.SQLITE_CORRUPT):
-            raise StoreCorrupt(f"store {path} is not an SQLite database (left untouched): {exc}") from exc
-        raise StoreError(f"cannot read store {path}: {exc}") from exc
+        raise _damage(path, exc) from exc
     if fresh:
         # Must precede the first table: SQLite cannot switch an existing file to incremental vacuum cheaply.
         db.execute("PRAGMA auto_vacuum=INCREMENTAL")

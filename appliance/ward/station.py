@@ -59,11 +59,14 @@ ALARM_FIELDS = ("alarm_id", "key", "priority", "state", "message", "acknowledged
 
 @dataclass
 class BedState:
-    """What the station knows of one bed; times are the station's wall clock (``time.time()``)."""
+    """What the station knows of one bed; times are the station's wall clock (``time.time()``), for display,
+    but whether a bed is still heard from is judged on the monotonic clock, which a clock set back cannot
+    stop."""
 
     bed_id: str
     status: str | None = None                 # "online" or "offline", as the bed (or its last will) said
     last_heard_at: float | None = None        # any message at all
+    last_heard_steady: float | None = None    # the same moment on time.monotonic()
     summary: dict | None = None
     summary_at: float | None = None
     open_alarms: dict[int, dict] = field(default_factory=dict)
@@ -71,9 +74,10 @@ class BedState:
     seen: dict[tuple, None] = field(default_factory=dict)                     # an ordered set of event keys
     duplicates: int = 0
 
-    def online(self, now: float, stale_after_s: float) -> bool:
-        return (self.status != "offline" and self.last_heard_at is not None
-                and now - self.last_heard_at <= stale_after_s)
+    def online(self, steady_now: float, stale_after_s: float) -> bool:
+        """Not offline, and heard from within ``stale_after_s`` (``steady_now`` is ``time.monotonic()``)."""
+        return (self.status != "offline" and self.last_heard_steady is not None
+                and steady_now - self.last_heard_steady <= stale_after_s)
 
     def highest_priority(self) -> str | None:
         ranks = [PRIORITIES.index(a["priority"]) for a in self.open_alarms.values() if a["priority"] in PRIORITIES]
@@ -179,16 +183,14 @@ class WardStation:
         """Every bed as a plain dict: high, then medium, then low alarms first, then the offline beds, then the
         rest, each group by bed id. ``events=False`` leaves out each bed's latest events, the costly part to
         copy, for a screen that polls."""
-        now = time.time()
         with self._lock:
-            beds = [self._view(bed, now, events) for bed in self._beds.values()]
+            beds = [self._view(bed, time.monotonic(), events) for bed in self._beds.values()]
         return sorted(beds, key=lambda b: (_rank(b), b["bed_id"]))
 
     def online_flags(self) -> tuple[bool, ...]:
         """Each bed's ``online``, in no particular order but stable: cheap enough to poll."""
-        now = time.time()
         with self._lock:
-            return tuple(bed.online(now, self.stale_after_s) for bed in self._beds.values())
+            return tuple(bed.online(time.monotonic(), self.stale_after_s) for bed in self._beds.values())
 
     def close(self) -> None:
         """Disconnect; the broker keeps the session, and the events for it, until the station is back."""
@@ -201,11 +203,11 @@ class WardStation:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _view(self, bed: BedState, now: float, events: bool) -> dict:
+    def _view(self, bed: BedState, steady_now: float, events: bool) -> dict:
         alarms = sorted(bed.open_alarms.values(),
                         key=lambda a: (-PRIORITIES.index(a["priority"]) if a["priority"] in PRIORITIES else 1,
                                        a["alarm_id"]))
-        return {"bed_id": bed.bed_id, "online": bed.online(now, self.stale_after_s), "status": bed.status,
+        return {"bed_id": bed.bed_id, "online": bed.online(steady_now, self.stale_after_s), "status": bed.status,
                 "last_heard_at": bed.last_heard_at, "summary": copy.deepcopy(bed.summary),
                 "summary_at": bed.summary_at, "alarms": copy.deepcopy(alarms),
                 "highest_priority": bed.highest_priority(),
@@ -250,7 +252,7 @@ class WardStation:
             self.messages += 1
             self.version += 1
             bed = self._beds.setdefault(bed_id, BedState(bed_id))
-            bed.last_heard_at = now
+            bed.last_heard_at, bed.last_heard_steady = now, time.monotonic()
             if kind == "status":
                 bed.status = status
             elif kind == "summary":
