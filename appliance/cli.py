@@ -2,7 +2,7 @@
 
 Each subcommand parses its arguments, calls the core, and prints: tables and
 files on stdout, progress and summaries on stderr. Bad input exits with status 2
-and one line naming what is wrong.
+and one line naming what is wrong; hardware that did not answer exits 3.
 """
 
 from __future__ import annotations
@@ -13,7 +13,12 @@ import sys
 import time
 from pathlib import Path
 
-from appliance.errors import ApplianceError
+from appliance.errors import ApplianceError, BusError, ChipError
+
+HARDWARE_EXIT = 3
+"""Exit status when the front end's buses or chips did not answer: unlike a refusal (2: bad input, a damaged
+file, a data folder in use), which a person must act on, this may pass (a device not ready at boot), so the
+service manager starts the monitor again."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -21,6 +26,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.run(args)
+    except (BusError, ChipError) as exc:
+        print(f"appliance: error: {exc}", file=sys.stderr)
+        return HARDWARE_EXIT
     except ApplianceError as exc:
         print(f"appliance: error: {exc}", file=sys.stderr)
         return 2

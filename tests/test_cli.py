@@ -175,3 +175,19 @@ def test_reconstruct_refuses_an_all_missing_frame(capsys, frames):
     (frames / "frame.csv").write_text("\n".join([lines[0]] + [l.rsplit(",", 1)[0] + ",nan" for l in lines[1:]]))
     code, err = reconstruct(capsys, frames, "--out", str(frames / "img.csv"))
     assert code == 2 and "nothing can be reconstructed" in err
+
+
+@pytest.mark.parametrize("error, status", [("DeviceMissing", 3), ("ChipNotResponding", 3), ("DataFileInvalid", 2)])
+def test_hardware_that_does_not_answer_exits_3_and_a_refusal_2(capsys, monkeypatch, error, status):
+    """The service manager starts the monitor again after 3 (a device not ready at boot), not after 2."""
+    import appliance.cli
+    import appliance.errors
+
+    def fails(args):
+        raise getattr(appliance.errors, error)("spidev0.0 did not answer")
+
+    parser = appliance.cli._parser()
+    monkeypatch.setattr(appliance.cli, "_parser", lambda: parser)
+    monkeypatch.setattr(parser, "parse_args", lambda argv: type("Args", (), {"run": staticmethod(fails)})())
+    assert main(["layouts"]) == status
+    assert capsys.readouterr().err.strip() == "appliance: error: spidev0.0 did not answer"
