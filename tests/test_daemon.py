@@ -14,6 +14,7 @@ import urllib.request
 import numpy as np
 import pytest
 
+from appliance.cli import main
 from appliance.core.layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.errors import ConfigError, TransferFailed
@@ -23,7 +24,6 @@ from appliance.service.live import LiveChannel, read_live
 from appliance.service.systemd import SystemdNotifier
 from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.loads import square_load_scene
-from appliance.cli import main
 from appliance.store import Store
 
 GRID = get_layout("grid-4x4")
@@ -285,21 +285,26 @@ def test_a_bad_screen_address_is_refused_before_anything_starts(tmp_path, capsys
     assert not (tmp_path / "appliance.db").exists()
 
 
-def test_the_daemon_runs_the_scan_engine_on_a_board_with_wall_clock_times(small_mat_calibration, tmp_path):
-    """``source = "hardware"`` with the emulated board: the real scan path, frames on the wall clock."""
+def board_daemon(calibration, tmp_path, on_map):
+    """The daemon ``appliance run`` assembles on grid-4x4's emulated board (the real scan path), with
+    ``calibration`` saved beside its data folder."""
     from appliance.core.pressure import save_pressure_calibration
     from appliance.service.assemble import assemble
 
-    model, calibration = small_mat_calibration
     save_pressure_calibration(tmp_path / "pressure.json", calibration)
     config = config_from_mapping({"monitor": {"layout": "grid-4x4", "source": "hardware", "frame_interval_s": 0.05,
                                               "calibration": str(tmp_path / "pressure.json"),
                                               "data_dir": str(tmp_path / "data"),
                                               "cache_dir": str(tmp_path / "models")},
                                   "board": {"backend": "emulated"}})
+    return assemble(config, say=lambda text: None, on_map=on_map)
+
+
+def test_the_daemon_runs_the_scan_engine_on_a_board_with_wall_clock_times(small_mat_calibration, tmp_path):
+    """``source = "hardware"`` with the emulated board: the real scan path, frames on the wall clock."""
     maps = []
     started = time.time()
-    daemon = assemble(config, say=lambda text: None, on_map=maps.append)
+    daemon = board_daemon(small_mat_calibration[1], tmp_path, maps.append)
     try:
         assert daemon.run(2) == 2
     finally:

@@ -11,7 +11,7 @@ import subprocess
 import pytest
 from monitor_process import MINUTE, command, start_monitoring
 from mqtt_broker import wait_until
-from test_daemon import INTERVAL, FlakySource
+from test_daemon import INTERVAL, FlakySource, board_daemon
 
 from appliance.cli import main
 from appliance.errors import DataDirInUse
@@ -262,19 +262,10 @@ def test_frame_times_follow_the_monotonic_clock_and_a_step_is_reported_once():
 
 
 def test_the_board_monitor_carries_on_over_a_wall_clock_step_back_and_logs_it(small_mat_calibration, tmp_path):
-    from appliance.core.pressure import save_pressure_calibration
-    from appliance.service.assemble import assemble
     from appliance.service.clock import FrameClock
 
-    _, calibration = small_mat_calibration
-    save_pressure_calibration(tmp_path / "pressure.json", calibration)
-    config = config_from_mapping({"monitor": {"layout": "grid-4x4", "source": "hardware", "frame_interval_s": 0.05,
-                                              "calibration": str(tmp_path / "pressure.json"),
-                                              "data_dir": str(tmp_path / "data"),
-                                              "cache_dir": str(tmp_path / "models")},
-                                  "board": {"backend": "emulated"}})
     maps = []
-    daemon = assemble(config, say=lambda text: None, on_map=maps.append)
+    daemon = board_daemon(small_mat_calibration[1], tmp_path, maps.append)
     clocks = Clocks(wall=daemon.source.now() + 1.0)
     daemon.source.clock = FrameClock(wall=clocks.wall, monotonic=clocks.monotonic)
     try:
