@@ -189,9 +189,10 @@ def test_the_input_ending_aborts_and_writes_nothing(capsys, monkeypatch, tmp_pat
 
 
 def test_without_hardware_the_missing_device_is_named(capsys, tmp_path):
+    """Exit status 3: hardware that did not answer, which a service manager retries (a refusal is 2)."""
     code, err = run(capsys, "calibrate", "sensitivity", "--layout", "grid-4x4", "--source", "hardware",
                     "--out", str(tmp_path / "cal.csv"))
-    assert code == 2 and "/dev/" in err and not (tmp_path / "cal.csv").exists()
+    assert code == 3 and "/dev/" in err and not (tmp_path / "cal.csv").exists()
 
 
 def test_sensitivity_round_trip_through_backprojection(capsys, tmp_path):
