@@ -20,6 +20,8 @@ import time
 from pathlib import Path
 
 SENSITIVITY_PRESSURE_KPA = 10.0
+MAX_POSITIONS = 20          # 20 x 20 places per load size: beyond it a calibration would run for days
+MAX_AVERAGES = 1000         # as acquire --average
 
 
 def add_parsers(sub) -> None:
@@ -83,8 +85,9 @@ def _pressure(args) -> int:
     from appliance.core.pressure import save_pressure_calibration
     from appliance.errors import ConfigError
 
-    if args.positions < 1 or args.averages < 1:
-        raise ConfigError("--positions and --averages take 1 or more")
+    if not 1 <= args.positions <= MAX_POSITIONS or not 1 <= args.averages <= MAX_AVERAGES:
+        raise ConfigError(f"--positions takes 1 to {MAX_POSITIONS} and --averages 1 to {MAX_AVERAGES}, got "
+                          f"{args.positions} and {args.averages}")
     if args.maps and args.source == "hardware":
         raise ConfigError("--maps lays recorded people on the virtual mat; on hardware, calibrate with weights")
     if args.subjects and not args.maps:

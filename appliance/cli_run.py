@@ -67,6 +67,12 @@ def monitor_config(args, **fixed):
     config = load_config(args.config) if args.config else config_from_mapping({})
     changes = {field: getattr(args, option) for option, field in OVERRIDES.items()
                if getattr(args, option, None) is not None}
+    for option, section, key in (("interval", "monitor", "frame_interval_s"), ("speed", "virtual", "speed")):
+        if getattr(args, option, None) is not None:       # the file's bounds hold for the option that overrides it
+            try:
+                config_from_mapping({section: {key: getattr(args, option)}})
+            except ConfigError as exc:
+                raise ConfigError(f"--{option}: {exc}") from None
     changes.update(fixed)
     if changes.get("scenario") is not None and config.source != "virtual":
         raise ConfigError("--scenario is for the virtual bed, but the configuration's source is a board")
