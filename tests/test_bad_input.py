@@ -3,7 +3,13 @@
 A monitor that crashes on a typo, or quietly runs with a nonsense interval, fails
 the person in the bed as surely as a wrong alarm. Each case is run in-process and
 must be refused before anything expensive is built: a model build would show as a
-test that takes minutes.
+test that takes minutes. The web screen's forms and uploads are held to the same rule:
+a 4xx naming what is wrong, never a 500 and never "nothing changed".
+
+266 command-line cases (layout 12, protocol 9, simulate 22, reconstruct 32, sim load-test 15,
+sim run 33, sim replay 12, sim map 19, acquire 21, selftest 5, run 30, calibrate pressure 26,
+calibrate sensitivity 9, ward 12, provision 6, the parser itself 3), all exiting 2; 61 web
+cases (settings 28, patient 7, accounts 8, engineering 18), all answered with a 4xx.
 """
 
 from __future__ import annotations
@@ -407,3 +413,103 @@ def _names(line: str, named: str, argv: list[str]) -> bool:
     if named in line:
         return True
     return named.startswith("--") and (named.lstrip("-") in line or argv[-1] in line)
+
+
+# The web screen: each malformed form, JSON body or upload is refused with a 4xx and a message naming it.
+
+WEB_CASES = [
+    # (role, path, form or None, JSON body or None, named)
+    ("nurse", "/settings/patient", {"threshold_mmhg": "nan"}, None, "threshold_mmhg"),
+    ("nurse", "/settings/patient", {"threshold_mmhg": "inf"}, None, "threshold_mmhg"),
+    ("nurse", "/settings/patient", {"threshold_mmhg": "-inf"}, None, "threshold_mmhg"),
+    ("nurse", "/settings/patient", {"threshold_mmhg": "1e400"}, None, "threshold_mmhg"),
+    ("nurse", "/settings/patient", {"threshold_mmhg": "-1"}, None, "threshold_mmhg"),
+    ("nurse", "/settings/patient", {"threshold_mmhg": ""}, None, "threshold_mmhg"),
+    ("nurse", "/settings/patient", {"threshold_mmhg": "abc"}, None, "threshold_mmhg"),
+    ("nurse", "/settings/patient", {"relief_min": "inf"}, None, "relief_min"),
+    ("nurse", "/settings/patient", {"curve": "nosuch"}, None, "curve"),
+    ("nurse", "/settings/patient", {"colour": "red"}, None, "colour"),
+    ("nurse", "/settings/patient", None, [1, 2], "JSON object"),
+    ("nurse", "/settings/patient", None, {"threshold_mmhg": None}, "threshold_mmhg"),
+    ("nurse", "/settings/patient", None, {"threshold_mmhg": True}, "threshold_mmhg"),
+    ("nurse", "/settings/patient", None, {"threshold_mmhg": [40]}, "threshold_mmhg"),
+    ("nurse", "/settings/patient", None, {"threshold_mmhg": 1e308}, "threshold_mmhg"),
+    ("engineer", "/settings/bed", {"layout": "nosuch"}, None, "layout"),
+    ("engineer", "/settings/bed", {"bed_id": ""}, None, "bed_id"),
+    ("engineer", "/settings/bed", None, {"layout": 5}, "layout"),
+    ("admin", "/settings/policy", {"threshold_mmhg_low": "nan", "threshold_mmhg_high": "40"}, None, "threshold_mmhg"),
+    ("admin", "/settings/policy", {"threshold_mmhg_low": "50", "threshold_mmhg_high": "40"}, None, "threshold_mmhg"),
+    ("admin", "/settings/policy", None, {"threshold_mmhg": ["a", "b"]}, "threshold_mmhg"),
+    ("admin", "/settings/policy", None, [1], "JSON object"),
+    ("engineer", "/settings/file", {"file": (b"\xff\xfe", "s.toml")}, None, "s.toml"),
+    ("engineer", "/settings/file", {"file": (b"x = = 1", "s.toml")}, None, "s.toml"),
+    ("engineer", "/settings/file", {"file": (b"[alerts]\nthreshold_mmhg = nan\n", "s.toml")}, None, "threshold_mmhg"),
+    ("engineer", "/settings/file", {"file": (b"[alerts]\nthreshold_mmhg = inf\n", "s.toml")}, None, "threshold_mmhg"),
+    ("engineer", "/settings/file", {"file": (b"[alerts]\nthreshold_mmhg = 'a'\n", "s.toml")}, None, "threshold_mmhg"),
+    ("engineer", "/settings/file", {"file": (b"[nosuch]\n", "s.toml")}, None, "nosuch"),
+    ("nurse", "/patient/admit", {"patient_id": ""}, None, "not admitted"),
+    ("nurse", "/patient/admit", {"patient_id": "p1", "braden": "abc"}, None, "Braden"),
+    ("nurse", "/patient/admit", {"patient_id": "p1", "braden": "99"}, None, "Braden"),
+    ("nurse", "/patient/admit", {"patient_id": "p1", "bed_exit_after_min": "nan"}, None, "not admitted"),
+    ("nurse", "/patient/admit", {"patient_id": "p1", "bed_exit_after_min": "inf"}, None, "not admitted"),
+    ("nurse", "/patient/admit", {"patient_id": "p1", "bed_exit_after_min": "-5"}, None, "not admitted"),
+    ("nurse", "/patient/admit", {"patient_id": "x" * 10000}, None, "not admitted"),
+    ("admin", "/accounts", {"name": "", "password": "x", "role": "nurse"}, None, "name"),
+    ("admin", "/accounts", {"name": "a b", "password": "correct horse battery", "role": "nurse"}, None, "name"),
+    ("admin", "/accounts", {"name": "ok.name", "password": "correct horse battery", "role": "god"}, None, "role"),
+    ("admin", "/accounts", {"name": "x" * 500, "password": "correct horse battery", "role": "nurse"}, None, "name"),
+    ("admin", "/accounts/nosuch/role", {"role": "nurse"}, None, "nosuch"),
+    ("admin", "/accounts/nurse.test/role", {"role": "god"}, None, "role"),
+    ("admin", "/accounts/nurse.test/password", {"password": "x"}, None, "password"),
+    ("admin", "/accounts/nosuch/remove", {}, None, "nosuch"),
+    ("engineer", "/engineering/acquire", {"averages": "0"}, None, "averages"),
+    ("engineer", "/engineering/acquire", {"averages": "nan"}, None, "averages"),
+    ("engineer", "/engineering/acquire", {"averages": "1e400"}, None, "averages"),
+    ("engineer", "/engineering/series", {"count": "2", "interval_s": "inf"}, None, "interval_s"),
+    ("engineer", "/engineering/calibrate", {"kind": "x"}, None, "kind"),
+    ("engineer", "/engineering/load", {"what": "calibration", "file": "../etc/passwd"}, None, "file"),
+    ("engineer", "/engineering/load", {"what": "calibration", "file": "missing.json"}, None, "missing.json"),
+    ("engineer", "/engineering/nosuch", {}, None, "nosuch"),
+    ("engineer", "/engineering/acquire", None, {"averages": [1]}, "averages"),
+    ("engineer", "/engineering/acquire", None, {"averages": 1.5}, "averages"),
+    ("engineer", "/engineering/acquire", None, {"nosuch": 1}, "nosuch"),
+    ("engineer", "/engineering/upload", {"file": (b"{x", "c.json")}, None, "c.json"),
+    ("engineer", "/engineering/upload", {"file": (b"\xff", "c.json")}, None, "c.json"),
+    ("engineer", "/engineering/upload", {"file": (b"[]", "c.json")}, None, "c.json"),
+    ("engineer", "/engineering/upload", {"file": (b"NaN", "c.json")}, None, "c.json"),
+    ("engineer", "/engineering/upload", {"file": (b"[monitor]\nframe_interval_s = nan\n", "c.toml")}, None,
+     "frame_interval_s"),
+    ("engineer", "/engineering/upload", {"file": (b"{}", "../x.json")}, None, "x.json"),
+    ("engineer", "/engineering/upload", {"file": (b"MZ", "c.exe")}, None, "c.exe"),
+]
+
+
+@pytest.fixture(scope="module")
+def screen(tmp_path_factory):
+    """One bed screen and a logged-in client per role, shared by the cases (none of them changes anything)."""
+    from webui_client import client_as
+
+    from webui import create_app
+
+    app = create_app(tmp_path_factory.mktemp("screen"), secure_cookies=False, TESTING=True, STREAM_MAX_S=1.0)
+    return {role: client_as(app, role) for role in ("nurse", "engineer", "admin")}
+
+
+@pytest.mark.parametrize(("role", "path", "form", "body", "named"), WEB_CASES,
+                         ids=[f"{path} {form if body is None else body}"[:80] for _, path, form, body, _ in WEB_CASES])
+def test_bad_web_input_is_refused_with_4xx_naming_it(screen, role, path, form, body, named):
+    import html
+    import io
+
+    from webui_client import token
+
+    client = screen[role]
+    page = "/" + path.split("/")[1]
+    if body is not None:
+        answer = client.post(path, json=body, headers={"X-CSRF-Token": token(client, page)})
+    else:
+        data = {k: (io.BytesIO(v[0]), v[1]) if isinstance(v, tuple) else v for k, v in form.items()}
+        answer = client.post(path, data={**data, "csrf_token": token(client, page)}, content_type="multipart/form-data")
+    text = html.unescape(answer.get_data(as_text=True))
+    assert 400 <= answer.status_code < 500, f"status {answer.status_code}"
+    assert named in text
