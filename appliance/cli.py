@@ -207,6 +207,7 @@ def _simulate(args) -> int:
     from appliance.core.network import build_network_model, network_for_layout
     from appliance.core.phantoms import conductivity, covered_area_mm2
     from appliance.core.protocols import default_protocol, load_protocol
+    from appliance.errors import ModelInputInvalid
 
     if args.out:
         check_output(args.out, "--out")
@@ -219,6 +220,10 @@ def _simulate(args) -> int:
     else:
         model = build_network_model(network_for_layout(layout, max(1, round(args.density))))
     built = time.perf_counter()
+    for inclusion, text in zip(inclusions, args.inclusion):
+        if covered_area_mm2(model, conductivity(model, [inclusion])) == 0:
+            raise ModelInputInvalid(f"inclusion {text!r} covers no element of the {layout.name} model: it is off the "
+                                    "sheet or smaller than an element")
     sigma = conductivity(model, inclusions)
     volts = simulate(model, sigma, protocol, current_a=args.current_ma * 1e-3)
     done = time.perf_counter()

@@ -97,8 +97,9 @@ def _check_named(config) -> None:
         load_scene(config.scenario)
     if config.calibration is not None:
         check_input(Path(config.calibration), "calibration")
-    if config.data_dir is not None and Path(config.data_dir).exists() and not Path(config.data_dir).is_dir():
-        raise ConfigError(f"data folder {config.data_dir} is a file, not a folder")
+    for what, folder in (("data folder", config.data_dir), ("cache folder", config.cache_dir)):
+        if folder is not None and Path(folder).exists() and not Path(folder).is_dir():
+            raise ConfigError(f"{what} {folder} is a file, not a folder")
 
 
 def _run(args) -> int:

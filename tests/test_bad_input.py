@@ -6,9 +6,9 @@ must be refused before anything expensive is built: a model build would show as 
 test that takes minutes. The web screen's forms and uploads are held to the same rule:
 a 4xx naming what is wrong, never a 500 and never "nothing changed".
 
-266 command-line cases (layout 12, protocol 9, simulate 22, reconstruct 32, sim load-test 15,
-sim run 33, sim replay 12, sim map 19, acquire 21, selftest 5, run 30, calibrate pressure 26,
-calibrate sensitivity 9, ward 12, provision 6, the parser itself 3), all exiting 2; 61 web
+269 command-line cases (layout 12, protocol 9, simulate 23, reconstruct 32, sim load-test 15,
+sim run 33, sim replay 12, sim map 19, acquire 21, selftest 5, run 31, calibrate pressure 26,
+calibrate sensitivity 9, ward 13, provision 6, the parser itself 3), all exiting 2; 61 web
 cases (settings 28, patient 7, accounts 8, engineering 18), all answered with a 4xx.
 """
 
@@ -102,6 +102,7 @@ CASES = [
     (["simulate", "--layout", "grid-4x4", "--inclusion", "rect:50,50,-10,10,0.5"], "rect:50,50,-10"),
     (["simulate", "--layout", "grid-4x4", "--inclusion", "disc:50,50,inf,0.5"], "disc:50,50,inf"),
     (["simulate", "--layout", "grid-4x4", "--inclusion", "tri:1,2,3"], "tri:1,2,3"),
+    (["simulate", "--layout", "grid-4x4", "--inclusion", "rect:5000,5000,10,10,0.5"], "rect:5000,5000"),
     (["simulate", "--layout", "grid-4x4", "--protocol", "{t}/missing.csv"], "missing.csv"),
     (["simulate", "--layout", "grid-4x4", "--protocol", "{t}/folder"], "folder"),
     (["simulate", "--layout", "grid-4x4", "--protocol", "{t}/empty.csv"], "empty.csv"),
@@ -294,6 +295,7 @@ CASES = [
     ([*RUN, "--calibration", "{t}/missing.json"], "missing.json"),
     ([*RUN, "--calibration", "{t}/folder"], "folder"),
     ([*RUN, "--data-dir", "{t}/empty.csv"], "empty.csv"),
+    ([*RUN, "--cache-dir", "{t}/empty.csv"], "empty.csv"),
     # calibrate
     ([*PRESSURE, "--out", "{t}/c.json", "--positions", "0"], "--positions"),
     ([*PRESSURE, "--out", "{t}/c.json", "--averages", "0"], "--averages"),
@@ -345,6 +347,7 @@ CASES = [
     ([*WARD, "--config", "{t}/ward.toml", "--listen", "99999"], "--listen"),
     ([*WARD, "--config", "{t}/ward.toml", "--threads", "0"], "--threads"),
     ([*WARD, "--config", "{t}/ward.toml", "--threads", "x"], "--threads"),
+    ([*WARD, "--config", "{t}/ward.toml", "--data-dir", "{t}/empty.csv"], "empty.csv"),
     # provision
     ([*PROVISION, "--setup", "{t}/missing.toml"], "missing.toml"),
     ([*PROVISION, "--setup", "{t}/folder"], "folder"),
