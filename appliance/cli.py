@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 import time
 from pathlib import Path
@@ -36,6 +37,59 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
 
+def _number(kind, test, wanted: str):
+    """An argparse ``type=`` for numbers that pass ``test``: NaN, infinity or a value out of range is refused where
+    it enters, naming the option, instead of reaching a model or a loop that cannot use it."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"takes {wanted}, got {text!r}") from None
+        if not math.isfinite(value) or not test(value):
+            raise argparse.ArgumentTypeError(f"takes {wanted}, got {text!r}")
+        return value
+
+    parse.__name__ = wanted        # argparse names the type in its message when a conversion fails
+    return parse
+
+
+positive = _number(float, lambda v: v > 0, "a positive number")
+not_negative = _number(float, lambda v: v >= 0, "a number not below 0")
+finite = _number(float, lambda v: True, "a finite number")
+positive_int = _number(int, lambda v: v > 0, "a whole number of 1 or more")
+seed = _number(int, lambda v: 0 <= v < 2**32, "a whole number from 0 to 2**32 - 1")
+not_negative_int = _number(int, lambda v: v >= 0, "a whole number not below 0")
+MAX_DENSITY = 8.0
+"""The finest mesh density: each doubling has four times the elements, so beyond this a mesh only exhausts memory."""
+density = _number(float, lambda v: 0 < v <= MAX_DENSITY, f"a mesh density above 0 and at most {MAX_DENSITY:g}")
+
+
+def check_output(path: Path, option: str, suffixes: tuple[str, ...] = ()) -> Path:
+    """``path`` if a file can be written there, else a ConfigError naming ``option``: checked before the work
+    that makes the file, so a typo in a folder name does not lose a long computation."""
+    from appliance.errors import ConfigError
+
+    if suffixes and path.suffix.lower() not in suffixes:
+        raise ConfigError(f"{option} {path}: the extension must be {' or '.join(suffixes)}, got "
+                          f"{path.suffix or 'none'!r}")
+    if not path.parent.is_dir():
+        raise ConfigError(f"{option} {path}: the folder {path.parent} does not exist")
+    if path.is_dir():
+        raise ConfigError(f"{option} {path} is a folder, not a file")
+    return path
+
+
+def check_input(path: Path, option: str) -> Path:
+    """``path`` if it is a file, else a ConfigError naming ``option``, before anything slow is built."""
+    from appliance.errors import ConfigError
+
+    if not path.exists():
+        raise ConfigError(f"{option} {path} does not exist")
+    if not path.is_file():
+        raise ConfigError(f"{option} {path} is not a file")
+    return path
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="appliance", description="Bedside EIT pressure-sore monitor.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -51,8 +105,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--layout", required=True, help="layout name or .toml file")
     p.add_argument("--kind", default="default",
                    choices=["default", "adjacent", "opposite", "skip", "distributed", "local", "rows"])
-    p.add_argument("--skip", type=int, default=0, help="electrodes skipped between a drive pair (--kind skip)")
-    p.add_argument("--reach", type=float, default=None,
+    p.add_argument("--skip", type=not_negative_int, default=0, help="electrodes skipped between a drive pair (--kind skip)")
+    p.add_argument("--reach", type=positive, default=None,
                    help="electrode spacings a reading may lie from its drive pair (--kind local or rows)")
     p.set_defaults(run=_protocol)
 
@@ -60,11 +114,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--layout", required=True, help="layout name or .toml file")
     p.add_argument("--model", default="fem", choices=["fem", "network"],
                    help="finite elements with contact impedance, or the thesis's resistor network")
-    p.add_argument("--density", type=float, default=1.0, help="mesh density (2 halves every element edge)")
+    p.add_argument("--density", type=density, default=1.0, help="mesh density (2 halves every element edge)")
     p.add_argument("--protocol", type=Path, help="protocol CSV file (default: the layout's default protocol)")
     p.add_argument("--inclusion", action="append", default=[], metavar="SHAPE:X,Y,W,H,CONTRAST",
                    help="rect:X,Y,W,H,CONTRAST or disc:X,Y,D,CONTRAST in mm, conductivity ratio; repeatable")
-    p.add_argument("--current-ma", type=float, default=1.0, help="drive current, mA")
+    p.add_argument("--current-ma", type=positive, default=1.0, help="drive current, mA")
     p.add_argument("--out", type=Path, help="write the frame here instead of stdout")
     p.set_defaults(run=_simulate)
 
@@ -82,14 +136,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", default=None, metavar="RELATIVE,ABSOLUTE",
                    help="reading noise: a share of each reading and of the rms reading (default 1e-3,1e-4)")
     p.add_argument("--pixels", default=None, metavar="ROWSxCOLS", help="pixel grid (default 16 on the short side)")
-    p.add_argument("--density", type=float, default=None,
+    p.add_argument("--density", type=density, default=None,
                    help="forward mesh density (default: the appliance's for the layout, 0.5 on a bed mat)")
     p.add_argument("--calibration", type=Path, help="experimental sensitivity for backprojection (eq. 3.4.1)")
     p.add_argument("--normalise", action="store_true", help="write the thesis's 0-100 display scale (eq. 3.4.3)")
     p.add_argument("--segment", type=Path, help="also write the KTC2023 256 x 256 label image (CSV) here")
     p.add_argument("--pressure", type=Path, metavar="CAL.json",
                    help="write the pressure map in kPa with this calibration (from appliance calibrate pressure)")
-    p.add_argument("--temperature-c", type=float, default=None,
+    p.add_argument("--temperature-c", type=finite, default=None,
                    help="--pressure: the frame's liquid temperature, corrected to the calibration's "
                         "(default: no correction)")
     p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
@@ -134,7 +188,12 @@ def _layout(args) -> int:
 def _protocol(args) -> int:
     from appliance.core.layouts import get_layout
     from appliance.core.protocols import protocol_for, protocol_to_csv
+    from appliance.errors import ConfigError
 
+    if args.reach is not None and args.kind not in ("local", "rows"):
+        raise ConfigError(f"--reach is for --kind local or rows, not {args.kind}")
+    if args.skip and args.kind != "skip":
+        raise ConfigError(f"--skip is for --kind skip, not {args.kind}")
     protocol = protocol_for(get_layout(args.layout), args.kind, skip=args.skip, reach=args.reach)
     sys.stdout.write(protocol_to_csv(protocol))
     return 0
@@ -148,7 +207,10 @@ def _simulate(args) -> int:
     from appliance.core.network import build_network_model, network_for_layout
     from appliance.core.phantoms import conductivity, covered_area_mm2
     from appliance.core.protocols import default_protocol, load_protocol
+    from appliance.errors import ModelInputInvalid
 
+    if args.out:
+        check_output(args.out, "--out")
     layout = get_layout(args.layout)
     protocol = load_protocol(args.protocol, layout.n_electrodes) if args.protocol else default_protocol(layout)
     inclusions = [_parse_inclusion(text) for text in args.inclusion]
@@ -158,6 +220,10 @@ def _simulate(args) -> int:
     else:
         model = build_network_model(network_for_layout(layout, max(1, round(args.density))))
     built = time.perf_counter()
+    for inclusion, text in zip(inclusions, args.inclusion):
+        if covered_area_mm2(model, conductivity(model, [inclusion])) == 0:
+            raise ModelInputInvalid(f"inclusion {text!r} covers no element of the {layout.name} model: it is off the "
+                                    "sheet or smaller than an element")
     sigma = conductivity(model, inclusions)
     volts = simulate(model, sigma, protocol, current_a=args.current_ma * 1e-3)
     done = time.perf_counter()
@@ -186,6 +252,12 @@ def _reconstruct(args) -> int:
         raise ConfigError("--pressure writes kPa; --normalise would rescale them: use one or the other")
     if args.temperature_c is not None and not args.pressure:
         raise ConfigError("--temperature-c corrects to the pressure calibration's temperature; add --pressure")
+    check_output(args.out, "--out", (".csv", ".png"))
+    if args.segment:
+        check_output(args.segment, "--segment", (".csv",))
+    for option in ("calibration", "pressure"):
+        if getattr(args, option):
+            check_input(getattr(args, option), f"--{option}")
     layout = get_layout(args.layout)
     frames = []
     for path in (args.reference, args.frame):
@@ -206,8 +278,7 @@ def _reconstruct(args) -> int:
         options = dataclasses.replace(options, algorithm=args.algorithm)
     if args.noise:
         options = dataclasses.replace(options, noise=NoiseModel(*_floats(args.noise, 2, "--noise")))
-    pixels = tuple(int(v) for v in _floats(args.pixels.replace("x", ","), 2, "--pixels")) if args.pixels \
-        else setup.pixels
+    pixels = parse_pixels(args.pixels) or setup.pixels
     setup = ModelSetup(layout, reference.protocol, options, args.density or setup.density, pixels,
                        setup.contact_impedance_ohm_m2)
     pressure = None
@@ -280,9 +351,27 @@ def _floats(text: str, count: int, option: str) -> list[float]:
         values = [float(v) for v in text.split(",")]
     except ValueError:
         raise ConfigError(f"{option} takes {count} numbers separated by commas, got {text!r}") from None
-    if len(values) != count:
-        raise ConfigError(f"{option} takes {count} numbers separated by commas, got {text!r}")
+    if len(values) != count or not all(math.isfinite(v) and v >= 0 for v in values):
+        raise ConfigError(f"{option} takes {count} finite numbers, not negative, separated by commas, got {text!r}")
     return values
+
+
+MAX_PIXELS = 256
+"""The finest pixel grid on a side: the KTC2023 label image's; finer grids only cost memory and time."""
+
+
+def parse_pixels(text: str | None) -> tuple[int, int] | None:
+    """``ROWSxCOLS`` as two whole numbers of 1 to MAX_PIXELS (None without ``text``); a ConfigError naming
+    --pixels otherwise."""
+    from appliance.errors import ConfigError
+
+    if not text:
+        return None
+    rows, _, cols = text.lower().partition("x")
+    if not (rows.strip().isdigit() and cols.strip().isdigit()
+            and 1 <= int(rows) <= MAX_PIXELS and 1 <= int(cols) <= MAX_PIXELS):
+        raise ConfigError(f"--pixels takes ROWSxCOLS, whole numbers from 1 to {MAX_PIXELS}, got {text!r}")
+    return int(rows), int(cols)
 
 
 def _parse_inclusion(text: str):
@@ -294,9 +383,12 @@ def _parse_inclusion(text: str):
         values = [float(v) for v in numbers.split(",")]
     except ValueError:
         raise ModelInputInvalid(f"inclusion {text!r}: values must be numbers") from None
-    if shape == "rect" and len(values) == 5:
-        return Inclusion("rect", *values)
-    if shape == "disc" and len(values) == 4:
-        x, y, d, contrast = values
-        return Inclusion("disc", x, y, d, d, contrast)
+    try:
+        if shape == "rect" and len(values) == 5:
+            return Inclusion("rect", *values)
+        if shape == "disc" and len(values) == 4:
+            x, y, d, contrast = values
+            return Inclusion("disc", x, y, d, d, contrast)
+    except ModelInputInvalid as exc:
+        raise ModelInputInvalid(f"inclusion {text!r}: {exc}") from None
     raise ModelInputInvalid(f"inclusion {text!r}: use rect:X,Y,W,H,CONTRAST or disc:X,Y,D,CONTRAST")

@@ -20,9 +20,13 @@ import time
 from pathlib import Path
 
 SENSITIVITY_PRESSURE_KPA = 10.0
+MAX_POSITIONS = 20          # 20 x 20 places per load size: beyond it a calibration would run for days
+MAX_AVERAGES = 1000         # as acquire --average
 
 
 def add_parsers(sub) -> None:
+    from appliance.cli import positive, positive_int
+
     p = sub.add_parser("calibrate", help="calibrate the mat: pressure from known loads, or the thesis's sensitivity")
     calibrate = p.add_subparsers(dest="calibrate_command", required=True, metavar="CALIBRATE_COMMAND")
 
@@ -33,16 +37,16 @@ def add_parsers(sub) -> None:
     p.add_argument("--algorithm", default=None,
                    help="the reconstruction it is fitted to: greit, gn-laplace, gn-noser or gn-tikhonov "
                         "(default greit)")
-    p.add_argument("--positions", type=int, default=2, metavar="N",
+    p.add_argument("--positions", type=positive_int, default=2, metavar="N",
                    help="each load size at N x N places across the mat (default 2)")
     p.add_argument("--pressures", default=None, metavar="P1,P2,...",
                    help="pressures each load is pressed to, kPa (default: the standard set, 2 to 20 kPa)")
-    p.add_argument("--averages", type=int, default=1, metavar="K", help="frames averaged per load (default 1)")
+    p.add_argument("--averages", type=positive_int, default=1, metavar="K", help="frames averaged per load (default 1)")
     p.add_argument("--maps", type=Path, default=None, metavar="PMATDATA",
                    help="calibrate from people's pressure maps instead of weights: a PmatData folder (virtual "
                         "source; a bed mat reads bodies through this far better than through weights)")
     p.add_argument("--subjects", default=None, metavar="N1,N2,...", help="with --maps: whose maps")
-    p.add_argument("--frames-per-posture", type=int, default=1, metavar="K",
+    p.add_argument("--frames-per-posture", type=positive_int, default=1, metavar="K",
                    help="with --maps: frames taken from each posture's recording (default 1)")
     p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
     p.set_defaults(run=_pressure)
@@ -51,13 +55,15 @@ def add_parsers(sub) -> None:
                                                  "for reconstruct --calibration (thesis eq. 3.4.1)")
     _source_options(p)
     p.add_argument("--out", type=Path, required=True, help="calibration file (CSV)")
-    p.add_argument("--side-mm", type=float, default=None, help="side of the square object (default: one pixel)")
-    p.add_argument("--pressure-kpa", type=float, default=SENSITIVITY_PRESSURE_KPA,
+    p.add_argument("--side-mm", type=positive, default=None, help="side of the square object (default: one pixel)")
+    p.add_argument("--pressure-kpa", type=positive, default=SENSITIVITY_PRESSURE_KPA,
                    help=f"pressure of the object (default {SENSITIVITY_PRESSURE_KPA:g} kPa)")
     p.set_defaults(run=_sensitivity)
 
 
 def _source_options(p: argparse.ArgumentParser) -> None:
+    from appliance.cli import density, seed
+
     p.add_argument("--layout", required=True, help="layout name or .toml file")
     p.add_argument("--source", default="virtual", choices=["virtual", "emulated", "hardware"],
                    help="virtual bed (default), the emulated board measuring it, or the real board with an "
@@ -67,21 +73,26 @@ def _source_options(p: argparse.ArgumentParser) -> None:
                    help="appliance TOML configuration; its [board] table is the board (for the virtual and "
                         "emulated sources, default: the reference board at a current suiting the virtual mat)")
     p.add_argument("--profile", help="board profile: reference, reference-32 or ad5933 (overrides --config)")
-    p.add_argument("--density", type=float, default=1.0, help="virtual or emulated: the virtual mat's mesh density")
-    p.add_argument("--seed", type=int, default=0, help="virtual or emulated: the front end's errors and noise")
+    p.add_argument("--density", type=density, default=1.0, help="virtual or emulated: the virtual mat's mesh density")
+    p.add_argument("--seed", type=seed, default=0, help="virtual or emulated: the front end's errors and noise")
 
 
 def _pressure(args) -> int:
     from appliance.calibration import CALIBRATION_PRESSURES_KPA, calibration_loads, pressure_calibration
+    from appliance.cli import check_output
     from appliance.core.layouts import get_layout
     from appliance.core.model_cache import cached_model, default_cache_dir, default_setup
     from appliance.core.pressure import save_pressure_calibration
     from appliance.errors import ConfigError
 
-    if args.positions < 1 or args.averages < 1:
-        raise ConfigError("--positions and --averages take 1 or more")
+    if not 1 <= args.positions <= MAX_POSITIONS or not 1 <= args.averages <= MAX_AVERAGES:
+        raise ConfigError(f"--positions takes 1 to {MAX_POSITIONS} and --averages 1 to {MAX_AVERAGES}, got "
+                          f"{args.positions} and {args.averages}")
     if args.maps and args.source == "hardware":
         raise ConfigError("--maps lays recorded people on the virtual mat; on hardware, calibrate with weights")
+    if args.subjects and not args.maps:
+        raise ConfigError("--subjects says whose --maps calibrate the mat; add --maps")
+    check_output(args.out, "--out")
     pressures = _pressures(args.pressures) if args.pressures else CALIBRATION_PRESSURES_KPA
     layout = get_layout(args.layout)
     setup = default_setup(layout)
@@ -118,17 +129,16 @@ def _pressure(args) -> int:
 
 def _sensitivity(args) -> int:
     from appliance.calibration import sensitivity_calibration
+    from appliance.cli import check_output
     from appliance.core.layouts import get_layout
     from appliance.core.pixels import pixel_grid
     from appliance.core.protocols import default_protocol
-    from appliance.errors import ConfigError
 
+    check_output(args.out, "--out")
     layout = get_layout(args.layout)
     protocol = default_protocol(layout)
     grid = pixel_grid(layout, *(_pixels(args.pixels) or (None, None)))
     side_mm = min(grid.pixel_mm) if args.side_mm is None else args.side_mm
-    if side_mm <= 0 or args.pressure_kpa <= 0:
-        raise ConfigError("--side-mm and --pressure-kpa must be positive")
     start = time.perf_counter()
 
     def progress(k, n, pixel):
@@ -160,15 +170,15 @@ def _pressures(text: str) -> list[float]:
         pressures = [float(v) for v in text.split(",")]
     except ValueError:
         raise ConfigError(f"--pressures takes kPa separated by commas, got {text!r}") from None
-    if min(pressures) <= 0:
-        raise ConfigError(f"--pressures must be positive, got {text!r}")
+    if not all(0 < p < float("inf") for p in pressures):
+        raise ConfigError(f"--pressures must be positive and finite, got {text!r}")
     return pressures
 
 
 def _pixels(text: str | None) -> tuple[int, int] | None:
-    from appliance.cli import _floats
+    from appliance.cli import parse_pixels
 
-    return tuple(int(v) for v in _floats(text.replace("x", ","), 2, "--pixels")) if text else None
+    return parse_pixels(text)
 
 
 def _map_loads(args) -> list:

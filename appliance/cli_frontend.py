@@ -13,12 +13,14 @@ from pathlib import Path
 
 
 def add_parsers(sub) -> None:
+    from appliance.cli import not_negative, positive_int
+
     p = sub.add_parser("acquire", help="acquire frames of readings from the front end")
     _board_options(p)
     p.add_argument("--protocol", type=Path, help="protocol CSV file (default: the layout's default protocol)")
-    p.add_argument("--average", type=int, default=1, metavar="N", help="average N complete sets (thesis: 30)")
-    p.add_argument("--series", type=int, default=1, metavar="N", help="acquire N sets (1 to 60)")
-    p.add_argument("--interval", type=float, default=1.0, metavar="S", help="seconds between sets of a series")
+    p.add_argument("--average", type=positive_int, default=1, metavar="N", help="average N complete sets (thesis: 30)")
+    p.add_argument("--series", type=positive_int, default=1, metavar="N", help="acquire N sets (1 to 60)")
+    p.add_argument("--interval", type=not_negative, default=1.0, metavar="S", help="seconds between sets of a series")
     p.add_argument("--order", default="optimised", choices=["optimised", "protocol"],
                    help="reading order: grouped by drive, rising level (default), or as the protocol lists them")
     p.add_argument("--out", type=Path, required=True,
@@ -31,19 +33,24 @@ def add_parsers(sub) -> None:
 
 
 def _board_options(p: argparse.ArgumentParser) -> None:
+    from appliance.cli import seed
+
     p.add_argument("--layout", default="grid-4x4", help="layout name or .toml file (default grid-4x4)")
     p.add_argument("--emulated", action="store_true", help="use the emulated front end instead of the real board")
     p.add_argument("--config", type=Path, help="appliance TOML configuration; its [board] table describes the board")
     p.add_argument("--profile", help="board profile: reference, reference-32 or ad5933 (overrides --config)")
     p.add_argument("--inclusion", action="append", default=[], metavar="SHAPE:X,Y,W,H,CONTRAST",
                    help="emulated mat only: an object on it, as for simulate; repeatable")
-    p.add_argument("--seed", type=int, default=0, help="emulated board only: its component errors and noise")
+    p.add_argument("--seed", type=seed, default=0, help="emulated board only: its component errors and noise")
 
 
 def board_table(args) -> dict:
     """The ``[board]`` table of ``--config`` (empty without one), its profile overridden by ``--profile``."""
     from appliance.drivers.profile import board_table_from_file
+    from appliance.service.config import load_config
 
+    if args.config:
+        load_config(args.config)        # the whole file checked: a typo elsewhere in it is refused, not ignored
     table = board_table_from_file(args.config) if args.config else {}
     if args.profile:
         table["profile"] = args.profile
@@ -82,6 +89,7 @@ def _open(args):
 
 
 def _acquire(args) -> int:
+    from appliance.cli import check_output
     from appliance.core.protocols import default_protocol, load_protocol
     from appliance.drivers.recording import series_paths, write_frame
     from appliance.drivers.scan import ScanEngine, average_frames
@@ -91,6 +99,7 @@ def _acquire(args) -> int:
         raise ConfigError("--series takes 1 to 60 sets and --average 1 to 1000")
     if args.series > 1 and not 0 <= args.interval <= 3600:
         raise ConfigError("--interval takes 0 to 3600 seconds")
+    check_output(args.out, "--out", (".csv",))
     layout, board, profile, front_end, kind = _open(args)
     protocol = load_protocol(args.protocol, layout.n_electrodes) if args.protocol else default_protocol(layout)
     paths = series_paths(args.out, args.series)

@@ -23,6 +23,8 @@ LIVE_FULL_SCALE_MMHG = 100.0      # the live map's colour scale: white at 0, dar
 
 
 def add_parsers(sub) -> None:
+    from appliance.cli import not_negative, positive, positive_int, seed
+
     p = sub.add_parser("run", help="run the monitor (the virtual bed when there is no hardware)")
     p.add_argument("--config", type=Path, default=None,
                    help="the monitor's TOML configuration (default: none, the virtual bed); the options below "
@@ -31,10 +33,10 @@ def add_parsers(sub) -> None:
     p.add_argument("--layout", default=None, help="mat layout (default grid-16x32, a 900 x 1900 mm bed)")
     p.add_argument("--scenario", default=None,
                    help="the virtual patient: a built-in scenario or a scenario .toml file (default turn-schedule)")
-    p.add_argument("--frames", type=int, default=None, help="stop after this many frames (default: run until "
+    p.add_argument("--frames", type=positive_int, default=None, help="stop after this many frames (default: run until "
                                                             "stopped or the scenario ends)")
-    p.add_argument("--interval", type=float, default=None, help="seconds between frames (default 1)")
-    p.add_argument("--speed", type=float, default=None,
+    p.add_argument("--interval", type=positive, default=None, help="seconds between frames (default 1)")
+    p.add_argument("--speed", type=not_negative, default=None,
                    help="virtual bed: scene seconds per wall-clock second (default 1, real time; 0 for as fast as "
                         "it goes)")
     p.add_argument("--data-dir", type=Path, default=None,
@@ -42,7 +44,7 @@ def add_parsers(sub) -> None:
                         "or ~/.local/share/appliance)")
     p.add_argument("--calibration", type=Path, default=None,
                    help="pressure calibration to use (refused unless made for this layout and reconstruction)")
-    p.add_argument("--seed", type=int, default=None, help="seed of the simulated noise")
+    p.add_argument("--seed", type=seed, default=None, help="seed of the simulated noise")
     p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
     p.add_argument("--screen", metavar="[HOST:]PORT", default=None,
                    help="also serve the nurse's screen (python -m webui) on this port, stopped with the monitor "
@@ -65,23 +67,48 @@ def monitor_config(args, **fixed):
     config = load_config(args.config) if args.config else config_from_mapping({})
     changes = {field: getattr(args, option) for option, field in OVERRIDES.items()
                if getattr(args, option, None) is not None}
+    for option, section, key in (("interval", "monitor", "frame_interval_s"), ("speed", "virtual", "speed")):
+        if getattr(args, option, None) is not None:       # the file's bounds hold for the option that overrides it
+            try:
+                config_from_mapping({section: {key: getattr(args, option)}})
+            except ConfigError as exc:
+                raise ConfigError(f"--{option}: {exc}") from None
     changes.update(fixed)
     if changes.get("scenario") is not None and config.source != "virtual":
         raise ConfigError("--scenario is for the virtual bed, but the configuration's source is a board")
     config = dataclasses.replace(config, **changes)
     if not config.frame_interval_s > 0 or config.speed < 0:
         raise ConfigError("--interval must be positive and --speed not negative")
+    _check_named(config)
     return config
+
+
+def _check_named(config) -> None:
+    """The layout, scenario, calibration and data folder the configuration names, refused before the model is
+    built (minutes on a bed mat) and by --check-config, which would otherwise pass a typo."""
+    from appliance.cli import check_input
+    from appliance.core.layouts import get_layout
+    from appliance.errors import ConfigError
+
+    get_layout(config.layout)
+    if config.source == "virtual":
+        from appliance.sim.scenes import load_scene
+
+        load_scene(config.scenario)
+    if config.calibration is not None:
+        check_input(Path(config.calibration), "calibration")
+    for what, folder in (("data folder", config.data_dir), ("cache folder", config.cache_dir)):
+        if folder is not None and Path(folder).exists() and not Path(folder).is_dir():
+            raise ConfigError(f"{what} {folder} is a file, not a folder")
 
 
 def _run(args) -> int:
     import signal
 
-    from appliance.errors import ConfigError
     from appliance.service.assemble import assemble
 
-    if args.frames is not None and args.frames < 1:
-        raise ConfigError(f"--frames must be at least 1, got {args.frames}")
+    if args.screen:
+        listen_address(args.screen, "--screen")
     config = monitor_config(args)
     if args.check_config:
         print(config)

@@ -31,31 +31,33 @@ from pathlib import Path
 
 
 def add_parsers(sub) -> None:
+    from appliance.cli import density, finite, not_negative, positive, seed
+
     p = sub.add_parser("sim", help="simulate the sensor mat (the virtual bed)")
     sim = p.add_subparsers(dest="sim_command", required=True, metavar="SIM_COMMAND")
     p = sim.add_parser("load-test", help="a centred square load stepped through pressures, as thesis chapter 6")
     p.add_argument("--layout", default="grid-4x4", help="layout name or .toml file (default grid-4x4)")
-    p.add_argument("--area-cm2", required=True, type=float, help="load area, 1 to 36 cm2")
+    p.add_argument("--area-cm2", required=True, type=positive, help="load area, 1 to 36 cm2")
     p.add_argument("--pressures", required=True, metavar="P1,P2,...",
                    help="pressures in kPa, applied in this order (the mat remembers the previous one)")
-    p.add_argument("--density", type=float, default=1.0, help="FEM mesh density")
-    p.add_argument("--temperature-c", type=float, default=20.0, help="liquid temperature at the start")
-    p.add_argument("--drift-c-per-step", type=float, default=None,
+    p.add_argument("--density", type=density, default=1.0, help="FEM mesh density")
+    p.add_argument("--temperature-c", type=finite, default=20.0, help="liquid temperature at the start")
+    p.add_argument("--drift-c-per-step", type=finite, default=None,
                    help="warming of the liquid between steps, C (default: the thesis's, fitted; 0 for none)")
     p.set_defaults(run=_load_test)
 
     p = sim.add_parser("run", help="replay a scenario through the whole monitor on a simulated clock, events to "
                                    "JSON lines")
     p.add_argument("--scenario", required=True, help="a built-in scenario's name or a scenario .toml file")
-    p.add_argument("--hours", required=True, type=float, help="simulated hours to run (within the scenario)")
+    p.add_argument("--hours", required=True, type=positive, help="simulated hours to run (within the scenario)")
     p.add_argument("--out", required=True, type=Path, help="the event record (JSON lines)")
-    p.add_argument("--interval", type=float, default=60.0,
+    p.add_argument("--interval", type=positive, default=60.0,
                    help="simulated seconds between frames (default 60: one map a minute)")
     p.add_argument("--config", type=Path, default=None,
                    help="the monitor's TOML configuration (alert settings, layout); its source must be virtual")
     p.add_argument("--layout", default=None, help="mat layout (default grid-16x32)")
-    p.add_argument("--seed", type=int, default=None, help="seed of the simulated noise")
-    p.add_argument("--acknowledge-after-min", type=float, default=None, metavar="M",
+    p.add_argument("--seed", type=seed, default=None, help="seed of the simulated noise")
+    p.add_argument("--acknowledge-after-min", type=not_negative, default=None, metavar="M",
                    help="a simulated nurse acknowledges each alarm M minutes after it is raised")
     p.add_argument("--data-dir", type=Path, default=None,
                    help="where the run's store is kept (default: a fresh temporary folder, removed afterwards)")
@@ -65,9 +67,9 @@ def add_parsers(sub) -> None:
     p = sim.add_parser("replay", help="a scenario's true maps straight into the alert layer (no mat, no "
                                       "reconstruction), events to JSON lines")
     p.add_argument("--scenario", required=True, help="a built-in scenario's name or a scenario .toml file")
-    p.add_argument("--hours", type=float, default=None, help="simulated hours to replay (default: all of it)")
+    p.add_argument("--hours", type=positive, default=None, help="simulated hours to replay (default: all of it)")
     p.add_argument("--out", required=True, type=Path, help="the event record (JSON lines)")
-    p.add_argument("--interval", type=float, default=60.0, help="simulated seconds between maps (default 60)")
+    p.add_argument("--interval", type=positive, default=60.0, help="simulated seconds between maps (default 60)")
     p.add_argument("--config", type=Path, default=None, help="the monitor's TOML configuration (alert settings)")
     p.add_argument("--layout", default=None, help="mat layout whose pixels the maps are averaged over "
                                                   "(default grid-16x32)")
@@ -107,10 +109,7 @@ def _run(args) -> int:
     from appliance.service.assemble import assemble
     from appliance.sim.scenes import load_scene
 
-    if not args.hours > 0 or not args.interval > 0:
-        raise ConfigError("--hours and --interval must be positive")
-    if args.acknowledge_after_min is not None and args.acknowledge_after_min < 0:
-        raise ConfigError("--acknowledge-after-min must not be negative")
+    _check_events_out(args.out)
     scene = load_scene(args.scenario)
     if args.hours * 3600 > scene.duration_s:
         raise ConfigError(f"scenario {args.scenario} lasts {scene.duration_s / 3600:g} h; --hours {args.hours:g} "
@@ -165,8 +164,7 @@ def _replay(args) -> int:
     from appliance.sim.scenes import load_scene
     from appliance.sim.true_maps import true_map
 
-    if not args.interval > 0 or (args.hours is not None and not args.hours > 0):
-        raise ConfigError("--hours and --interval must be positive")
+    _check_events_out(args.out)
     scene = load_scene(args.scenario)
     end_s = scene.duration_s if args.hours is None else args.hours * 3600
     if end_s > scene.duration_s:
@@ -187,3 +185,16 @@ def _replay(args) -> int:
     print(f"{args.scenario}: {len(times)} true maps ({(len(times) - 1) * args.interval / 3600:g} h) on "
           f"{config.layout}; {written} events written to {args.out}", file=sys.stderr)
     return 0
+
+
+def _check_events_out(path: Path) -> None:
+    """The event record's path refused before the run if it is a folder or its folder cannot be made."""
+    from appliance.errors import ConfigError
+
+    if path.is_dir():
+        raise ConfigError(f"--out {path} is a folder, not a file")
+    parent = path.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ConfigError(f"--out {path}: {parent} is a file, not a folder")

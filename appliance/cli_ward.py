@@ -46,6 +46,8 @@ def _ward(args) -> int:
     host, port = listen_address(args.listen, "--listen")
     if not 1 <= args.threads <= 1000:
         raise ConfigError(f"--threads must be 1-1000, got {args.threads}")
+    if args.data_dir is not None and args.data_dir.exists() and not args.data_dir.is_dir():
+        raise ConfigError(f"--data-dir {args.data_dir} is a file, not a folder")
     if args.check_config:
         print(config)
         return 0

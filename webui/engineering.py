@@ -102,6 +102,8 @@ def run_task(task: str):
         args = checked_args(task, fields)
     except ValueError as exc:
         return _refuse(str(exc))
+    if "file" in args and not (folder() / args["file"]).is_file():     # refused now, not when the monitor runs it
+        return _refuse(f"{task}: no file {args['file']} in {ENGINEERING_DIR}/")
     with store() as s:
         command = s.queue_command(task, args, g.user.name)
     current_app.extensions["users"].audit(g.user.name, "engineering task",

@@ -63,7 +63,7 @@ def admit():
         Episode(admitted_s=0.0, admitted_by=g.user.name, **args)
     except ConfigError as exc:
         flash(f"not admitted: {exc}", "error")
-        return redirect(url_for("patient.page")), 303
+        return page(), 400              # refused input is an error to the client too, not a redirect like success
     return _queue("admit", args, "admitted patient",
                   f"{args['patient_id']} admitted; doses and the turn clock start afresh at the monitor's next frame")
 

@@ -26,6 +26,9 @@ def load_layout(path: Path) -> Layout:
 
 def layout_from_mapping(data: dict) -> Layout:
     """Build a layout from parsed TOML (a dict); every missing or mistyped key is named."""
+    unknown = sorted(set(data) - {"name", "grid", "sheet", "electrodes"})
+    if unknown:
+        raise LayoutInvalid(f"unknown key {unknown[0]!r} in the layout: use name, grid, [sheet] and [[electrodes]]")
     name = _field(data, "name", str, "the layout")
     sheet_data = _field(data, "sheet", dict, "the layout")
     shape = _field(sheet_data, "shape", str, "[sheet]")

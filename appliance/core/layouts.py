@@ -297,6 +297,11 @@ def square_perimeter_layout(side_mm: float = THESIS_SHEET_MM) -> Layout:
     return Layout("square-16", RectSheet(side_mm, side_mm), electrodes)
 
 
+MAX_GRID_ELECTRODES = 4096
+"""Far beyond any mat a front end can switch (a bed mat has 512); a larger grid is a typo that would only exhaust
+the memory while its mesh is built."""
+
+
 def grid_layout(rows: int, cols: int, height_mm: float, width_mm: float, name: str | None = None) -> Layout:
     """Square electrodes in a grid over a rectangular sheet, outer ones flush with the edges.
 
@@ -305,6 +310,9 @@ def grid_layout(rows: int, cols: int, height_mm: float, width_mm: float, name: s
     """
     if rows < 1 or cols < 1:
         raise LayoutInvalid(f"a grid needs at least one row and one column, got {rows} x {cols}")
+    if rows * cols > MAX_GRID_ELECTRODES:
+        raise LayoutInvalid(f"a grid of {rows} x {cols} electrodes is more than the {MAX_GRID_ELECTRODES} a mat "
+                            "can have")
     if (rows == 1 and cols == 1):
         raise LayoutInvalid("a grid needs at least two electrodes")
     candidates = []

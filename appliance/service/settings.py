@@ -37,6 +37,7 @@ restarts. The monitor keeps the settings it runs with in its store (state
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 from appliance.alerts.limits import POLICY, alert_values, check_policy, check_within_policy
@@ -117,8 +118,8 @@ def settings_values(config: MonitorConfig) -> dict:
 
 def same(a, b) -> bool:
     """Whether two setting values are equal (numbers to within rounding)."""
-    numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (a, b))
-    return abs(a - b) <= 1e-9 * max(1.0, abs(a), abs(b)) if numbers else a == b
+    numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in (a, b))
+    return abs(a - b) <= 1e-9 * max(1.0, abs(a), abs(b)) if numbers else a == b      # inf is never "the same"
 
 
 def changes(old: dict, new: dict) -> list[tuple[str, object, object]]:
