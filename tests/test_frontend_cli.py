@@ -113,7 +113,7 @@ def test_selftest_passes_on_the_emulated_board(capsys):
 
 def test_real_board_commands_without_hardware_fail_in_one_line(tmp_path, capsys):
     code, out, err = run(capsys, "acquire", "--out", str(tmp_path / "f.csv"))
-    assert code == 2 and err.count("\n") == 1 and "/dev/i2c-1" in err
+    assert code == 3 and err.count("\n") == 1 and "/dev/i2c-1" in err          # hardware that did not answer
     code, out, err = run(capsys, "acquire", "--inclusion", "disc:50,50,20,2", "--out", str(tmp_path / "f.csv"))
     assert code == 2 and "add --emulated" in err
     code, out, err = run(capsys, "acquire", "--emulated", "--series", "61", "--out", str(tmp_path / "f.csv"))
