@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 from appliance.errors import ApplianceError, BusError, ChipError
+from appliance.files import check_writable
 
 HARDWARE_EXIT = 3
 """Exit status when the front end's buses or chips did not answer: unlike a refusal (2: bad input, a damaged
@@ -62,21 +63,6 @@ not_negative_int = _number(int, lambda v: v >= 0, "a whole number not below 0")
 MAX_DENSITY = 8.0
 """The finest mesh density: each doubling has four times the elements, so beyond this a mesh only exhausts memory."""
 density = _number(float, lambda v: 0 < v <= MAX_DENSITY, f"a mesh density above 0 and at most {MAX_DENSITY:g}")
-
-
-def check_output(path: Path, option: str, suffixes: tuple[str, ...] = ()) -> Path:
-    """``path`` if a file can be written there, else a ConfigError naming ``option``: checked before the work
-    that makes the file, so a typo in a folder name does not lose a long computation."""
-    from appliance.errors import ConfigError
-
-    if suffixes and path.suffix.lower() not in suffixes:
-        raise ConfigError(f"{option} {path}: the extension must be {' or '.join(suffixes)}, got "
-                          f"{path.suffix or 'none'!r}")
-    if not path.parent.is_dir():
-        raise ConfigError(f"{option} {path}: the folder {path.parent} does not exist")
-    if path.is_dir():
-        raise ConfigError(f"{option} {path} is a folder, not a file")
-    return path
 
 
 def check_input(path: Path, option: str) -> Path:
@@ -210,7 +196,7 @@ def _simulate(args) -> int:
     from appliance.errors import ModelInputInvalid
 
     if args.out:
-        check_output(args.out, "--out")
+        check_writable(args.out, "--out")
     layout = get_layout(args.layout)
     protocol = load_protocol(args.protocol, layout.n_electrodes) if args.protocol else default_protocol(layout)
     inclusions = [_parse_inclusion(text) for text in args.inclusion]
@@ -252,9 +238,9 @@ def _reconstruct(args) -> int:
         raise ConfigError("--pressure writes kPa; --normalise would rescale them: use one or the other")
     if args.temperature_c is not None and not args.pressure:
         raise ConfigError("--temperature-c corrects to the pressure calibration's temperature; add --pressure")
-    check_output(args.out, "--out", (".csv", ".png"))
+    check_writable(args.out, "--out", (".csv", ".png"))
     if args.segment:
-        check_output(args.segment, "--segment", (".csv",))
+        check_writable(args.segment, "--segment", (".csv",))
     for option in ("calibration", "pressure"):
         if getattr(args, option):
             check_input(getattr(args, option), f"--{option}")

@@ -79,7 +79,7 @@ def _source_options(p: argparse.ArgumentParser) -> None:
 
 def _pressure(args) -> int:
     from appliance.calibration import CALIBRATION_PRESSURES_KPA, calibration_loads, pressure_calibration
-    from appliance.cli import check_output
+    from appliance.files import check_writable
     from appliance.core.layouts import get_layout
     from appliance.core.model_cache import cached_model, default_cache_dir, default_setup
     from appliance.core.pressure import save_pressure_calibration
@@ -92,7 +92,7 @@ def _pressure(args) -> int:
         raise ConfigError("--maps lays recorded people on the virtual mat; on hardware, calibrate with weights")
     if args.subjects and not args.maps:
         raise ConfigError("--subjects says whose --maps calibrate the mat; add --maps")
-    check_output(args.out, "--out")
+    check_writable(args.out, "--out")
     pressures = _pressures(args.pressures) if args.pressures else CALIBRATION_PRESSURES_KPA
     layout = get_layout(args.layout)
     setup = default_setup(layout)
@@ -129,12 +129,12 @@ def _pressure(args) -> int:
 
 def _sensitivity(args) -> int:
     from appliance.calibration import sensitivity_calibration
-    from appliance.cli import check_output
+    from appliance.files import check_writable
     from appliance.core.layouts import get_layout
     from appliance.core.pixels import pixel_grid
     from appliance.core.protocols import default_protocol
 
-    check_output(args.out, "--out")
+    check_writable(args.out, "--out")
     layout = get_layout(args.layout)
     protocol = default_protocol(layout)
     grid = pixel_grid(layout, *(_pixels(args.pixels) or (None, None)))

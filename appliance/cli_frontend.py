@@ -89,7 +89,7 @@ def _open(args):
 
 
 def _acquire(args) -> int:
-    from appliance.cli import check_output
+    from appliance.files import check_writable
     from appliance.core.protocols import default_protocol, load_protocol
     from appliance.drivers.recording import series_paths, write_frame
     from appliance.drivers.scan import ScanEngine, average_frames
@@ -99,7 +99,7 @@ def _acquire(args) -> int:
         raise ConfigError("--series takes 1 to 60 sets and --average 1 to 1000")
     if args.series > 1 and not 0 <= args.interval <= 3600:
         raise ConfigError("--interval takes 0 to 3600 seconds")
-    check_output(args.out, "--out", (".csv",))
+    check_writable(args.out, "--out", (".csv",))
     layout, board, profile, front_end, kind = _open(args)
     protocol = load_protocol(args.protocol, layout.n_electrodes) if args.protocol else default_protocol(layout)
     paths = series_paths(args.out, args.series)

@@ -1,10 +1,28 @@
-"""Writing files so that a crash or power loss leaves the old file or the new one, never half of either."""
+"""Writing files: checked before the work that makes them, and written so that a crash or power loss leaves the
+old file or the new one, never half of either."""
 
 from __future__ import annotations
 
 import os
 import tempfile
 from pathlib import Path
+
+
+def check_writable(path: Path, what: str, suffixes: tuple[str, ...] = (), kinds: str | None = None) -> Path:
+    """``path`` if a file can be written there, else a ConfigError naming ``what`` (an option, or "output"): checked
+    before the work that makes the file, so a typo in a folder name does not lose a long computation. ``suffixes``
+    are the extensions allowed, described as ``kinds`` (default: the suffixes themselves)."""
+    from appliance.errors import ConfigError
+
+    path = Path(path)
+    if suffixes and path.suffix.lower() not in suffixes:
+        raise ConfigError(f"{what} {path}: the extension must be {kinds or ' or '.join(suffixes)}, got "
+                          f"{path.suffix or 'none'!r}")
+    if not path.parent.is_dir():
+        raise ConfigError(f"{what} {path}: the folder {path.parent} does not exist")
+    if path.is_dir():
+        raise ConfigError(f"{what} {path} is a folder, not a file")
+    return path
 
 
 def write_atomic(path: Path, content: str | bytes) -> None:

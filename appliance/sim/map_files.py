@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from appliance.errors import ConfigError, DataFileInvalid
-from appliance.files import write_atomic
+from appliance.files import check_writable, write_atomic
 
 MIN_PITCH_MM, MAX_PITCH_MM = 1.0, 100.0
 """Sensel pitches accepted. Pressure-mapping mats have sensels from a few mm (seat and foot mats) to about
@@ -101,15 +101,7 @@ def read_map_mmhg(path) -> np.ndarray:
 
 def check_output_path(path: Path) -> Path:
     """``path`` if a map can be written there: a .csv or .png file in a folder that exists."""
-    path = Path(path)
-    if path.suffix.lower() not in OUTPUT_SUFFIXES:
-        raise ConfigError(f"output {path}: the extension must be .csv (mmHg on the pixel grid) or .png, got "
-                          f"{path.suffix or 'none'!r}")
-    if not path.parent.is_dir():
-        raise ConfigError(f"output {path}: the folder {path.parent} does not exist")
-    if path.is_dir():
-        raise ConfigError(f"output {path} is a folder")
-    return path
+    return check_writable(path, "output", OUTPUT_SUFFIXES, ".csv (mmHg on the pixel grid) or .png")
 
 
 def write_map_mmhg(path: Path, mmhg: np.ndarray) -> None:
