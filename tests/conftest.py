@@ -161,19 +161,21 @@ def station(broker):
 
 @pytest.fixture
 def beds(broker, tmp_path):
-    """Factory: an MqttNotifier publishing as ``bed_id``; closed after the test."""
+    """Factory: a bed's ward link publishing as ``bed_id`` (its outbox in ``tmp_path``), connected; closed after
+    the test."""
     from mqtt_broker import wait_until
 
-    from appliance.alerts.notifiers import MqttNotifier
+    from appliance.alerts.wardlink import WardLink
+    from appliance.store.outbox import Outbox
 
     made = []
 
     def make(bed_id, **options):
-        options = {"backoff_s": 0.1, "summary_interval_s": 0.1, "dead_letter_path": tmp_path / "dead.jsonl",
-                   **options}
-        made.append(MqttNotifier("127.0.0.1", broker.port, bed_id, client_id=f"{bed_id}-notifier", **options))
-        assert wait_until(made[-1]._client.is_connected)
+        options = {"summary_interval_s": 0.1, "resend_after_s": 0.5, **options}
+        made.append(WardLink("127.0.0.1", broker.port, bed_id, Outbox(tmp_path / f"{bed_id}-outbox.db"),
+                             client_id=f"{bed_id}-link", **options))
+        assert wait_until(lambda: made[-1].status()["connected"])
         return made[-1]
     yield make
-    for notifier in made:
-        notifier.close(timeout_s=1.0)
+    for link in made:
+        link.close(timeout_s=1.0)

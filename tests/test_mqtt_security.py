@@ -8,9 +8,10 @@ from mqtt_broker import Broker, wait_until
 
 from appliance.alerts.alarms import AlarmEvent
 from appliance.alerts.events import as_event
-from appliance.alerts.notifiers import MqttNotifier
+from appliance.alerts.wardlink import WardLink
 from appliance.errors import ConfigError
 from appliance.service.config import config_from_mapping
+from appliance.store.outbox import Outbox
 from appliance.ward.station import WardStation
 
 BED_PASSWORD, STATION_PASSWORD = "bed twelve secret", "station secret"
@@ -59,13 +60,12 @@ def test_a_bed_logged_in_over_tls_reaches_the_station(secure_broker, tmp_path):
     broker, ca = secure_broker
     ward = station(broker, ca)
     assert ward.wait_subscribed(10)
-    bed = MqttNotifier("localhost", broker.port, "ward3-bed12", client_id="appliance-ward3-bed12",
-                       username="ward3-bed12", password=BED_PASSWORD, ca_file=ca,
-                       dead_letter_path=tmp_path / "dead.jsonl")
+    bed = WardLink("localhost", broker.port, "ward3-bed12", Outbox(tmp_path / "outbox.db"),
+                   client_id="appliance-ward3-bed12", username="ward3-bed12", password=BED_PASSWORD, ca_file=ca)
     try:
         bed.notify(alarm())
         assert wait_until(lambda: any(b["bed_id"] == "ward3-bed12" and b["alarms"] for b in ward.beds()), 10)
-        assert bed.delivered == 1
+        assert wait_until(lambda: bed.delivery(1) == "ward station")
     finally:
         bed.close()
         ward.close()
@@ -79,13 +79,13 @@ def test_a_bed_without_the_right_login_or_tls_is_refused_and_its_alarm_is_kept(s
     login = {"wrong password": {"username": "ward3-bed12", "password": "guess", "ca_file": ca},
              "no password": {"ca_file": ca},
              "no TLS": {"username": "ward3-bed12", "password": BED_PASSWORD}}[how]
-    bed = MqttNotifier("localhost", broker.port, "ward3-bed12", client_id="appliance-ward3-bed12", max_attempts=2,
-                       backoff_s=0.2, dead_letter_path=tmp_path / "dead.jsonl", **login)
+    bed = WardLink("localhost", broker.port, "ward3-bed12", Outbox(tmp_path / "outbox.db"),
+                   client_id="appliance-ward3-bed12", confirm_timeout_s=1.0, **login)
     try:
         bed.notify(alarm())
-        dead = tmp_path / "dead.jsonl"
-        assert wait_until(lambda: dead.exists() and "pressure:sacrum" in dead.read_text(), 15)   # kept, not lost
-        assert bed.dead_lettered == 1 and bed.delivered == 0 and ward.beds() == []
+        assert wait_until(lambda: "technical:ward-link" in bed.conditions(), 15)    # said at the bed
+        assert [e.event["key"] for e in bed.outbox.pending()] == ["pressure:sacrum"]  # kept, not lost
+        assert bed.delivery(1) == "bed" and ward.beds() == []
     finally:
         bed.close()
         ward.close()

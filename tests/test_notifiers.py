@@ -1,25 +1,15 @@
-"""Notifiers against a real Mosquitto broker (tests/mqtt_broker.py), a local HTTP server and emulated GPIO lines."""
+"""Notifiers against a local HTTP server and emulated GPIO lines (the ward link: tests/test_ward_link.py)."""
 
 import json
-import queue
-import socket
 import threading
-import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
-import paho.mqtt.client as mqtt
 import pytest
 from mqtt_broker import wait_until
 
 from appliance.alerts.alarms import AlarmEvent
 from appliance.alerts.events import Event, as_event
-from appliance.alerts.notifiers import (
-    GpioNotifier,
-    MqttNotifier,
-    Notifier,
-    WebhookNotifier,
-)
-from appliance.alerts.turns import TurnEvent
+from appliance.alerts.notifiers import GpioNotifier, Notifier, WebhookNotifier
 from appliance.drivers.emulated.buses import BusTiming, EmulatedGPIOLines, GPIOBank
 from appliance.drivers.emulated.clock import SimulatedClock
 
@@ -32,142 +22,8 @@ def alarm(alarm_id=1, kind="raised", priority="high"):
                                category="clinical", priority=priority, message="Sacrum dose over limit"))
 
 
-class Subscriber:
-    """A paho client that records (topic, qos, retain, payload) of everything it receives."""
-
-    def __init__(self, port, topic):
-        self.messages: queue.Queue = queue.Queue()
-        self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="test-subscriber")
-        self.client.on_message = lambda c, u, m: self.messages.put((m.topic, m.qos, m.retain, m.payload.decode()))
-        subscribed = threading.Event()
-        self.client.on_subscribe = lambda *a: subscribed.set()
-        self.client.on_connect = lambda c, *a: c.subscribe(topic, qos=1)
-        self.client.connect("127.0.0.1", port)
-        self.client.loop_start()
-        assert subscribed.wait(5)
-
-    def next(self, topic, timeout_s=10.0, payload=None):
-        """The next message on ``topic`` (with ``payload``, if given), skipping others."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            got = self.messages.get(timeout=max(0.01, deadline - time.monotonic()))
-            if got[0] == topic and payload in (None, got[3]):
-                return got
-
-    def close(self):
-        self.client.disconnect()
-        self.client.loop_stop()
-
-
-@pytest.fixture
-def subscriber(broker):
-    s = Subscriber(broker.port, "appliance/#")
-    yield s
-    s.close()
-
-
-def mqtt_notifier(broker, tmp_path, **options):
-    options = {"backoff_s": 0.1, "max_backoff_s": 0.5, "dead_letter_path": tmp_path / "dead.jsonl", **options}
-    return MqttNotifier("127.0.0.1", broker.port, "bed7", client_id="bed7-notifier", **options)
-
-
 def dead_letters(path):
     return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
-
-
-def test_alarm_arrives_with_qos1_and_documented_payload(broker, subscriber, tmp_path):
-    notifier = mqtt_notifier(broker, tmp_path)
-    try:
-        event = alarm()
-        notifier.notify(event)
-        _, qos, retain, payload = subscriber.next("appliance/bed7/alarm")
-        assert (qos, retain) == (1, False)
-        body = json.loads(payload)
-        assert set(body) == EVENT_FIELDS
-        assert Event(**body) == event and body["site"] == "sacrum"
-        notifier.notify(as_event(TurnEvent(time_s=5.0, kind="repositioned", posture="left-30", previous="supine",
-                                           how="posture")))
-        _, qos, _, payload = subscriber.next("appliance/bed7/turn")
-        assert qos == 1 and json.loads(payload)["message"] == "repositioned: on the back to left side, 30 degrees"
-        assert wait_until(lambda: notifier.delivered == 2)
-    finally:
-        notifier.close()
-    assert subscriber.next("appliance/bed7/status", payload="offline")
-
-
-def test_status_is_retained_online_and_last_will_is_offline(broker, subscriber, tmp_path):
-    notifier = mqtt_notifier(broker, tmp_path)
-    try:
-        assert subscriber.next("appliance/bed7/status")[3] == "online"
-        late = Subscriber(broker.port, "appliance/bed7/status")  # a retained message reaches late subscribers
-        try:
-            assert late.next("appliance/bed7/status")[2:] == (True, "online")
-        finally:
-            late.close()
-        # Kill the connection without a DISCONNECT, as a crash or a pulled cable would.
-        notifier._client.socket().shutdown(socket.SHUT_RDWR)
-        assert subscriber.next("appliance/bed7/status")[3] == "offline"
-        assert subscriber.next("appliance/bed7/status")[3] == "online"  # and it reconnects
-    finally:
-        notifier.close()
-
-
-def test_events_queued_during_an_outage_are_delivered_after_it(broker, subscriber, tmp_path):
-    notifier = mqtt_notifier(broker, tmp_path, max_attempts=30)
-    try:
-        assert subscriber.next("appliance/bed7/status")[3] == "online"
-        subscriber.close()
-        broker.stop()
-        assert wait_until(lambda: not notifier._client.is_connected())
-        for i in range(1, 4):
-            notifier.notify(alarm(i))
-        time.sleep(1.0)
-        assert notifier.delivered == 0
-        broker.start()
-        again = Subscriber(broker.port, "appliance/bed7/alarm")
-        try:
-            seen = set()
-            while seen != {1, 2, 3}:  # at least once: a repeat is allowed, a loss is not
-                seen.add(json.loads(again.next("appliance/bed7/alarm", 15)[3])["alarm_id"])
-        finally:
-            again.close()
-        assert wait_until(lambda: notifier.delivered == 3)
-        assert dead_letters(tmp_path / "dead.jsonl") == []
-    finally:
-        notifier.close()
-
-
-def test_events_are_dead_lettered_when_the_outage_outlasts_the_attempts(broker, tmp_path):
-    notifier = mqtt_notifier(broker, tmp_path, max_attempts=3, backoff_s=0.05)
-    try:
-        assert wait_until(notifier._client.is_connected)
-        broker.stop()
-        assert wait_until(lambda: not notifier._client.is_connected())
-        notifier.notify(alarm(1))
-        notifier.notify(alarm(2))
-        assert wait_until(lambda: len(dead_letters(tmp_path / "dead.jsonl")) == 2)
-        records = dead_letters(tmp_path / "dead.jsonl")
-        assert [r["event"]["alarm_id"] for r in records] == [1, 2]
-        assert all(r["attempts"] == 3 and "not connected" in r["reason"] for r in records)
-        assert set(records[0]["event"]) == EVENT_FIELDS
-    finally:
-        notifier.close(timeout_s=0.5)
-
-
-def test_notify_returns_in_well_under_10_ms_with_the_broker_down(broker, tmp_path):
-    broker.stop()
-    notifier = mqtt_notifier(broker, tmp_path, max_attempts=1000, queue_size=100)
-    try:
-        durations = []
-        for i in range(200):  # past the queue size, so the dead-letter path is timed too
-            start = time.perf_counter()
-            notifier.notify(alarm(i))
-            durations.append(time.perf_counter() - start)
-        assert max(durations) < 0.010
-        assert notifier.dropped >= 99
-    finally:
-        notifier.close(timeout_s=0.2)
-    assert notifier.dead_lettered == 200 - notifier.delivered
 
 
 class Gate(Notifier):

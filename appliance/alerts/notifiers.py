@@ -1,4 +1,6 @@
-"""Notifiers: carry alarm and turn events off the bed (MQTT, webhook) and onto the bed (buzzer, LED).
+"""Notifiers: carry alarm and turn events off the bed (webhook) and onto the bed (buzzer, LED).
+
+The ward's MQTT link, with its confirmed delivery, is ``appliance.alerts.wardlink``.
 
 The monitor loop must never wait on a network, so :meth:`Notifier.notify` only
 puts the event on a bounded queue; a worker thread per notifier delivers it,
@@ -7,35 +9,11 @@ delivered (queue full, every attempt failed, notifier closed) is not silently
 lost: it is appended to a dead-letter JSONL file with the reason, one record a
 line::
 
-    {"dead_lettered_at": <unix time>, "notifier": "mqtt", "reason": "...",
+    {"dead_lettered_at": <unix time>, "notifier": "webhook", "reason": "...",
      "attempts": 3, "event": {...}}
 
 Delivery is at least once: a retry after a lost acknowledgement can repeat an
 event, so receivers de-duplicate on (``alarm_id``, ``kind``, ``time_s``).
-
-MQTT topics (``<prefix>`` is ``topic_prefix``, "appliance" by default)::
-
-    <prefix>/<bed_id>/alarm   QoS 1, not retained: one alarm Event as JSON
-                              {time_s, type: "alarm", kind, priority, category,
-                               key, region, region_id, alarm_id, message, user,
-                               channel}
-    <prefix>/<bed_id>/turn    QoS 1, not retained: one turn Event as JSON
-                              (the same fields; type "turn", kind repositioned,
-                               bed-empty or turn-due)
-    <prefix>/<bed_id>/status  QoS 1, retained: "online" once connected; "offline"
-                              on close, and as the last will when the connection
-                              dies, so a dashboard sees a silent bed as offline.
-    <prefix>/<bed_id>/summary QoS 0, retained: the bed at a glance, about once a
-                              second, for the ward station (appliance.ward)
-                              {bed_id, time_s, written_at (unix time),
-                               peak_mmhg, regions: [{zone, peak_mmhg, dose}],
-                               turn: {due_in_s}, alarms: [{alarm_id, key,
-                               priority, state, message, acknowledged_by}],
-                               status: {maps, faults}}
-
-An MQTT event counts as delivered only when the broker acknowledges it (PUBACK).
-A summary is not an event: it is not queued, retried or dead-lettered. Each one
-replaces the last, so one missed while the broker is away is simply skipped.
 """
 
 from __future__ import annotations
@@ -50,10 +28,8 @@ import urllib.request
 from abc import ABC, abstractmethod
 from pathlib import Path
 
-import paho.mqtt.client as mqtt
-
 from appliance.alerts.alarms import PRIORITIES
-from appliance.alerts.events import EVENT_TYPES, Event
+from appliance.alerts.events import Event
 from appliance.supervise import Supervised
 from appliance.drivers.bus import GPIOLines, LineRequest
 
@@ -114,12 +90,6 @@ class Notifier(ABC):
             self._dead_letter(event, f"queue full ({self._queue.maxsize} events waiting)", 0)
             return False
         return True
-
-    def summarise(self, summary: dict) -> None:
-        """The bed's state at a glance, every frame (see the daemon); channels that show it override this.
-
-        It must return at once, like :meth:`notify`: the monitor loop calls it.
-        """
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Deliver what is queued for up to ``timeout_s``, dead-letter the rest, and release the channel."""
@@ -207,87 +177,6 @@ class Notifier(ABC):
         with self.dead_letter_path.open("a", encoding="utf-8") as f:
             f.write(json.dumps(record) + "\n")
         self._writer.ok()
-
-
-class MqttNotifier(Notifier):
-    """Publishes events to an MQTT broker (topics in the module docstring); reconnects on its own.
-
-    paho's network thread keeps the connection and reconnects after an outage;
-    the worker only publishes while connected, so retries wait for the broker
-    instead of piling messages into paho's own queue.
-
-    Summaries go out one per ``summary_interval_s`` on a schedule, so frames
-    that come at just that period each send one despite jitter; never two
-    within half an interval. ``summaries_sent`` and ``summaries_skipped``
-    (broker away) count them.
-    """
-
-    name = "mqtt"
-
-    def __init__(self, host: str, port: int, bed_id: str, *, client_id: str, topic_prefix: str = "appliance",
-                 keepalive_s: int = 30, publish_timeout_s: float = 5.0, username: str | None = None,
-                 password: str | None = None, ca_file=None, summary_interval_s: float = 1.0,
-                 **options):
-        if summary_interval_s <= 0:
-            raise ValueError(f"summary_interval_s must be more than 0, got {summary_interval_s}")
-        base = f"{topic_prefix}/{bed_id}"
-        self.topics = {kind: f"{base}/{kind}" for kind in EVENT_TYPES}
-        self.status_topic = f"{base}/status"
-        self.summary_topic = f"{base}/summary"
-        self.publish_timeout_s = publish_timeout_s
-        self.summary_interval_s = summary_interval_s
-        self.summaries_sent = self.summaries_skipped = 0
-        self._summary_due = float("-inf")
-        self._client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id)
-        self._client.will_set(self.status_topic, "offline", qos=1, retain=True)
-        if username is not None:
-            self._client.username_pw_set(username, password)
-        if ca_file is not None:
-            self._client.tls_set(ca_certs=str(ca_file))          # the broker's name is checked against its cert
-        self._client.reconnect_delay_set(min_delay=1, max_delay=10)
-        self._client.on_connect = self._on_connect
-        self._client.connect_async(host, port, keepalive=keepalive_s)
-        self._client.loop_start()
-        super().__init__(**options)
-
-    def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
-        if reason_code.is_failure:
-            log.warning("mqtt: broker refused the connection: %s", reason_code)
-            return
-        client.publish(self.status_topic, "online", qos=1, retain=True)
-
-    def _deliver(self, event) -> None:
-        if not self._client.is_connected():
-            raise ConnectionError("not connected to the broker")
-        info = self._client.publish(self.topics[event.type], json.dumps(event.to_dict()), qos=1)
-        info.wait_for_publish(self.publish_timeout_s)
-        if not info.is_published():
-            raise TimeoutError(f"no PUBACK within {self.publish_timeout_s} s")
-
-    def summarise(self, summary: dict) -> None:
-        """Publish ``summary`` with the wall time added, if one is due and the broker is there; else skip it."""
-        now = time.monotonic()
-        if now < self._summary_due:
-            return
-        self._summary_due = max(self._summary_due + self.summary_interval_s, now + self.summary_interval_s / 2)
-        if not self._client.is_connected():  # QoS 0 is never queued, but a half-open connection would be
-            self.summaries_skipped += 1
-            return
-        payload = json.dumps({**summary, "written_at": time.time()})
-        if self._client.publish(self.summary_topic, payload, qos=0, retain=True).rc == mqtt.MQTT_ERR_SUCCESS:
-            self.summaries_sent += 1
-        else:
-            self.summaries_skipped += 1
-
-    def _shutdown(self) -> None:
-        if self._client.is_connected():
-            try:
-                self._client.publish(self.status_topic, "offline", qos=1, retain=True).wait_for_publish(
-                    self.publish_timeout_s)
-            except (RuntimeError, ValueError) as exc:
-                log.warning("mqtt: could not publish offline status: %s", exc)
-        self._client.disconnect()
-        self._client.loop_stop()
 
 
 class WebhookNotifier(Notifier):

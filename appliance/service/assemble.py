@@ -17,6 +17,7 @@ from appliance.service.live import LiveChannel
 LIVE_FILE = "live.json"
 STORE_FILE = "appliance.db"
 DEAD_LETTER_FILE = "dead-letters.jsonl"
+OUTBOX_FILE = "ward-outbox.db"
 
 
 def assemble(config: MonitorConfig, *, say: Callable[[str], None], on_event=None, on_map=None,
@@ -58,8 +59,7 @@ def _assemble(config: MonitorConfig, lock, *, say, on_event, on_map, live: bool)
                            history_days=config.store.history_days, event_days=config.store.event_days,
                            max_bytes=int(config.store.max_mb * 1024 * 1024), check=True)
         closers.append(store.close)
-        notifiers = _notifiers(config, data_dir / DEAD_LETTER_FILE)
-        closers += [n.close for n in notifiers]
+        notifiers = _notifiers(config, data_dir, closers)
         daemon = MonitorDaemon(config, source, model, calibration, store, notifiers=notifiers,
                                gpio=_gpio(config, source), live=LiveChannel(data_dir / LIVE_FILE) if live else None,
                                on_event=on_event, on_map=on_map, say=say, lock=lock)
@@ -113,19 +113,29 @@ def virtual_calibration_path(cache_dir: Path, model) -> Path:
     return Path(cache_dir) / f"virtual-pressure-{model.setup.layout.name}-{model.setup.options.algorithm}{fitted}.json"
 
 
-def _notifiers(config: MonitorConfig, dead_letters: Path) -> list:
-    from appliance.alerts.notifiers import MqttNotifier, WebhookNotifier
+def _notifiers(config: MonitorConfig, data_dir: Path, closers: list) -> list:
+    """The ward link (with its outbox) and the webhook, each added to ``closers`` as soon as it is made."""
+    from appliance.alerts.notifiers import WebhookNotifier
+    from appliance.alerts.wardlink import WardLink
+    from appliance.store.outbox import Outbox
 
     notifiers = []
     if config.mqtt is not None:
-        m = config.mqtt
-        notifiers.append(MqttNotifier(m.host, m.port, config.bed_id, client_id=f"appliance-{config.bed_id}",
-                                      topic_prefix=m.topic_prefix, keepalive_s=m.keepalive_s,
-                                      username=m.username, password=m.password(), ca_file=m.ca_file,
-                                      dead_letter_path=dead_letters))
+        m, c = config.mqtt, config.confirmation
+        outbox = Outbox(data_dir / OUTBOX_FILE)
+        try:
+            link = WardLink(m.host, m.port, config.bed_id, outbox, client_id=f"appliance-{config.bed_id}",
+                            topic_prefix=m.topic_prefix, keepalive_s=m.keepalive_s, username=m.username,
+                            password=m.password(), ca_file=m.ca_file, confirm=c.confirm, confirm_timeout_s=c.timeout_s)
+        except BaseException:
+            outbox.close()
+            raise
+        notifiers.append(link)
+        closers.append(link.close)                  # closes the outbox too
     if config.webhook is not None:
         notifiers.append(WebhookNotifier(config.webhook.url, timeout_s=config.webhook.timeout_s,
-                                         dead_letter_path=dead_letters))
+                                         dead_letter_path=data_dir / DEAD_LETTER_FILE))
+        closers.append(notifiers[-1].close)
     return notifiers
 
 

@@ -46,6 +46,8 @@ runs, not after it silently ignored it::
     username = "ward3-bed12"              # with password_file: the broker's account for this bed
     password_file = "/etc/appliance/mqtt-password"
     ca_file = "/etc/appliance/ward-ca.crt"  # TLS, the broker's certificate checked against this CA
+    confirm = true                # each alarm change resent until a ward station confirms it end to end
+    confirm_timeout_s = 10        # unconfirmed (or the link down) this long: a technical alarm at the bed
 
     [notify.webhook]
     url = "https://station.ward/alarms"
@@ -107,6 +109,15 @@ class MqttSettings:
 
 
 @dataclass(frozen=True)
+class ConfirmSettings:
+    """End-to-end confirmation of the ward link: ``confirm`` off counts the broker's acknowledgement as delivery
+    (a broker with no ward station behind it); either way a technical alarm comes after ``timeout_s``."""
+
+    confirm: bool = True
+    timeout_s: float = 10.0
+
+
+@dataclass(frozen=True)
 class WebhookSettings:
     url: str
     timeout_s: float = 5.0
@@ -138,6 +149,7 @@ class MonitorConfig:
     alerts: AlertSettings = AlertSettings()
     store: StoreSettings = StoreSettings()
     mqtt: MqttSettings | None = None
+    confirmation: ConfirmSettings = ConfirmSettings()
     webhook: WebhookSettings | None = None
     gpio: GpioSettings | None = None
 
@@ -167,6 +179,8 @@ def config_from_mapping(data: dict, base: Path | None = None) -> MonitorConfig:
     gpio = _gpio(_section(notify, "gpio", "notify.gpio")) if "gpio" in notify else None
     if gpio is not None and source == "virtual":
         raise ConfigError("[notify.gpio] needs a board: the virtual bed has no buzzer or LED lines")
+    mqtt = dict(_section(notify, "mqtt", "notify.mqtt"))
+    confirmation = _confirmation({key: mqtt.pop(key) for key in ("confirm", "confirm_timeout_s") if key in mqtt})
     board = _section(data, "board")
     try:
         board_profile(board)
@@ -186,7 +200,8 @@ def config_from_mapping(data: dict, base: Path | None = None) -> MonitorConfig:
         board=board,
         alerts=_alerts(_section(data, "alerts")),
         store=_store(_section(data, "store")),
-        mqtt=mqtt_settings(_section(notify, "mqtt", "notify.mqtt"), base),
+        mqtt=mqtt_settings(mqtt, base),
+        confirmation=confirmation,
         webhook=_webhook(_section(notify, "webhook", "notify.webhook")),
         gpio=gpio,
     )
@@ -258,6 +273,14 @@ def mqtt_settings(table: dict, base: Path | None, where: str = "[notify.mqtt]") 
                         int(_number(table, "port", 1883, where, low=1, high=65535, integer=True)), prefix,
                         int(_number(table, "keepalive_s", 30, where, low=5, high=3600, integer=True)),
                         _text(table, "username", None, where) if "username" in table else None, **files)
+
+
+def _confirmation(table: dict) -> ConfirmSettings:
+    where = "[notify.mqtt]"
+    confirm = table.get("confirm", True)
+    if not isinstance(confirm, bool):
+        raise ConfigError(f"{where}: confirm must be true or false, got {confirm!r}")
+    return ConfirmSettings(confirm, _number(table, "confirm_timeout_s", 10.0, where, low=1.0, high=600.0))
 
 
 def _webhook(table: dict) -> WebhookSettings | None:

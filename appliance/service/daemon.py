@@ -41,7 +41,7 @@ from appliance.alerts.anatomy import POSTURE_WORDS, site_words
 from appliance.alerts.episodes import Episode
 from appliance.alerts.events import Event
 from appliance.alerts.limits import not_default
-from appliance.alerts.notifiers import Notifier
+from appliance.alerts.wardlink import WardLink
 from appliance.alerts.pipeline import AlertPipeline, FrameAlerts, technical_alarms
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.errors import ApplianceError, ConfigError, DataFileInvalid, ReconstructionError, StoreCorrupt
@@ -93,7 +93,7 @@ class MonitorDaemon:
         self.config, self.source, self.model, self.store = config, source, model, store
         self.writes = HeldWrites(store)         # a full disk holds the records in memory; monitoring goes on
         self.notifiers, self.gpio, self.live = list(notifiers), gpio, live
-        self._summarised = [n for n in self.notifiers if isinstance(n, Notifier)]  # those with summarise()
+        self.ward_link = next((n for n in self.notifiers if isinstance(n, WardLink)), None)
         self.on_event, self.on_map, self.say = on_event, on_map, say
         self.systemd = systemd or SystemdNotifier()
         self.monitor = Monitor(source.acquire, model, calibration,   # refuses a calibration for another mat
@@ -186,7 +186,8 @@ class MonitorDaemon:
 
     def _resend_last_frame(self) -> None:
         """Notify the last committed frame's events again: the crash may have come before they were handed
-        over. Receivers de-duplicate on (alarm_id, kind, time_s), so a repeat is harmless and a loss is not."""
+        over. The ward link's outbox knows an event it already numbered, and the webhook's receivers
+        de-duplicate on (alarm_id, kind, time_s), so a repeat is harmless and a loss is not."""
         try:
             outbox = self.store.load_state("outbox") or {"events": []}
             events = [Event(**fields) for fields in outbox["events"]]
@@ -261,10 +262,8 @@ class MonitorDaemon:
             self._show_map(pressure_map)
         if self.live is not None:
             self.live.publish(snapshot)
-        if self._summarised:
-            summary = ward_summary(snapshot)
-            for notifier in self._summarised:
-                notifier.summarise(summary)
+        if self.ward_link is not None:
+            self.ward_link.summarise(ward_summary(snapshot))
         if not self._ready and pressure_map is not None:
             self._ready = True
             self.systemd.ready(f"monitoring {self.config.bed_id}")
@@ -346,6 +345,8 @@ class MonitorDaemon:
             if (fault := getattr(notifier, "fault", None)) is not None:
                 faults[f"technical:notifier:{notifier.name}"] = f"the {notifier.name} notifier is failing " \
                                                                  f"(restarting): {fault}"
+        if self.ward_link is not None:
+            faults.update(self.ward_link.conditions())
         if self.map_fault is not None:
             faults["technical:map-files"] = f"the newest map's files cannot be written: {self.map_fault}"
         return faults
@@ -383,8 +384,10 @@ class MonitorDaemon:
             "alarms": [{"alarm_id": a.alarm_id, "key": a.key, "category": a.category, "priority": a.priority,
                         "state": a.state, "message": a.message, "raised_s": a.raised_s,
                         "acknowledged_by": a.acknowledged_by,
-                        "audio_paused": a.audio_paused_until is not None and a.audio_paused_until > now}
+                        "audio_paused": a.audio_paused_until is not None and a.audio_paused_until > now,
+                        "delivery": None if self.ward_link is None else self.ward_link.delivery(a.alarm_id)}
                        for a in engine.alarms()],
+            "ward_link": None if self.ward_link is None else self.ward_link.status(),
             "audible": engine.audible(now),
             "settings_changed": not_default(self.pipeline.settings),   # on screen while any is not the default
         }
