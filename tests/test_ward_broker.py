@@ -21,6 +21,7 @@ from ward_payloads import alarm, summary
 
 from appliance.alerts.events import Event
 from appliance.alerts.notifiers import MqttNotifier
+from appliance.cli import main
 from appliance.errors import ConfigError
 from appliance.service.config import config_from_mapping
 from appliance.ward.broker import Listener, write_ward_broker
@@ -305,3 +306,17 @@ def test_bad_beds_stations_and_settings_are_refused_naming_the_value_before_anyt
     assert named in str(refused.value)
     assert not (tmp_path / "ward").exists()
 
+
+
+def test_the_command_writes_the_files_for_the_beds_given_and_says_how_to_reload(tmp_path, capsys):
+    (tmp_path / "beds.txt").write_text(f"# ward 3\n{BED2}\n\n{BED3}\n")
+    argv = ["ward-broker", "--out", str(tmp_path / "ward"), "--bed", BED1, "--beds-file", str(tmp_path / "beds.txt"),
+            "--station", STATION]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert f"added: {BED1}, {BED2}, {BED3}, {STATION};" in out
+    assert out.splitlines()[-1].endswith("systemctl reload mosquitto")
+    users = [line.split(":")[0] for line in (tmp_path / "ward" / "passwords").read_text().splitlines()]
+    assert users == [BED1, BED2, BED3, STATION]
+    assert main(argv[:5] + ["--station", STATION]) == 0
+    assert f"kept: {BED1}, {STATION}; removed: {BED2}, {BED3}" in capsys.readouterr().out

@@ -45,7 +45,6 @@ BED_TOPICS = (*EVENT_TYPES, "status", "summary")
 CONFIRM_TOPIC = "confirm"
 """Written by the ward station under ``<prefix>/<bed_id>/`` to confirm each alarm event; read by that bed alone."""
 
-DEFAULT_STATION = "ward-station"
 PBKDF2_ITERATIONS = 101
 """mosquitto_passwd's own count. The passwords are 192 random bits, which no count of iterations makes harder
 to guess, while every login of every bed costs the broker this many rounds."""
@@ -81,7 +80,7 @@ class WardBrokerFiles:
     removed: tuple[str, ...]
 
 
-def write_ward_broker(folder: Path, beds: Sequence[str], stations: Sequence[str] = (DEFAULT_STATION,), *,
+def write_ward_broker(folder: Path, beds: Sequence[str], stations: Sequence[str], *,
                       topic_prefix: str = "appliance", listener: Listener | None = None,
                       persistence_location: Path | None = None, broker_user: str | None = None) -> WardBrokerFiles:
     """Write the ward broker's files into ``folder`` (made if missing) for ``beds`` and ``stations``; every input
