@@ -116,10 +116,11 @@ def write_ward_broker(folder: Path, beds: Sequence[str], stations: Sequence[str]
             write_atomic(secret, password + "\n")
             hashes[user] = password_hash(password)
             added.append(user)
-    stale = {*hashes, *(path.name.removesuffix(".password") for path in secrets_folder.glob("*.password"))}
-    removed = sorted(stale - set(users))
+    secret_files = {path.name.removesuffix(".password"): path for path in secrets_folder.glob("*.password")}
+    removed = sorted({*hashes, *secret_files} - set(users))
     for user in removed:
-        (secrets_folder / f"{user}.password").unlink(missing_ok=True)
+        if user in secret_files:
+            secret_files[user].unlink()
 
     acl_file, config_file = folder / "acl", folder / "ward-broker.conf"
     _write_for_broker(password_file, "".join(f"{user}:{hashes[user]}\n" for user in users), owner)
@@ -282,6 +283,8 @@ def _account(user: str) -> tuple[int, int]:
         account = pwd.getpwnam(user)
     except KeyError:
         raise ConfigError(f"--broker-user {user!r}: no such user on this machine") from None
+    if os.geteuid() not in (0, account.pw_uid):
+        raise ConfigError(f"--broker-user {user!r}: only root can give files to another user")
     return account.pw_uid, account.pw_gid
 
 
@@ -295,5 +298,4 @@ def _write_for_broker(path: Path, text: str, owner: tuple[int, int] | None) -> N
         try:
             os.chown(path, *owner)
         except PermissionError:
-            raise ConfigError(f"{path}: cannot give it to uid {owner[0]}: run as root to give the files to the "
-                              f"broker's user") from None
+            raise ConfigError(f"{path}: cannot give it back to uid {owner[0]}, who owned it: run as root") from None
