@@ -1,4 +1,5 @@
-"""``appliance ward``: the ward station, every bed of a ward on one screen, for a server at the nurses' station.
+"""``appliance ward``: the ward station, every bed of a ward on one screen, for a server at the nurses' station;
+``appliance ward-broker``: the ward broker's logins and ACL (``appliance.ward.broker``).
 
 It subscribes to the ward's MQTT broker (``appliance.ward.station``) with the
 broker settings of its configuration file (``appliance.ward.config``) and serves
@@ -13,6 +14,7 @@ import signal
 from pathlib import Path
 
 DEFAULT_THREADS = 16        # a few station screens and their event streams
+DEFAULT_STATION = "ward-station"
 
 
 def add_parsers(sub) -> None:
@@ -31,6 +33,26 @@ def add_parsers(sub) -> None:
     p.add_argument("--behind-proxy", action="store_true",
                    help="trust X-Forwarded-For/-Proto from the TLS proxy on 127.0.0.1")
     p.set_defaults(run=_ward)
+
+    p = sub.add_parser("ward-broker", help="write the ward broker's password file, ACL and Mosquitto settings: each "
+                                           "bed may publish only as itself")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="the folder for the files (made if missing; an earlier "
+                                                          "run's passwords in it are kept)")
+    p.add_argument("--bed", action="append", default=[], metavar="ID", help="a bed's id, its user name; repeatable")
+    p.add_argument("--beds-file", type=Path, metavar="FILE", help="more bed ids, one a line ('#' starts a comment)")
+    p.add_argument("--station", action="append", default=[], metavar="USER",
+                   help=f"a ward station's user name; repeatable (default {DEFAULT_STATION})")
+    p.add_argument("--topic-prefix", default="appliance", help="the beds' topic_prefix (default appliance)")
+    p.add_argument("--listener", type=int, metavar="PORT", help="also open this port (default: the broker's own "
+                                                                "listeners)")
+    p.add_argument("--certfile", type=Path, help="--listener with TLS: the broker's certificate")
+    p.add_argument("--keyfile", type=Path, help="--listener with TLS: the certificate's key")
+    p.add_argument("--persistence-location", type=Path, metavar="DIR",
+                   help="where Mosquitto keeps its sessions (default: as the broker's own configuration says; "
+                        "Debian's does)")
+    p.add_argument("--broker-user", metavar="USER", help="give the password file and ACL to Mosquitto's user "
+                                                         "(mosquitto on Debian), who reads them; needs root")
+    p.set_defaults(run=_ward_broker)
 
 
 def _ward(args) -> int:
@@ -62,6 +84,28 @@ def _ward(args) -> int:
             serve(app, host, port, threads=args.threads, ident="appliance-ward", behind_proxy=args.behind_proxy)
         except KeyboardInterrupt:
             pass
+    return 0
+
+
+def _ward_broker(args) -> int:
+    from appliance.errors import ConfigError
+    from appliance.ward.broker import Listener, beds_from_file, write_ward_broker
+
+    beds = [*args.bed, *(beds_from_file(args.beds_file) if args.beds_file else [])]
+    stations = args.station or [DEFAULT_STATION]
+    listener = None if args.listener is None else Listener(args.listener, args.certfile, args.keyfile)
+    if listener is None and (args.certfile or args.keyfile):
+        raise ConfigError("--certfile and --keyfile are for --listener PORT: the port that takes TLS")
+    files = write_ward_broker(args.out, beds, stations, topic_prefix=args.topic_prefix, listener=listener,
+                              persistence_location=args.persistence_location, broker_user=args.broker_user)
+    print(f"ward broker for {len(beds)} bed(s) and {len(stations)} station(s) under {args.topic_prefix}/:")
+    print(f"  {files.password_file}  logins; added: {', '.join(files.added) or 'none'}; kept: "
+          f"{', '.join(files.kept) or 'none'}; removed: {', '.join(files.removed) or 'none'}")
+    print(f"  {files.acl_file}  each bed writes only its own topics; stations read every bed and write confirm")
+    print(f"  {files.config_file}  for /etc/mosquitto/conf.d (link it there once, then restart mosquitto)")
+    print(f"  {files.secrets_folder}/USER.password  each bed's [notify.mqtt] password_file, the station's "
+          f"[broker] password_file")
+    print("reload (SIGHUP: reads the logins and ACL again, no restart): systemctl reload mosquitto")
     return 0
 
 

@@ -6,9 +6,9 @@ must be refused before anything expensive is built: a model build would show as 
 test that takes minutes. The web screen's forms and uploads are held to the same rule:
 a 4xx naming what is wrong, never a 500 and never "nothing changed".
 
-269 command-line cases (layout 12, protocol 9, simulate 23, reconstruct 32, sim load-test 15,
+286 command-line cases (layout 12, protocol 9, simulate 23, reconstruct 32, sim load-test 15,
 sim run 33, sim replay 12, sim map 19, acquire 21, selftest 5, run 31, calibrate pressure 26,
-calibrate sensitivity 9, ward 13, provision 6, the parser itself 3), all exiting 2; 61 web
+calibrate sensitivity 9, ward 13, ward-broker 17, provision 6, the parser itself 3), all exiting 2; 61 web
 cases (settings 28, patient 7, accounts 8, engineering 18), all answered with a 4xx.
 """
 
@@ -50,6 +50,7 @@ def _files(t):
     (t / "ward-types.toml").write_text("[broker]\nhost = 42\n")
     (t / "ward.toml").write_text('[broker]\nhost = "localhost"\n')
     (t / "cal-garbage.json").write_text("{not json")
+    (t / "beds-bad.txt").write_text("ward3-bed2\nward3 bed3\n")
 
 
 LOAD_TEST = ["sim", "load-test", "--area-cm2", "4", "--pressures", "5,10"]
@@ -63,6 +64,7 @@ RUN = ["run", *GOOD_SETTINGS, "--check-config"]
 PRESSURE = ["calibrate", "pressure", "--layout", "grid-4x4", "--cache-dir", "{t}/cache"]
 SENSITIVITY = ["calibrate", "sensitivity", "--layout", "grid-4x4"]
 WARD = ["ward", "--check-config", "--data-dir", "{t}/ward"]
+WARD_BROKER = ["ward-broker", "--out", "{t}/ward-broker"]
 PROVISION = ["provision", "--config-dir", "{t}/etc", "--data-dir", "{t}/data", "--no-hostname"]
 
 CASES = [
@@ -348,6 +350,24 @@ CASES = [
     ([*WARD, "--config", "{t}/ward.toml", "--threads", "0"], "--threads"),
     ([*WARD, "--config", "{t}/ward.toml", "--threads", "x"], "--threads"),
     ([*WARD, "--config", "{t}/ward.toml", "--data-dir", "{t}/empty.csv"], "empty.csv"),
+    # ward-broker
+    (WARD_BROKER, "no beds"),
+    ([*WARD_BROKER, "--bed", "ward3/bed1"], "ward3/bed1"),
+    ([*WARD_BROKER, "--bed", "ward3+bed1"], "ward3+bed1"),
+    ([*WARD_BROKER, "--bed", "ward3 bed1"], "ward3 bed1"),
+    ([*WARD_BROKER, "--bed", "b" * 65], "b" * 65),
+    ([*WARD_BROKER, "--bed", "bed1", "--bed", "bed1"], "given twice"),
+    ([*WARD_BROKER, "--bed", "bed1", "--station", "bed1"], "also a bed id"),
+    ([*WARD_BROKER, "--bed", "bed1", "--topic-prefix", "ward/#"], "--topic-prefix"),
+    ([*WARD_BROKER, "--bed", "bed1", "--beds-file", "{t}/missing.txt"], "missing.txt"),
+    ([*WARD_BROKER, "--bed", "bed1", "--beds-file", "{t}/beds-bad.txt"], "line 2"),
+    ([*WARD_BROKER, "--bed", "bed1", "--beds-file", "{t}/binary.csv"], "binary.csv"),
+    (["ward-broker", "--out", "{t}/empty.csv", "--bed", "bed1"], "empty.csv"),
+    (["ward-broker", "--out", "{t}/nofolder/ward", "--bed", "bed1"], "nofolder"),
+    ([*WARD_BROKER, "--bed", "bed1", "--listener", "x"], "--listener"),
+    ([*WARD_BROKER, "--bed", "bed1", "--listener", "70000"], "--listener"),
+    ([*WARD_BROKER, "--bed", "bed1", "--certfile", "{t}/ref.csv"], "--certfile"),
+    ([*WARD_BROKER, "--bed", "bed1", "--broker-user", "no-such-account"], "no-such-account"),
     # provision
     ([*PROVISION, "--setup", "{t}/missing.toml"], "missing.toml"),
     ([*PROVISION, "--setup", "{t}/folder"], "folder"),
