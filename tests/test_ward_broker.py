@@ -20,10 +20,11 @@ from test_mqtt_security import make_certificates
 from ward_payloads import alarm, summary
 
 from appliance.alerts.events import Event
-from appliance.alerts.notifiers import MqttNotifier
+from appliance.alerts.wardlink import WardLink
 from appliance.cli import main
 from appliance.errors import ConfigError
 from appliance.service.config import config_from_mapping
+from appliance.store.outbox import Outbox
 from appliance.ward.broker import Listener, write_ward_broker
 from appliance.ward.config import ward_config_from_mapping
 from appliance.ward.station import WardStation
@@ -132,13 +133,12 @@ def test_a_bed_and_the_station_log_in_with_their_generated_passwords_and_others_
                              "password_file": str(files.secrets_folder / f"{BED1}.password")}}})
     with WardStation.from_config(station_config) as station:
         assert station.wait_subscribed(10)
-        notifier = MqttNotifier("127.0.0.1", broker.port, BED1, client_id=f"appliance-{BED1}",
-                                username=BED1, password=bed_config.mqtt.password(),
-                                dead_letter_path=tmp_path / "dead.jsonl")
+        notifier = WardLink("127.0.0.1", broker.port, BED1, Outbox(tmp_path / "outbox.db"),
+                            client_id=f"appliance-{BED1}", username=BED1, password=bed_config.mqtt.password())
         try:
             notifier.notify(alarm(1))
             notifier.notify(Event(20.0, "episode", "admitted", message="admitted p1"))
-            assert wait_until(lambda: notifier.delivered == 2)
+            assert wait_until(lambda: notifier.confirmed == 2)             # confirmed by the station, end to end
             notifier.summarise(summary(BED1, alarms=[(1, "high")]))
             assert wait_until(lambda: bed(station, BED1) and bed(station, BED1)["summary"] is not None)
         finally:

@@ -59,11 +59,25 @@ function draw(snapshot) {
   for (const a of snapshot.alarms || []) {
     const div = document.createElement("div");
     div.className = "alarm " + a.priority;
-    div.textContent = `${a.priority.toUpperCase()}: ${a.message}` + (a.acknowledged_by ? ` (acknowledged by ${a.acknowledged_by})` : "");
+    div.textContent = `${a.priority.toUpperCase()}: ${a.message}` + (a.acknowledged_by ? ` (acknowledged by ${a.acknowledged_by})` : "") +
+                      (a.delivery ? ` [${DELIVERY_WORDS[a.delivery]}]` : "");
     alarms.appendChild(div);
   }
+  const link = snapshot.ward_link;
+  document.getElementById("ward-row").hidden = !link;
+  if (link) document.getElementById("ward").textContent = wardWords(link);
   status.textContent = `bed ${snapshot.bed_id}, frame ${snapshot.sequence}, ${snapshot.status.faults} fault(s), ` +
                        `${Math.round(snapshot.age_s)} s old`;
+}
+
+// How far an alarm's latest change got (the snapshot's "delivery").
+const DELIVERY_WORDS = {"bed": "at this bed only", "broker": "sent, not yet confirmed by the ward",
+                        "ward station": "shown at the ward station"};
+
+function wardWords(link) {
+  if (!link.connected) return "not connected: alarms are shown only at this bed";
+  if (link.unconfirmed) return `${link.unconfirmed} alarm change(s) awaiting the ward's confirmation`;
+  return link.confirming ? "connected, every alarm confirmed" : "connected (the broker's receipt counts as delivery)";
 }
 
 function scale() {
