@@ -54,15 +54,45 @@ def _number(kind, test, wanted: str):
     return parse
 
 
+def within(low: float, high: float, unit: str = "", *, above: bool = False):
+    """A ``type=`` for a number from ``low`` (or, ``above``, over it) to ``high`` in ``unit``: a value outside is
+    refused with the range, so a unit slip or a stray exponent never reaches a model or a loop."""
+    start = f"above {low:g} and at most" if above else f"from {low:g} to"
+    return _number(float, lambda v: (v > low if above else v >= low) and v <= high,
+                   f"a number {start} {high:g}{' ' + unit if unit else ''}")
+
+
+def whole_within(low: int, high: int):
+    """A ``type=`` for a whole number from ``low`` to ``high``."""
+    return _number(int, lambda v: low <= v <= high, f"a whole number from {low} to {high}")
+
+
+def numbers(item, count: int | None = None):
+    """A ``type=`` for numbers separated by commas (``count`` of them, or any number), each parsed by ``item``."""
+    wanted = f"{count or 'one or more'} numbers separated by commas, each {item.__name__}"
+
+    def parse(text: str) -> list:
+        try:
+            values = [item(v) for v in text.split(",")]
+        except argparse.ArgumentTypeError:
+            raise argparse.ArgumentTypeError(f"takes {wanted}, got {text!r}") from None
+        if count is not None and len(values) != count:
+            raise argparse.ArgumentTypeError(f"takes {wanted}, got {text!r}")
+        return values
+
+    parse.__name__ = wanted
+    return parse
+
+
 positive = _number(float, lambda v: v > 0, "a positive number")
 not_negative = _number(float, lambda v: v >= 0, "a number not below 0")
 finite = _number(float, lambda v: True, "a finite number")
 positive_int = _number(int, lambda v: v > 0, "a whole number of 1 or more")
-seed = _number(int, lambda v: 0 <= v < 2**32, "a whole number from 0 to 2**32 - 1")
 not_negative_int = _number(int, lambda v: v >= 0, "a whole number not below 0")
+seed = whole_within(0, 2**32 - 1)           # numpy's seeds, as the configuration's [virtual] seed
 MAX_DENSITY = 8.0
 """The finest mesh density: each doubling has four times the elements, so beyond this a mesh only exhausts memory."""
-density = _number(float, lambda v: 0 < v <= MAX_DENSITY, f"a mesh density above 0 and at most {MAX_DENSITY:g}")
+density = within(0.0, MAX_DENSITY, above=True)
 
 
 def check_input(path: Path, option: str) -> Path:
