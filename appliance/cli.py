@@ -93,6 +93,8 @@ seed = whole_within(0, 2**32 - 1)           # numpy's seeds, as the configuratio
 MAX_DENSITY = 8.0
 """The finest mesh density: each doubling has four times the elements, so beyond this a mesh only exhausts memory."""
 density = within(0.0, MAX_DENSITY, above=True)
+LONGEST_RUN_H = 24 * 365
+"""A year: longer than any scenario or stay on one mat, so a longer run is a slip (seconds given for hours)."""
 
 
 def check_input(path: Path, option: str) -> Path:

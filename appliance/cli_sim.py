@@ -31,7 +31,11 @@ from pathlib import Path
 
 
 def add_parsers(sub) -> None:
-    from appliance.cli import density, finite, not_negative, positive, seed
+    from appliance.cli import LONGEST_RUN_H, density, finite, positive, seed, within
+    from appliance.service.config import FRAME_INTERVAL_RANGE_S
+
+    hours = within(0.0, LONGEST_RUN_H, "h", above=True)
+    interval = within(*FRAME_INTERVAL_RANGE_S, "s")         # the configuration's frame_interval_s, which it overrides
 
     p = sub.add_parser("sim", help="simulate the sensor mat (the virtual bed)")
     sim = p.add_subparsers(dest="sim_command", required=True, metavar="SIM_COMMAND")
@@ -49,16 +53,17 @@ def add_parsers(sub) -> None:
     p = sim.add_parser("run", help="replay a scenario through the whole monitor on a simulated clock, events to "
                                    "JSON lines")
     p.add_argument("--scenario", required=True, help="a built-in scenario's name or a scenario .toml file")
-    p.add_argument("--hours", required=True, type=positive, help="simulated hours to run (within the scenario)")
+    p.add_argument("--hours", required=True, type=hours, help="simulated hours to run (within the scenario)")
     p.add_argument("--out", required=True, type=Path, help="the event record (JSON lines)")
-    p.add_argument("--interval", type=positive, default=60.0,
+    p.add_argument("--interval", type=interval, default=60.0,
                    help="simulated seconds between frames (default 60: one map a minute)")
     p.add_argument("--config", type=Path, default=None,
                    help="the monitor's TOML configuration (alert settings, layout); its source must be virtual")
     p.add_argument("--layout", default=None, help="mat layout (default grid-16x32)")
     p.add_argument("--seed", type=seed, default=None, help="seed of the simulated noise")
-    p.add_argument("--acknowledge-after-min", type=not_negative, default=None, metavar="M",
-                   help="a simulated nurse acknowledges each alarm M minutes after it is raised")
+    p.add_argument("--acknowledge-after-min", type=within(0.0, 24 * 60, "min"), default=None, metavar="M",
+                   help="a simulated nurse acknowledges each alarm M minutes after it is raised (a day at most: "
+                        "an alarm left longer was missed, not answered)")
     p.add_argument("--data-dir", type=Path, default=None,
                    help="where the run's store is kept (default: a fresh temporary folder, removed afterwards)")
     p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
@@ -67,9 +72,9 @@ def add_parsers(sub) -> None:
     p = sim.add_parser("replay", help="a scenario's true maps straight into the alert layer (no mat, no "
                                       "reconstruction), events to JSON lines")
     p.add_argument("--scenario", required=True, help="a built-in scenario's name or a scenario .toml file")
-    p.add_argument("--hours", type=positive, default=None, help="simulated hours to replay (default: all of it)")
+    p.add_argument("--hours", type=hours, default=None, help="simulated hours to replay (default: all of it)")
     p.add_argument("--out", required=True, type=Path, help="the event record (JSON lines)")
-    p.add_argument("--interval", type=positive, default=60.0, help="simulated seconds between maps (default 60)")
+    p.add_argument("--interval", type=interval, default=60.0, help="simulated seconds between maps (default 60)")
     p.add_argument("--config", type=Path, default=None, help="the monitor's TOML configuration (alert settings)")
     p.add_argument("--layout", default=None, help="mat layout whose pixels the maps are averaged over "
                                                   "(default grid-16x32)")
