@@ -31,8 +31,10 @@ from pathlib import Path
 
 
 def add_parsers(sub) -> None:
-    from appliance.cli import LONGEST_RUN_H, density, finite, positive, seed, within
+    from appliance.cli import LONGEST_RUN_H, density, numbers, seed, within
     from appliance.service.config import FRAME_INTERVAL_RANGE_S
+    from appliance.sim.load_test import AREA_RANGE_CM2
+    from appliance.sim.mechanics import DEFAULT_PARAMETERS, TEMPERATURE_RANGE_C
 
     hours = within(0.0, LONGEST_RUN_H, "h", above=True)
     interval = within(*FRAME_INTERVAL_RANGE_S, "s")         # the configuration's frame_interval_s, which it overrides
@@ -41,13 +43,18 @@ def add_parsers(sub) -> None:
     sim = p.add_subparsers(dest="sim_command", required=True, metavar="SIM_COMMAND")
     p = sim.add_parser("load-test", help="a centred square load stepped through pressures, as thesis chapter 6")
     p.add_argument("--layout", default="grid-4x4", help="layout name or .toml file (default grid-4x4)")
-    p.add_argument("--area-cm2", required=True, type=positive, help="load area, 1 to 36 cm2")
+    p.add_argument("--area-cm2", required=True, type=within(*AREA_RANGE_CM2, "cm2"), help="load area, 1 to 36 cm2")
     p.add_argument("--pressures", required=True, metavar="P1,P2,...",
-                   help="pressures in kPa, applied in this order (the mat remembers the previous one)")
+                   type=numbers(within(0.0, DEFAULT_PARAMETERS.max_pressure_kpa, "kPa")),
+                   help="pressures in kPa up to the mat model's validity limit, applied in this order (the mat "
+                        "remembers the previous one)")
     p.add_argument("--density", type=density, default=1.0, help="FEM mesh density")
-    p.add_argument("--temperature-c", type=finite, default=20.0, help="liquid temperature at the start")
-    p.add_argument("--drift-c-per-step", type=finite, default=None,
-                   help="warming of the liquid between steps, C (default: the thesis's, fitted; 0 for none)")
+    low_c, high_c = TEMPERATURE_RANGE_C
+    p.add_argument("--temperature-c", type=within(low_c, high_c, "C"), default=20.0,
+                   help="liquid temperature at the start")
+    p.add_argument("--drift-c-per-step", type=within(low_c - high_c, high_c - low_c, "C"), default=None,
+                   help="warming of the liquid between steps, C (default: the thesis's, fitted; 0 for none); a step "
+                        "cannot cross more than the mat model's whole temperature range")
     p.set_defaults(run=_load_test)
 
     p = sim.add_parser("run", help="replay a scenario through the whole monitor on a simulated clock, events to "
@@ -86,16 +93,10 @@ def add_parsers(sub) -> None:
 
 
 def _load_test(args) -> int:
-    from appliance.errors import ModelInputInvalid
     from appliance.sim.load_test import THESIS_DRIFT_C_PER_STEP, load_test
 
-    try:
-        pressures = [float(text) for text in args.pressures.split(",")]
-    except ValueError:
-        raise ModelInputInvalid(f"--pressures takes numbers (kPa) separated by commas, got "
-                                f"{args.pressures!r}") from None
     drift = THESIS_DRIFT_C_PER_STEP if args.drift_c_per_step is None else args.drift_c_per_step
-    rows = load_test(args.area_cm2, pressures, layout=args.layout, density=args.density,
+    rows = load_test(args.area_cm2, args.pressures, layout=args.layout, density=args.density,
                      temperature_c=args.temperature_c, drift_c_per_step=drift)
     lines = ["pressure_kpa,visibility,dv_over_v,deformation_mm"]
     lines += [f"{r.pressure_kpa:g},{r.visibility:.6g},{r.dv_over_v:.6g},{r.deformation_mm:.6g}" for r in rows]

@@ -6,7 +6,7 @@ must be refused before anything expensive is built: a model build would show as 
 test that takes minutes. The web screen's forms and uploads are held to the same rule:
 a 4xx naming what is wrong, never a 500 and never "nothing changed".
 
-293 command-line cases (layout 12, protocol 9, simulate 23, reconstruct 32, sim load-test 15,
+296 command-line cases (layout 12, protocol 9, simulate 23, reconstruct 32, sim load-test 18,
 sim run 36, sim replay 14, sim map 19, acquire 21, selftest 5, run 33, calibrate pressure 26,
 calibrate sensitivity 9, ward 13, ward-broker 17, provision 6, the parser itself 3), all exiting 2; 61 web
 cases (settings 28, patient 7, accounts 8, engineering 18), all answered with a 4xx.
@@ -165,11 +165,14 @@ CASES = [
     (["sim", "load-test", "--area-cm2", "4", "--pressures", "5,nan"], "--pressures"),
     (["sim", "load-test", "--area-cm2", "4", "--pressures", "5,inf"], "--pressures"),
     (["sim", "load-test", "--area-cm2", "4", "--pressures", "-5"], "--pressures"),
+    (["sim", "load-test", "--area-cm2", "4", "--pressures", "5,1000"], "--pressures"),
     ([*LOAD_TEST, "--density", "0"], "--density"),
     ([*LOAD_TEST, "--density", "nan"], "--density"),
     ([*LOAD_TEST, "--temperature-c", "nan"], "--temperature-c"),
     ([*LOAD_TEST, "--temperature-c", "-300"], "--temperature-c"),
+    ([*LOAD_TEST, "--temperature-c", "1e300"], "--temperature-c"),
     ([*LOAD_TEST, "--drift-c-per-step", "inf"], "--drift-c-per-step"),
+    ([*LOAD_TEST, "--drift-c-per-step", "1e300"], "--drift-c-per-step"),
     ([*LOAD_TEST, "--layout", "nosuch"], "nosuch"),
     # sim run
     ([*SIM_RUN, "--hours", "0"], "--hours"),
