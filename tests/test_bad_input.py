@@ -6,7 +6,7 @@ must be refused before anything expensive is built: a model build would show as 
 test that takes minutes. The web screen's forms and uploads are held to the same rule:
 a 4xx naming what is wrong, never a 500 and never "nothing changed".
 
-296 command-line cases (layout 12, protocol 9, simulate 23, reconstruct 32, sim load-test 18,
+303 command-line cases (layout 12, protocol 11, simulate 26, reconstruct 34, sim load-test 18,
 sim run 36, sim replay 14, sim map 19, acquire 21, selftest 5, run 33, calibrate pressure 26,
 calibrate sensitivity 9, ward 13, ward-broker 17, provision 6, the parser itself 3), all exiting 2; 61 web
 cases (settings 28, patient 7, accounts 8, engineering 18), all answered with a 4xx.
@@ -84,11 +84,13 @@ CASES = [
     (["protocol", "--layout", "grid-4x4", "--kind", "nosuch"], "--kind"),
     (["protocol", "--layout", "circular-16", "--kind", "skip", "--skip", "-1"], "--skip"),
     (["protocol", "--layout", "circular-16", "--kind", "skip", "--skip", "100"], "--skip"),
+    (["protocol", "--layout", "circular-16", "--kind", "skip", "--skip", "99999"], "--skip"),
     (["protocol", "--layout", "circular-16", "--kind", "skip", "--skip", "x"], "--skip"),
     (["protocol", "--layout", "grid-4x4", "--kind", "local", "--reach", "-1"], "--reach"),
     (["protocol", "--layout", "grid-4x4", "--kind", "local", "--reach", "0"], "--reach"),
     (["protocol", "--layout", "grid-4x4", "--kind", "local", "--reach", "nan"], "--reach"),
     (["protocol", "--layout", "grid-4x4", "--kind", "local", "--reach", "inf"], "--reach"),
+    (["protocol", "--layout", "grid-4x4", "--kind", "local", "--reach", "1e300"], "--reach"),
     (["protocol", "--layout", "grid-4x4", "--kind", "adjacent", "--reach", "2"], "--reach"),
     # simulate
     (["simulate", "--layout", "grid-4x4", "--density", "0"], "--density"),
@@ -100,11 +102,14 @@ CASES = [
     (["simulate", "--layout", "grid-4x4", "--current-ma", "-1"], "--current-ma"),
     (["simulate", "--layout", "grid-4x4", "--current-ma", "nan"], "--current-ma"),
     (["simulate", "--layout", "grid-4x4", "--current-ma", "inf"], "--current-ma"),
+    (["simulate", "--layout", "grid-4x4", "--current-ma", "1e300"], "--current-ma"),
     (["simulate", "--layout", "grid-4x4", "--inclusion", "rect:nan,50,10,10,0.5"], "rect:nan"),
     (["simulate", "--layout", "grid-4x4", "--inclusion", "rect:50,50,-10,10,0.5"], "rect:50,50,-10"),
     (["simulate", "--layout", "grid-4x4", "--inclusion", "disc:50,50,inf,0.5"], "disc:50,50,inf"),
     (["simulate", "--layout", "grid-4x4", "--inclusion", "tri:1,2,3"], "tri:1,2,3"),
     (["simulate", "--layout", "grid-4x4", "--inclusion", "rect:5000,5000,10,10,0.5"], "rect:5000,5000"),
+    (["simulate", "--layout", "grid-4x4", "--inclusion", "rect:1e300,50,10,10,0.5"], "rect:1e300"),
+    (["simulate", "--layout", "grid-4x4", "--inclusion", "disc:50,50,10,1e300"], "disc:50,50,10,1e300"),
     (["simulate", "--layout", "grid-4x4", "--protocol", "{t}/missing.csv"], "missing.csv"),
     (["simulate", "--layout", "grid-4x4", "--protocol", "{t}/folder"], "folder"),
     (["simulate", "--layout", "grid-4x4", "--protocol", "{t}/empty.csv"], "empty.csv"),
@@ -124,6 +129,7 @@ CASES = [
     ([*RECON, "--out", "{t}/img.csv", "--noise", "a,b"], "--noise"),
     ([*RECON, "--out", "{t}/img.csv", "--noise", "-1,0"], "--noise"),
     ([*RECON, "--out", "{t}/img.csv", "--noise", "nan,1e-4"], "--noise"),
+    ([*RECON, "--out", "{t}/img.csv", "--noise", "1e300,1e-4"], "--noise"),
     ([*RECON, "--out", "{t}/img.csv", "--pixels", "0x0"], "--pixels"),
     ([*RECON, "--out", "{t}/img.csv", "--pixels", "-4x4"], "--pixels"),
     ([*RECON, "--out", "{t}/img.csv", "--pixels", "4.5x4"], "--pixels"),
@@ -134,6 +140,7 @@ CASES = [
     ([*RECON, "--out", "{t}/img.csv", "--density", "-2"], "--density"),
     ([*RECON, "--out", "{t}/img.csv", "--pressure", "{t}/cal.json", "--normalise"], "--normalise"),
     ([*RECON, "--out", "{t}/img.csv", "--temperature-c", "20"], "--temperature-c"),
+    ([*RECON, "--out", "{t}/img.csv", "--pressure", "{t}/cal.json", "--temperature-c", "1e300"], "--temperature-c"),
     ([*RECON, "--out", "{t}/img.csv", "--pressure", "{t}/missing.json"], "missing.json"),
     ([*RECON, "--out", "{t}/img.csv", "--pressure", "{t}/cal-garbage.json"], "cal-garbage.json"),
     ([*RECON, "--out", "{t}/img.csv", "--pressure", "{t}/folder"], "folder"),
