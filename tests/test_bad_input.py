@@ -6,9 +6,9 @@ must be refused before anything expensive is built: a model build would show as 
 test that takes minutes. The web screen's forms and uploads are held to the same rule:
 a 4xx naming what is wrong, never a 500 and never "nothing changed".
 
-303 command-line cases (layout 12, protocol 11, simulate 26, reconstruct 34, sim load-test 18,
-sim run 36, sim replay 14, sim map 19, acquire 21, selftest 5, run 33, calibrate pressure 26,
-calibrate sensitivity 9, ward 13, ward-broker 17, provision 6, the parser itself 3), all exiting 2; 61 web
+310 command-line cases (layout 12, protocol 11, simulate 26, reconstruct 34, sim load-test 18,
+sim run 36, sim replay 14, sim map 19, acquire 24, selftest 5, run 33, calibrate pressure 28,
+calibrate sensitivity 11, ward 13, ward-broker 17, provision 6, the parser itself 3), all exiting 2; 61 web
 cases (settings 28, patient 7, accounts 8, engineering 18), all answered with a 4xx.
 """
 
@@ -257,10 +257,12 @@ CASES = [
     # acquire, selftest
     ([*ACQUIRE, "--out", "{t}/f.csv", "--average", "0"], "--average"),
     ([*ACQUIRE, "--out", "{t}/f.csv", "--average", "-3"], "--average"),
+    ([*ACQUIRE, "--out", "{t}/f.csv", "--average", "100000"], "--average"),
     ([*ACQUIRE, "--out", "{t}/f.csv", "--series", "0"], "--series"),
     ([*ACQUIRE, "--out", "{t}/f.csv", "--series", "61"], "--series"),
     ([*ACQUIRE, "--out", "{t}/f.csv", "--series", "2", "--interval", "-1"], "--interval"),
     ([*ACQUIRE, "--out", "{t}/f.csv", "--series", "2", "--interval", "nan"], "--interval"),
+    ([*ACQUIRE, "--out", "{t}/f.csv", "--series", "2", "--interval", "1e200"], "--interval"),
     ([*ACQUIRE, "--out", "{t}/f.csv", "--interval", "-1"], "--interval"),
     ([*ACQUIRE, "--out", "{t}/f.csv", "--order", "random"], "--order"),
     ([*ACQUIRE, "--out", "{t}/nofolder/f.csv"], "nofolder"),
@@ -275,6 +277,7 @@ CASES = [
     ([*ACQUIRE, "--out", "{t}/f.csv", "--layout", "nosuch"], "nosuch"),
     ([*ACQUIRE, "--out", "{t}/f.csv", "--seed", "-1"], "--seed"),
     ([*ACQUIRE, "--out", "{t}/f.csv", "--inclusion", "rect:1,2"], "rect:1,2"),
+    ([*ACQUIRE, "--out", "{t}/f.csv", "--inclusion", "disc:50,50,1e300,0.5"], "disc:50,50,1e300"),
     (["acquire", "--out", "{t}/f.csv", "--inclusion", "rect:50,50,10,10,0.5"], "--emulated"),
     (["selftest", "--emulated", "--profile", "nosuch"], "nosuch"),
     (["selftest", "--emulated", "--layout", "nosuch"], "nosuch"),
@@ -324,6 +327,7 @@ CASES = [
     ([*PRESSURE, "--out", "{t}/c.json", "--pressures", "-1,5"], "--pressures"),
     ([*PRESSURE, "--out", "{t}/c.json", "--pressures", "nan"], "--pressures"),
     ([*PRESSURE, "--out", "{t}/c.json", "--pressures", "5,inf"], "--pressures"),
+    ([*PRESSURE, "--out", "{t}/c.json", "--pressures", "5,1e300"], "--pressures"),
     ([*PRESSURE, "--out", "{t}/c.json", "--pixels", "0x0"], "--pixels"),
     ([*PRESSURE, "--out", "{t}/c.json", "--pixels", "axb"], "--pixels"),
     ([*PRESSURE, "--out", "{t}/c.json", "--density", "0"], "--density"),
@@ -341,15 +345,19 @@ CASES = [
     ([*PRESSURE, "--out", "{t}/c.json", "--maps", "{t}/folder", "--subjects", "a"], "--subjects"),
     ([*PRESSURE, "--out", "{t}/c.json", "--maps", "{t}/folder", "--subjects", "1",
       "--frames-per-posture", "0"], "--frames-per-posture"),
+    ([*PRESSURE, "--out", "{t}/c.json", "--maps", "{t}/folder", "--subjects", "1",
+      "--frames-per-posture", "100000"], "--frames-per-posture"),
     ([*PRESSURE, "--out", "{t}/c.json", "--maps", "{t}/folder", "--subjects", "1", "--source", "hardware"],
      "--maps"),
     ([*PRESSURE, "--out", "{t}/c.json", "--subjects", "1"], "--subjects"),
     ([*SENSITIVITY, "--out", "{t}/s.csv", "--side-mm", "0"], "--side-mm"),
     ([*SENSITIVITY, "--out", "{t}/s.csv", "--side-mm", "nan"], "--side-mm"),
     ([*SENSITIVITY, "--out", "{t}/s.csv", "--side-mm", "inf"], "--side-mm"),
+    ([*SENSITIVITY, "--out", "{t}/s.csv", "--side-mm", "1e300"], "--side-mm"),
     ([*SENSITIVITY, "--out", "{t}/s.csv", "--pressure-kpa", "-1"], "--pressure-kpa"),
     ([*SENSITIVITY, "--out", "{t}/s.csv", "--pressure-kpa", "nan"], "--pressure-kpa"),
     ([*SENSITIVITY, "--out", "{t}/s.csv", "--pressure-kpa", "inf"], "--pressure-kpa"),
+    ([*SENSITIVITY, "--out", "{t}/s.csv", "--pressure-kpa", "1e300"], "--pressure-kpa"),
     ([*SENSITIVITY, "--out", "{t}/s.csv", "--pixels", "0x4"], "--pixels"),
     ([*SENSITIVITY, "--out", "{t}/nofolder/s.csv"], "nofolder"),
     ([*SENSITIVITY, "--out", "{t}/folder"], "folder"),
