@@ -6,9 +6,9 @@ must be refused before anything expensive is built: a model build would show as 
 test that takes minutes. The web screen's forms and uploads are held to the same rule:
 a 4xx naming what is wrong, never a 500 and never "nothing changed".
 
-310 command-line cases (layout 12, protocol 11, simulate 26, reconstruct 34, sim load-test 18,
-sim run 36, sim replay 14, sim map 19, acquire 24, selftest 5, run 33, calibrate pressure 28,
-calibrate sensitivity 11, ward 13, ward-broker 17, provision 6, the parser itself 3), all exiting 2; 61 web
+312 command-line cases (layout 12, protocol 11, simulate 26, reconstruct 34, sim load-test 18,
+sim run 36, sim replay 14, sim map 20, acquire 24, selftest 5, run 33, calibrate pressure 28,
+calibrate sensitivity 11, ward 14, ward-broker 17, provision 6, the parser itself 3), all exiting 2; 61 web
 cases (settings 28, patient 7, accounts 8, engineering 18), all answered with a 4xx.
 """
 
@@ -251,6 +251,7 @@ CASES = [
     ([*MAP, "--map", "{t}/map.csv", "--pitch-mm", "10", "--out", "{t}/nofolder/o.csv"], "nofolder"),
     ([*MAP, "--map", "{t}/map.csv", "--pitch-mm", "10", "--out", "{t}/map.csv"], "map.csv"),
     ([*MAP, "--map", "{t}/map.csv", "--pitch-mm", "10", "--out", "{t}/o.csv", "--seed", "-1"], "--seed"),
+    ([*MAP, "--map", "{t}/map.csv", "--pitch-mm", "10", "--out", "{t}/o.csv", "--seed", "99999999999"], "--seed"),
     ([*MAP, "--map", "{t}/map.csv", "--pitch-mm", "10", "--out", "{t}/o.csv", "--layout", "nosuch"], "nosuch"),
     ([*MAP, "--map", "{t}/map.csv", "--pitch-mm", "10", "--out", "{t}/o.csv", "--calibration", "{t}/missing.json"],
      "missing.json"),
@@ -373,6 +374,7 @@ CASES = [
     ([*WARD, "--config", "{t}/ward.toml", "--listen", "0"], "--listen"),
     ([*WARD, "--config", "{t}/ward.toml", "--listen", "99999"], "--listen"),
     ([*WARD, "--config", "{t}/ward.toml", "--threads", "0"], "--threads"),
+    ([*WARD, "--config", "{t}/ward.toml", "--threads", "100000"], "--threads"),
     ([*WARD, "--config", "{t}/ward.toml", "--threads", "x"], "--threads"),
     ([*WARD, "--config", "{t}/ward.toml", "--data-dir", "{t}/empty.csv"], "empty.csv"),
     # ward-broker
