@@ -153,8 +153,8 @@ def test_cli_load_test_prints_one_csv_row_per_pressure(capsys):
 
 @pytest.mark.parametrize(("args", "message"), [
     (["--area-cm2", "0.5", "--pressures", "1"], "--area-cm2: takes a number from 1 to 36 cm2, got '0.5'"),
-    (["--area-cm2", "9", "--pressures", "1,-2"], "--pressures: takes one or more numbers separated by commas, each "
-                                                 "a number from 0 to 50 kPa, got '1,-2'"),
+    (["--area-cm2", "9", "--pressures", "1,-2"], ("--pressures: takes one or more numbers separated by commas, "
+                                                  "each a number from 0 to 50 kPa, got '1,-2'")),
     (["--area-cm2", "9", "--pressures", "1,abc"], "each a number from 0 to 50 kPa, got '1,abc'"),
     (["--area-cm2", "9", "--pressures", "100"], "each a number from 0 to 50 kPa, got '100'"),
 ])
