@@ -84,11 +84,6 @@ def numbers(item, count: int | None = None):
     return parse
 
 
-positive = _number(float, lambda v: v > 0, "a positive number")
-not_negative = _number(float, lambda v: v >= 0, "a number not below 0")
-finite = _number(float, lambda v: True, "a finite number")
-positive_int = _number(int, lambda v: v > 0, "a whole number of 1 or more")
-not_negative_int = _number(int, lambda v: v >= 0, "a whole number not below 0")
 seed = whole_within(0, 2**32 - 1)           # numpy's seeds, as the configuration's [virtual] seed
 MAX_DENSITY = 8.0
 """The finest mesh density: each doubling has four times the elements, so beyond this a mesh only exhausts memory."""
@@ -394,9 +389,9 @@ def _parse_inclusion(text: str):
     from appliance.core.phantoms import Inclusion
     from appliance.errors import ModelInputInvalid
 
-    shape, _, numbers = text.partition(":")
+    shape, _, listed = text.partition(":")
     try:
-        values = [float(v) for v in numbers.split(",")]
+        values = [float(v) for v in listed.split(",")]
     except ValueError:
         raise ModelInputInvalid(f"inclusion {text!r}: values must be numbers") from None
     try:
