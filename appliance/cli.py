@@ -125,6 +125,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--layout", required=True, help="layout name or .toml file")
     p.add_argument("--kind", default="default",
                    choices=["default", "adjacent", "opposite", "skip", "distributed", "local", "rows"])
+    # no mat has more electrodes than the largest grid, so a skip or reach beyond it is a typo (the layout's own
+    # electrode count bounds the skip further once it is known)
     p.add_argument("--skip", type=whole_within(0, MAX_GRID_ELECTRODES - 2), default=0,
                    help="electrodes skipped between a drive pair (--kind skip)")
     p.add_argument("--reach", type=within(0.0, MAX_GRID_ELECTRODES, "electrode spacings", above=True), default=None,
