@@ -54,15 +54,46 @@ def _number(kind, test, wanted: str):
     return parse
 
 
-positive = _number(float, lambda v: v > 0, "a positive number")
-not_negative = _number(float, lambda v: v >= 0, "a number not below 0")
-finite = _number(float, lambda v: True, "a finite number")
-positive_int = _number(int, lambda v: v > 0, "a whole number of 1 or more")
-seed = _number(int, lambda v: 0 <= v < 2**32, "a whole number from 0 to 2**32 - 1")
-not_negative_int = _number(int, lambda v: v >= 0, "a whole number not below 0")
+def within(low: float, high: float, unit: str = "", *, above: bool = False):
+    """A ``type=`` for a number from ``low`` (or, ``above``, over it) to ``high`` in ``unit``: a value outside is
+    refused with the range, so a unit slip or a stray exponent never reaches a model or a loop."""
+    start = f"above {low:g} and at most" if above else f"from {low:g} to"
+    return _number(float, lambda v: (v > low if above else v >= low) and v <= high,
+                   f"a number {start} {high:g}{' ' + unit if unit else ''}")
+
+
+def whole_within(low: int, high: int):
+    """A ``type=`` for a whole number from ``low`` to ``high``."""
+    return _number(int, lambda v: low <= v <= high, f"a whole number from {low} to {high}")
+
+
+def numbers(item, count: int | None = None):
+    """A ``type=`` for numbers separated by commas (``count`` of them, or any number), each parsed by ``item``."""
+    wanted = f"{count or 'one or more'} numbers separated by commas, each {item.__name__}"
+
+    def parse(text: str) -> list:
+        try:
+            values = [item(v) for v in text.split(",")]
+        except argparse.ArgumentTypeError:
+            raise argparse.ArgumentTypeError(f"takes {wanted}, got {text!r}") from None
+        if count is not None and len(values) != count:
+            raise argparse.ArgumentTypeError(f"takes {wanted}, got {text!r}")
+        return values
+
+    parse.__name__ = wanted
+    return parse
+
+
+seed = whole_within(0, 2**32 - 1)           # numpy's seeds, as the configuration's [virtual] seed
 MAX_DENSITY = 8.0
 """The finest mesh density: each doubling has four times the elements, so beyond this a mesh only exhausts memory."""
-density = _number(float, lambda v: 0 < v <= MAX_DENSITY, f"a mesh density above 0 and at most {MAX_DENSITY:g}")
+density = within(0.0, MAX_DENSITY, above=True)
+LONGEST_RUN_H = 24 * 365
+"""A year: longer than any scenario or stay on one mat, so a longer run is a slip (seconds given for hours)."""
+MAT_MM = 10_000.0
+"""Positions and sizes on a mat: ten metres is far beyond any (a bed's is 1.9 m), so more is a unit slip."""
+CONTRAST_RANGE = (1e-6, 1e6)
+"""Conductivity ratios, insulator to metal in saline, that the forward solve stays accurate for (core/linsolve.py)."""
 
 
 def check_input(path: Path, option: str) -> Path:
@@ -77,6 +108,9 @@ def check_input(path: Path, option: str) -> Path:
 
 
 def _parser() -> argparse.ArgumentParser:
+    from appliance.core.layouts import MAX_GRID_ELECTRODES
+    from appliance.sim.mechanics import TEMPERATURE_RANGE_C
+
     parser = argparse.ArgumentParser(prog="appliance", description="Bedside EIT pressure-sore monitor.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -91,8 +125,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--layout", required=True, help="layout name or .toml file")
     p.add_argument("--kind", default="default",
                    choices=["default", "adjacent", "opposite", "skip", "distributed", "local", "rows"])
-    p.add_argument("--skip", type=not_negative_int, default=0, help="electrodes skipped between a drive pair (--kind skip)")
-    p.add_argument("--reach", type=positive, default=None,
+    # no mat has more electrodes than the largest grid, so a skip or reach beyond it is a typo (the layout's own
+    # electrode count bounds the skip further once it is known)
+    p.add_argument("--skip", type=whole_within(0, MAX_GRID_ELECTRODES - 2), default=0,
+                   help="electrodes skipped between a drive pair (--kind skip)")
+    p.add_argument("--reach", type=within(0.0, MAX_GRID_ELECTRODES, "electrode spacings", above=True), default=None,
                    help="electrode spacings a reading may lie from its drive pair (--kind local or rows)")
     p.set_defaults(run=_protocol)
 
@@ -104,7 +141,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--protocol", type=Path, help="protocol CSV file (default: the layout's default protocol)")
     p.add_argument("--inclusion", action="append", default=[], metavar="SHAPE:X,Y,W,H,CONTRAST",
                    help="rect:X,Y,W,H,CONTRAST or disc:X,Y,D,CONTRAST in mm, conductivity ratio; repeatable")
-    p.add_argument("--current-ma", type=positive, default=1.0, help="drive current, mA")
+    # EIT front ends drive 0.01 to 10 mA; 10 mA rms is IEC 60601-1's patient auxiliary current limit (at 100 kHz)
+    p.add_argument("--current-ma", type=within(0.01, 10.0, "mA"), default=1.0, help="drive current, mA")
     p.add_argument("--out", type=Path, help="write the frame here instead of stdout")
     p.set_defaults(run=_simulate)
 
@@ -119,8 +157,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--iterate", default=None, choices=["auto", "always", "never"],
                    help="iterative Gauss-Newton for large changes (default auto: when the one-step image "
                         "needs it; always for ktc-32)")
-    p.add_argument("--noise", default=None, metavar="RELATIVE,ABSOLUTE",
-                   help="reading noise: a share of each reading and of the rms reading (default 1e-3,1e-4)")
+    p.add_argument("--noise", type=numbers(within(0.0, 1.0), 2), default=None, metavar="RELATIVE,ABSOLUTE",
+                   help="reading noise: a share of each reading and of the rms reading, at most the reading itself "
+                        "(default 1e-3,1e-4)")
     p.add_argument("--pixels", default=None, metavar="ROWSxCOLS", help="pixel grid (default 16 on the short side)")
     p.add_argument("--density", type=density, default=None,
                    help="forward mesh density (default: the appliance's for the layout, 0.5 on a bed mat)")
@@ -129,9 +168,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--segment", type=Path, help="also write the KTC2023 256 x 256 label image (CSV) here")
     p.add_argument("--pressure", type=Path, metavar="CAL.json",
                    help="write the pressure map in kPa with this calibration (from appliance calibrate pressure)")
-    p.add_argument("--temperature-c", type=finite, default=None,
-                   help="--pressure: the frame's liquid temperature, corrected to the calibration's "
-                        "(default: no correction)")
+    p.add_argument("--temperature-c", type=within(*TEMPERATURE_RANGE_C, "C"), default=None,
+                   help="--pressure: the frame's liquid temperature, corrected to the calibration's where the "
+                        "correction holds (default: no correction)")
     p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
     p.set_defaults(run=_reconstruct)
 
@@ -263,7 +302,7 @@ def _reconstruct(args) -> int:
     if args.algorithm:
         options = dataclasses.replace(options, algorithm=args.algorithm)
     if args.noise:
-        options = dataclasses.replace(options, noise=NoiseModel(*_floats(args.noise, 2, "--noise")))
+        options = dataclasses.replace(options, noise=NoiseModel(*args.noise))
     pixels = parse_pixels(args.pixels) or setup.pixels
     setup = ModelSetup(layout, reference.protocol, options, args.density or setup.density, pixels,
                        setup.contact_impedance_ohm_m2)
@@ -330,18 +369,6 @@ def _write_image(path: Path, image, normalise: bool) -> None:
                         + "\n")
 
 
-def _floats(text: str, count: int, option: str) -> list[float]:
-    from appliance.errors import ConfigError
-
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise ConfigError(f"{option} takes {count} numbers separated by commas, got {text!r}") from None
-    if len(values) != count or not all(math.isfinite(v) and v >= 0 for v in values):
-        raise ConfigError(f"{option} takes {count} finite numbers, not negative, separated by commas, got {text!r}")
-    return values
-
-
 MAX_PIXELS = 256
 """The finest pixel grid on a side: the KTC2023 label image's; finer grids only cost memory and time."""
 
@@ -364,17 +391,32 @@ def _parse_inclusion(text: str):
     from appliance.core.phantoms import Inclusion
     from appliance.errors import ModelInputInvalid
 
-    shape, _, numbers = text.partition(":")
+    shape, _, listed = text.partition(":")
     try:
-        values = [float(v) for v in numbers.split(",")]
+        values = [float(v) for v in listed.split(",")]
     except ValueError:
         raise ModelInputInvalid(f"inclusion {text!r}: values must be numbers") from None
     try:
         if shape == "rect" and len(values) == 5:
-            return Inclusion("rect", *values)
+            return _physical(Inclusion("rect", *values))
         if shape == "disc" and len(values) == 4:
             x, y, d, contrast = values
-            return Inclusion("disc", x, y, d, d, contrast)
+            return _physical(Inclusion("disc", x, y, d, d, contrast))
     except ModelInputInvalid as exc:
         raise ModelInputInvalid(f"inclusion {text!r}: {exc}") from None
     raise ModelInputInvalid(f"inclusion {text!r}: use rect:X,Y,W,H,CONTRAST or disc:X,Y,D,CONTRAST")
+
+
+def _physical(inclusion):
+    """``inclusion`` if it could lie on a mat and its contrast is one the model solves; a ModelInputInvalid naming
+    which is not."""
+    from appliance.errors import ModelInputInvalid
+
+    low, high = CONTRAST_RANGE
+    if max(abs(inclusion.x_mm), abs(inclusion.y_mm), inclusion.width_mm, inclusion.height_mm) > MAT_MM:
+        raise ModelInputInvalid(f"positions must be from -{MAT_MM:g} to {MAT_MM:g} mm and sizes at most "
+                                f"{MAT_MM:g} mm")
+    if not low <= inclusion.contrast <= high:
+        raise ModelInputInvalid(f"contrast must be from {low:g} to {high:g} (a conductivity ratio), got "
+                                f"{inclusion.contrast:g}")
+    return inclusion

@@ -21,11 +21,16 @@ from pathlib import Path
 
 SENSITIVITY_PRESSURE_KPA = 10.0
 MAX_POSITIONS = 20          # 20 x 20 places per load size: beyond it a calibration would run for days
-MAX_AVERAGES = 1000         # as acquire --average
+MAX_FRAMES_PER_POSTURE = 100    # PmatData records a posture for 1 to 3.5 min at 1 Hz: its middle half holds no more
 
 
 def add_parsers(sub) -> None:
-    from appliance.cli import positive, positive_int
+    from appliance.cli import MAT_MM, numbers, whole_within, within
+    from appliance.cli_frontend import MAX_AVERAGE
+    from appliance.sim.mechanics import DEFAULT_PARAMETERS
+
+    # the mat model's validity limit, 375 mmHg: beyond the peaks a body lying on a mat exerts
+    kpa = within(0.0, DEFAULT_PARAMETERS.max_pressure_kpa, "kPa", above=True)
 
     p = sub.add_parser("calibrate", help="calibrate the mat: pressure from known loads, or the thesis's sensitivity")
     calibrate = p.add_subparsers(dest="calibrate_command", required=True, metavar="CALIBRATE_COMMAND")
@@ -37,16 +42,17 @@ def add_parsers(sub) -> None:
     p.add_argument("--algorithm", default=None,
                    help="the reconstruction it is fitted to: greit, gn-laplace, gn-noser or gn-tikhonov "
                         "(default greit)")
-    p.add_argument("--positions", type=positive_int, default=2, metavar="N",
-                   help="each load size at N x N places across the mat (default 2)")
-    p.add_argument("--pressures", default=None, metavar="P1,P2,...",
+    p.add_argument("--positions", type=whole_within(1, MAX_POSITIONS), default=2, metavar="N",
+                   help=f"each load size at N x N places across the mat (default 2, at most {MAX_POSITIONS})")
+    p.add_argument("--pressures", type=numbers(kpa), default=None, metavar="P1,P2,...",
                    help="pressures each load is pressed to, kPa (default: the standard set, 2 to 20 kPa)")
-    p.add_argument("--averages", type=positive_int, default=1, metavar="K", help="frames averaged per load (default 1)")
+    p.add_argument("--averages", type=whole_within(1, MAX_AVERAGE), default=1, metavar="K",
+                   help="frames averaged per load (default 1, at most as acquire --average)")
     p.add_argument("--maps", type=Path, default=None, metavar="PMATDATA",
                    help="calibrate from people's pressure maps instead of weights: a PmatData folder (virtual "
                         "source; a bed mat reads bodies through this far better than through weights)")
     p.add_argument("--subjects", default=None, metavar="N1,N2,...", help="with --maps: whose maps")
-    p.add_argument("--frames-per-posture", type=positive_int, default=1, metavar="K",
+    p.add_argument("--frames-per-posture", type=whole_within(1, MAX_FRAMES_PER_POSTURE), default=1, metavar="K",
                    help="with --maps: frames taken from each posture's recording (default 1)")
     p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
     p.set_defaults(run=_pressure)
@@ -55,8 +61,9 @@ def add_parsers(sub) -> None:
                                                  "for reconstruct --calibration (thesis eq. 3.4.1)")
     _source_options(p)
     p.add_argument("--out", type=Path, required=True, help="calibration file (CSV)")
-    p.add_argument("--side-mm", type=positive, default=None, help="side of the square object (default: one pixel)")
-    p.add_argument("--pressure-kpa", type=positive, default=SENSITIVITY_PRESSURE_KPA,
+    p.add_argument("--side-mm", type=within(0.0, MAT_MM, "mm", above=True), default=None,
+                   help="side of the square object (default: one pixel)")
+    p.add_argument("--pressure-kpa", type=kpa, default=SENSITIVITY_PRESSURE_KPA,
                    help=f"pressure of the object (default {SENSITIVITY_PRESSURE_KPA:g} kPa)")
     p.set_defaults(run=_sensitivity)
 
@@ -85,15 +92,12 @@ def _pressure(args) -> int:
     from appliance.core.pressure import save_pressure_calibration
     from appliance.errors import ConfigError
 
-    if not 1 <= args.positions <= MAX_POSITIONS or not 1 <= args.averages <= MAX_AVERAGES:
-        raise ConfigError(f"--positions takes 1 to {MAX_POSITIONS} and --averages 1 to {MAX_AVERAGES}, got "
-                          f"{args.positions} and {args.averages}")
     if args.maps and args.source == "hardware":
         raise ConfigError("--maps lays recorded people on the virtual mat; on hardware, calibrate with weights")
     if args.subjects and not args.maps:
         raise ConfigError("--subjects says whose --maps calibrate the mat; add --maps")
     check_writable(args.out, "--out")
-    pressures = _pressures(args.pressures) if args.pressures else CALIBRATION_PRESSURES_KPA
+    pressures = args.pressures or CALIBRATION_PRESSURES_KPA
     layout = get_layout(args.layout)
     setup = default_setup(layout)
     protocol = setup.protocol
@@ -163,18 +167,6 @@ def calibration_to_csv(rows) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _pressures(text: str) -> list[float]:
-    from appliance.errors import ConfigError
-
-    try:
-        pressures = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise ConfigError(f"--pressures takes kPa separated by commas, got {text!r}") from None
-    if not all(0 < p < float("inf") for p in pressures):
-        raise ConfigError(f"--pressures must be positive and finite, got {text!r}")
-    return pressures
-
-
 def _pixels(text: str | None) -> tuple[int, int] | None:
     from appliance.cli import parse_pixels
 
@@ -192,8 +184,6 @@ def _map_loads(args) -> list:
         raise ConfigError(f"--subjects takes subject numbers separated by commas, got {args.subjects!r}") from None
     if not subjects:
         raise ConfigError("--maps needs --subjects: the people whose maps calibrate the mat")
-    if args.frames_per_posture < 1:
-        raise ConfigError("--frames-per-posture takes 1 or more")
     return pmat_map_loads(args.maps, subjects, frames_per_posture=args.frames_per_posture)
 
 

@@ -11,16 +11,23 @@ import argparse
 import sys
 from pathlib import Path
 
+MAX_AVERAGE = 1000          # sets averaged into one frame (the thesis averages 30)
+MAX_SERIES = 60             # sets in one series: watching for longer is the monitor's (appliance run)
+
 
 def add_parsers(sub) -> None:
-    from appliance.cli import not_negative, positive_int
+    from appliance.cli import whole_within, within
+    from appliance.service.config import FRAME_INTERVAL_RANGE_S
 
     p = sub.add_parser("acquire", help="acquire frames of readings from the front end")
     _board_options(p)
     p.add_argument("--protocol", type=Path, help="protocol CSV file (default: the layout's default protocol)")
-    p.add_argument("--average", type=positive_int, default=1, metavar="N", help="average N complete sets (thesis: 30)")
-    p.add_argument("--series", type=positive_int, default=1, metavar="N", help="acquire N sets (1 to 60)")
-    p.add_argument("--interval", type=not_negative, default=1.0, metavar="S", help="seconds between sets of a series")
+    p.add_argument("--average", type=whole_within(1, MAX_AVERAGE), default=1, metavar="N",
+                   help=f"average N complete sets (thesis: 30; 1 to {MAX_AVERAGE})")
+    p.add_argument("--series", type=whole_within(1, MAX_SERIES), default=1, metavar="N",
+                   help=f"acquire N sets (1 to {MAX_SERIES})")
+    p.add_argument("--interval", type=within(0.0, FRAME_INTERVAL_RANGE_S[1], "s"), default=1.0, metavar="S",
+                   help="seconds between sets of a series, at most the monitor's longest frame interval")
     p.add_argument("--order", default="optimised", choices=["optimised", "protocol"],
                    help="reading order: grouped by drive, rising level (default), or as the protocol lists them")
     p.add_argument("--out", type=Path, required=True,
@@ -93,12 +100,7 @@ def _acquire(args) -> int:
     from appliance.core.protocols import default_protocol, load_protocol
     from appliance.drivers.recording import series_paths, write_frame
     from appliance.drivers.scan import ScanEngine, average_frames
-    from appliance.errors import ConfigError
 
-    if not 1 <= args.series <= 60 or not 1 <= args.average <= 1000:
-        raise ConfigError("--series takes 1 to 60 sets and --average 1 to 1000")
-    if args.series > 1 and not 0 <= args.interval <= 3600:
-        raise ConfigError("--interval takes 0 to 3600 seconds")
     check_writable(args.out, "--out", (".csv",))
     layout, board, profile, front_end, kind = _open(args)
     protocol = load_protocol(args.protocol, layout.n_electrodes) if args.protocol else default_protocol(layout)

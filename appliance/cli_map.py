@@ -26,6 +26,8 @@ from appliance.errors import ConfigError
 
 
 def add_parser(sim) -> None:
+    from appliance.cli import seed
+
     p = sim.add_parser("map", help="put pressure maps (CSV, mmHg) on the virtual bed and write the maps the appliance "
                                    "reconstructs from them")
     p.add_argument("--map", dest="maps", action="append", default=[], type=Path, metavar="IN.csv",
@@ -40,7 +42,7 @@ def add_parser(sim) -> None:
     p.add_argument("--calibration", type=Path, default=None,
                    help="pressure calibration to use (default: the virtual mat's own, made once and kept with the "
                         "models)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the simulated noise")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the simulated noise")
     p.add_argument("--cache-dir", type=Path, default=None,
                    help="where built models and the virtual mat's calibration are kept")
     p.set_defaults(run=_map)
@@ -117,8 +119,6 @@ def _checked_arguments(args) -> tuple[list[float], list[Path]]:
 
     if not args.maps:
         raise ConfigError("give at least one --map (a CSV of pressures in mmHg)")
-    if args.seed < 0:
-        raise ConfigError(f"--seed must not be negative, got {args.seed}")
     if not args.pitches:
         raise ConfigError("--pitch-mm is missing: give the maps' sensel pitch in mm (1 to 100)")
     if len(args.pitches) not in (1, len(args.maps)):

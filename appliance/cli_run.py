@@ -23,7 +23,8 @@ LIVE_FULL_SCALE_MMHG = 100.0      # the live map's colour scale: white at 0, dar
 
 
 def add_parsers(sub) -> None:
-    from appliance.cli import not_negative, positive, positive_int, seed
+    from appliance.cli import LONGEST_RUN_H, seed, whole_within, within
+    from appliance.service.config import FRAME_INTERVAL_RANGE_S, SPEED_RANGE
 
     p = sub.add_parser("run", help="run the monitor (the virtual bed when there is no hardware)")
     p.add_argument("--config", type=Path, default=None,
@@ -33,10 +34,12 @@ def add_parsers(sub) -> None:
     p.add_argument("--layout", default=None, help="mat layout (default grid-16x32, a 900 x 1900 mm bed)")
     p.add_argument("--scenario", default=None,
                    help="the virtual patient: a built-in scenario or a scenario .toml file (default turn-schedule)")
-    p.add_argument("--frames", type=positive_int, default=None, help="stop after this many frames (default: run until "
-                                                            "stopped or the scenario ends)")
-    p.add_argument("--interval", type=positive, default=None, help="seconds between frames (default 1)")
-    p.add_argument("--speed", type=not_negative, default=None,
+    most_frames = round(LONGEST_RUN_H * 3600 / FRAME_INTERVAL_RANGE_S[0])     # a year at the shortest interval
+    p.add_argument("--frames", type=whole_within(1, most_frames), default=None,
+                   help="stop after this many frames (default: run until stopped or the scenario ends)")
+    p.add_argument("--interval", type=within(*FRAME_INTERVAL_RANGE_S, "s"), default=None,
+                   help="seconds between frames (default 1)")
+    p.add_argument("--speed", type=within(*SPEED_RANGE), default=None,
                    help="virtual bed: scene seconds per wall-clock second (default 1, real time; 0 for as fast as "
                         "it goes)")
     p.add_argument("--data-dir", type=Path, default=None,
@@ -67,18 +70,10 @@ def monitor_config(args, **fixed):
     config = load_config(args.config) if args.config else config_from_mapping({})
     changes = {field: getattr(args, option) for option, field in OVERRIDES.items()
                if getattr(args, option, None) is not None}
-    for option, section, key in (("interval", "monitor", "frame_interval_s"), ("speed", "virtual", "speed")):
-        if getattr(args, option, None) is not None:       # the file's bounds hold for the option that overrides it
-            try:
-                config_from_mapping({section: {key: getattr(args, option)}})
-            except ConfigError as exc:
-                raise ConfigError(f"--{option}: {exc}") from None
     changes.update(fixed)
     if changes.get("scenario") is not None and config.source != "virtual":
         raise ConfigError("--scenario is for the virtual bed, but the configuration's source is a board")
     config = dataclasses.replace(config, **changes)
-    if not config.frame_interval_s > 0 or config.speed < 0:
-        raise ConfigError("--interval must be positive and --speed not negative")
     _check_named(config)
     return config
 

@@ -31,34 +31,46 @@ from pathlib import Path
 
 
 def add_parsers(sub) -> None:
-    from appliance.cli import density, finite, not_negative, positive, seed
+    from appliance.cli import LONGEST_RUN_H, density, numbers, seed, within
+    from appliance.service.config import FRAME_INTERVAL_RANGE_S
+    from appliance.sim.load_test import AREA_RANGE_CM2
+    from appliance.sim.mechanics import DEFAULT_PARAMETERS, TEMPERATURE_RANGE_C
+
+    hours = within(0.0, LONGEST_RUN_H, "h", above=True)
+    interval = within(*FRAME_INTERVAL_RANGE_S, "s")         # the configuration's frame_interval_s, which it overrides
 
     p = sub.add_parser("sim", help="simulate the sensor mat (the virtual bed)")
     sim = p.add_subparsers(dest="sim_command", required=True, metavar="SIM_COMMAND")
     p = sim.add_parser("load-test", help="a centred square load stepped through pressures, as thesis chapter 6")
     p.add_argument("--layout", default="grid-4x4", help="layout name or .toml file (default grid-4x4)")
-    p.add_argument("--area-cm2", required=True, type=positive, help="load area, 1 to 36 cm2")
+    p.add_argument("--area-cm2", required=True, type=within(*AREA_RANGE_CM2, "cm2"), help="load area, 1 to 36 cm2")
     p.add_argument("--pressures", required=True, metavar="P1,P2,...",
-                   help="pressures in kPa, applied in this order (the mat remembers the previous one)")
+                   type=numbers(within(0.0, DEFAULT_PARAMETERS.max_pressure_kpa, "kPa")),
+                   help="pressures in kPa up to the mat model's validity limit, applied in this order (the mat "
+                        "remembers the previous one)")
     p.add_argument("--density", type=density, default=1.0, help="FEM mesh density")
-    p.add_argument("--temperature-c", type=finite, default=20.0, help="liquid temperature at the start")
-    p.add_argument("--drift-c-per-step", type=finite, default=None,
-                   help="warming of the liquid between steps, C (default: the thesis's, fitted; 0 for none)")
+    low_c, high_c = TEMPERATURE_RANGE_C
+    p.add_argument("--temperature-c", type=within(low_c, high_c, "C"), default=20.0,
+                   help="liquid temperature at the start")
+    p.add_argument("--drift-c-per-step", type=within(low_c - high_c, high_c - low_c, "C"), default=None,
+                   help="warming of the liquid between steps, C (default: the thesis's, fitted; 0 for none); a step "
+                        "cannot cross more than the mat model's whole temperature range")
     p.set_defaults(run=_load_test)
 
     p = sim.add_parser("run", help="replay a scenario through the whole monitor on a simulated clock, events to "
                                    "JSON lines")
     p.add_argument("--scenario", required=True, help="a built-in scenario's name or a scenario .toml file")
-    p.add_argument("--hours", required=True, type=positive, help="simulated hours to run (within the scenario)")
+    p.add_argument("--hours", required=True, type=hours, help="simulated hours to run (within the scenario)")
     p.add_argument("--out", required=True, type=Path, help="the event record (JSON lines)")
-    p.add_argument("--interval", type=positive, default=60.0,
+    p.add_argument("--interval", type=interval, default=60.0,
                    help="simulated seconds between frames (default 60: one map a minute)")
     p.add_argument("--config", type=Path, default=None,
                    help="the monitor's TOML configuration (alert settings, layout); its source must be virtual")
     p.add_argument("--layout", default=None, help="mat layout (default grid-16x32)")
     p.add_argument("--seed", type=seed, default=None, help="seed of the simulated noise")
-    p.add_argument("--acknowledge-after-min", type=not_negative, default=None, metavar="M",
-                   help="a simulated nurse acknowledges each alarm M minutes after it is raised")
+    p.add_argument("--acknowledge-after-min", type=within(0.0, 24 * 60, "min"), default=None, metavar="M",
+                   help="a simulated nurse acknowledges each alarm M minutes after it is raised (a day at most: "
+                        "an alarm left longer was missed, not answered)")
     p.add_argument("--data-dir", type=Path, default=None,
                    help="where the run's store is kept (default: a fresh temporary folder, removed afterwards)")
     p.add_argument("--cache-dir", type=Path, default=None, help="where built models are kept")
@@ -67,9 +79,9 @@ def add_parsers(sub) -> None:
     p = sim.add_parser("replay", help="a scenario's true maps straight into the alert layer (no mat, no "
                                       "reconstruction), events to JSON lines")
     p.add_argument("--scenario", required=True, help="a built-in scenario's name or a scenario .toml file")
-    p.add_argument("--hours", type=positive, default=None, help="simulated hours to replay (default: all of it)")
+    p.add_argument("--hours", type=hours, default=None, help="simulated hours to replay (default: all of it)")
     p.add_argument("--out", required=True, type=Path, help="the event record (JSON lines)")
-    p.add_argument("--interval", type=positive, default=60.0, help="simulated seconds between maps (default 60)")
+    p.add_argument("--interval", type=interval, default=60.0, help="simulated seconds between maps (default 60)")
     p.add_argument("--config", type=Path, default=None, help="the monitor's TOML configuration (alert settings)")
     p.add_argument("--layout", default=None, help="mat layout whose pixels the maps are averaged over "
                                                   "(default grid-16x32)")
@@ -81,16 +93,10 @@ def add_parsers(sub) -> None:
 
 
 def _load_test(args) -> int:
-    from appliance.errors import ModelInputInvalid
     from appliance.sim.load_test import THESIS_DRIFT_C_PER_STEP, load_test
 
-    try:
-        pressures = [float(text) for text in args.pressures.split(",")]
-    except ValueError:
-        raise ModelInputInvalid(f"--pressures takes numbers (kPa) separated by commas, got "
-                                f"{args.pressures!r}") from None
     drift = THESIS_DRIFT_C_PER_STEP if args.drift_c_per_step is None else args.drift_c_per_step
-    rows = load_test(args.area_cm2, pressures, layout=args.layout, density=args.density,
+    rows = load_test(args.area_cm2, args.pressures, layout=args.layout, density=args.density,
                      temperature_c=args.temperature_c, drift_c_per_step=drift)
     lines = ["pressure_kpa,visibility,dv_over_v,deformation_mm"]
     lines += [f"{r.pressure_kpa:g},{r.visibility:.6g},{r.dv_over_v:.6g},{r.deformation_mm:.6g}" for r in rows]

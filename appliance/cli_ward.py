@@ -14,10 +14,13 @@ import signal
 from pathlib import Path
 
 DEFAULT_THREADS = 16        # a few station screens and their event streams
+MAX_THREADS = 1000          # far more screens than a ward has
 DEFAULT_STATION = "ward-station"
 
 
 def add_parsers(sub) -> None:
+    from appliance.cli import whole_within
+
     p = sub.add_parser("ward", help="run the ward station: every bed's state and alarms from the MQTT broker")
     p.add_argument("--config", type=Path, required=True, help="the station's TOML configuration ([broker], "
                                                              "[station])")
@@ -27,7 +30,7 @@ def add_parsers(sub) -> None:
                         "or ~/.local/share/appliance/ward)")
     p.add_argument("--listen", metavar="[HOST:]PORT", default="8090", help="the screen's address (default "
                                                                            "127.0.0.1:8090)")
-    p.add_argument("--threads", type=int, default=DEFAULT_THREADS,
+    p.add_argument("--threads", type=whole_within(1, MAX_THREADS), default=DEFAULT_THREADS,
                    help=f"server threads, one per open ward screen (default {DEFAULT_THREADS})")
     p.add_argument("--plain-http", action="store_true", help="session cookies without the Secure flag")
     p.add_argument("--behind-proxy", action="store_true",
@@ -43,8 +46,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--station", action="append", default=[], metavar="USER",
                    help=f"a ward station's user name; repeatable (default {DEFAULT_STATION})")
     p.add_argument("--topic-prefix", default="appliance", help="the beds' topic_prefix (default appliance)")
-    p.add_argument("--listener", type=int, metavar="PORT", help="also open this port (default: the broker's own "
-                                                                "listeners)")
+    p.add_argument("--listener", type=whole_within(1, 65535), metavar="PORT",
+                   help="also open this port (default: the broker's own listeners)")
     p.add_argument("--certfile", type=Path, help="--listener with TLS: the broker's certificate")
     p.add_argument("--keyfile", type=Path, help="--listener with TLS: the certificate's key")
     p.add_argument("--persistence-location", type=Path, metavar="DIR",
@@ -66,8 +69,6 @@ def _ward(args) -> int:
 
     config = load_ward_config(args.config)
     host, port = listen_address(args.listen, "--listen")
-    if not 1 <= args.threads <= 1000:
-        raise ConfigError(f"--threads must be 1-1000, got {args.threads}")
     if args.data_dir is not None and args.data_dir.exists() and not args.data_dir.is_dir():
         raise ConfigError(f"--data-dir {args.data_dir} is a file, not a folder")
     if args.check_config:

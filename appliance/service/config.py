@@ -74,6 +74,10 @@ from appliance.drivers.profile import board_profile
 from appliance.errors import ConfigError, CurveInvalid
 
 SOURCES = ("virtual", "emulated", "hardware")
+FRAME_INTERVAL_RANGE_S = (0.05, 3600.0)
+"""Seconds between frames, here and for the command line's --interval, which overrides it."""
+SPEED_RANGE = (0.0, 1e6)
+"""The virtual bed's scene seconds per wall-clock second, here and for --speed (0: as fast as it goes)."""
 
 
 @dataclass(frozen=True)
@@ -189,13 +193,13 @@ def config_from_mapping(data: dict, base: Path | None = None) -> MonitorConfig:
     return MonitorConfig(
         layout=_text(monitor, "layout", "grid-16x32", "[monitor]"),
         source=source,
-        frame_interval_s=_number(monitor, "frame_interval_s", 1.0, "[monitor]", low=0.05, high=3600.0),
+        frame_interval_s=_number(monitor, "frame_interval_s", 1.0, "[monitor]", *FRAME_INTERVAL_RANGE_S),
         bed_id=_bed_id(monitor),
         data_dir=_path(monitor, "data_dir", base),
         calibration=_path(monitor, "calibration", base),
         cache_dir=_path(monitor, "cache_dir", base),
         scenario=_scenario(virtual, base),
-        speed=_number(virtual, "speed", 1.0, "[virtual]", low=0.0, high=1e6),
+        speed=_number(virtual, "speed", 1.0, "[virtual]", *SPEED_RANGE),
         seed=int(_number(virtual, "seed", 0, "[virtual]", low=0, high=2**32 - 1, integer=True)),
         board=board,
         alerts=_alerts(_section(data, "alerts")),
@@ -352,7 +356,7 @@ def _choice(table: dict, key: str, allowed: tuple, default: str, where: str) -> 
     return value
 
 
-def _number(table: dict, key: str, default: float, where: str, *, low: float, high: float,
+def _number(table: dict, key: str, default: float, where: str, low: float, high: float, *,
             integer: bool = False) -> float:
     value = table.get(key, default)
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
