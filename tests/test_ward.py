@@ -7,6 +7,7 @@ import statistics
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import paho.mqtt.client as mqtt
@@ -56,6 +57,40 @@ def publisher(broker):
     p.close()
 
 
+class Confirmations:
+    """Every bed's confirm topic, as the beds hear it: each confirmation as (bed_id, payload, what ``look()``
+    returned as it came, if a test set ``look``)."""
+
+    def __init__(self, port):
+        self.received, self.look = [], None
+        subscribed = threading.Event()
+        self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="test-confirmations")
+        self.client.on_subscribe = lambda *args: subscribed.set()
+        self.client.on_message = self._take
+        self.client.connect("127.0.0.1", port)
+        self.client.subscribe("appliance/+/confirm", qos=1)
+        self.client.loop_start()
+        assert subscribed.wait(5), "no subscription to the confirmations"
+
+    def _take(self, client, userdata, message):
+        self.received.append((message.topic.split("/")[1], json.loads(message.payload),
+                              None if self.look is None else self.look()))
+
+    def seqs(self, bed_id):
+        return [body["seq"] for bed_id_, body, _ in self.received if bed_id_ == bed_id]
+
+    def close(self):
+        self.client.disconnect()
+        self.client.loop_stop()
+
+
+@pytest.fixture
+def confirmations(broker):
+    c = Confirmations(broker.port)
+    yield c
+    c.close()
+
+
 def bed(station, bed_id):
     """The station's view of ``bed_id``, or None while it knows nothing of it."""
     return next((b for b in station.beds() if b["bed_id"] == bed_id), None)
@@ -87,6 +122,7 @@ def test_a_beds_summary_and_alarms_reach_the_station_in_order(station, beds):
     seen = bed(station, "bed7")
     assert [a["alarm_id"] for a in seen["alarms"]] == list(range(2, 22)) + [1]   # high first, then by id
     assert seen["highest_priority"] == "high"
+    assert wait_until(lambda: bed7.confirmed == 20, 5)                        # and the bed heard each confirmed
 
 
 def test_two_beds_are_kept_apart(station, beds):
@@ -102,45 +138,62 @@ def test_two_beds_are_kept_apart(station, beds):
         (1, "high", "pressure:heel-left"), (2, "medium", "pressure:sacrum")]
 
 
-def test_a_repeated_seq_is_applied_once(station, publisher):
+def test_a_repeated_seq_is_applied_once_and_confirmed_each_time(station, publisher, confirmations):
     for _ in range(4):     # resent while unconfirmed, again after the bed's restart, and redelivered by the broker
         publisher.event("bed7", alarm(3), seq=1)
-    assert wait_until(lambda: (bed(station, "bed7") or {}).get("duplicates") == 3, 5)
-    assert [e["seq"] for e in bed(station, "bed7")["events"]] == [1] and list(open_alarms(station, "bed7")) == [3]
+    assert wait_until(lambda: confirmations.seqs("bed7") == [1, 1, 1, 1], 5)
+    seen = bed(station, "bed7")
+    assert seen["duplicates"] == 3 and [e["seq"] for e in seen["events"]] == [1]
+    assert list(open_alarms(station, "bed7")) == [3]
     publisher.event("bed7", alarm(3, kind="acknowledged"), seq=2)
-    assert wait_until(lambda: len(bed(station, "bed7")["events"]) == 2, 5)
+    assert wait_until(lambda: confirmations.seqs("bed7")[-1:] == [2], 5)
     assert [e["seq"] for e in bed(station, "bed7")["events"]] == [1, 2] and bed(station, "bed7")["duplicates"] == 3
+    assert {(bed_id, body["station"]) for bed_id, body, _ in confirmations.received} == {("bed7", "test-station")}
+    assert wait_until(lambda: station.confirmations_sent == 5, 5)
 
 
-def test_an_older_event_never_undoes_a_newer_state_of_its_alarm(station, publisher):
+def test_a_confirmation_comes_only_once_the_station_shows_the_event(station, publisher, confirmations):
+    confirmations.look = lambda: open_alarms(station, "bed7")
+    for i in range(1, 21):
+        publisher.event("bed7", alarm(i))
+    assert wait_until(lambda: confirmations.seqs("bed7") == list(range(1, 21)), 5)
+    assert all(body["seq"] in shown for _, body, shown in confirmations.received)     # alarm i is seq i
+    assert all(isinstance(body["confirmed_at"], float) for _, body, _ in confirmations.received)
+
+
+def test_an_older_event_never_undoes_a_newer_state_of_its_alarm(station, publisher, confirmations):
     publisher.event("bed7", alarm(1, priority="low"), seq=1)
     publisher.event("bed7", alarm(1, kind="escalated", priority="high"), seq=3)
     publisher.event("bed7", alarm(1, kind="escalated", priority="medium"), seq=2)   # resent, late: not back to it
     publisher.event("bed7", alarm(2, kind="ended"), seq=6)                           # alarm 2 ended...
     publisher.event("bed7", alarm(2), seq=5)                                         # ...before its raise came
     publisher.event("bed7", alarm(4), seq=7)                                         # positive control
-    assert wait_until(lambda: 4 in open_alarms(station, "bed7"), 5)
+    assert wait_until(lambda: confirmations.seqs("bed7") == [1, 3, 2, 6, 5, 7], 5)
     assert {i: a["priority"] for i, a in open_alarms(station, "bed7").items()} == {1: "high", 4: "high"}
 
 
-def test_an_event_the_summary_already_holds_is_not_applied_over_it(station, publisher):
+def test_an_event_the_summary_already_holds_is_not_applied_over_it(station, publisher, confirmations):
     publisher.send("appliance/bed7/summary", summary("bed7", time_s=100.0, seq=10, alarms=[(2, "low")]), qos=0)
     assert wait_until(lambda: (bed(station, "bed7") or {}).get("summary") is not None, 5)
     publisher.event("bed7", alarm(7, time_s=500.0), seq=8)    # over by seq 10: a clock step made its time look later
     publisher.event("bed7", alarm(3, time_s=50.0), seq=11)    # after the summary though the clock was set back
-    assert wait_until(lambda: len(bed(station, "bed7")["events"]) == 2, 5)
+    assert wait_until(lambda: confirmations.seqs("bed7") == [8, 11], 5)
     assert sorted(open_alarms(station, "bed7")) == [2, 3]
     assert [e["seq"] for e in bed(station, "bed7")["events"]] == [8, 11]                # both on the event list
 
 
-def test_alarm_events_sent_while_the_station_was_away_are_delivered_when_it_is_back(broker, publisher):
-    first = WardStation("127.0.0.1", broker.port, client_id="returning-station")
-    assert first.wait_subscribed(10)
-    first.close()
-    publisher.event("bed7", alarm(5))
+def test_events_sent_while_the_station_was_away_are_confirmed_when_it_is_back(broker, publisher, confirmations):
+    """The broker holds them for the station's persistent session; a ward link would resend them too."""
+    with WardStation("127.0.0.1", broker.port, client_id="returning-station") as first:
+        assert first.wait_subscribed(10)
+        publisher.event("bed7", alarm(1))
+        assert wait_until(lambda: confirmations.seqs("bed7") == [1], 5)
+    for i in range(2, 6):
+        publisher.event("bed7", alarm(i))
     with WardStation("127.0.0.1", broker.port, client_id="returning-station") as again:
-        assert wait_until(lambda: bed(again, "bed7") is not None and bed(again, "bed7")["events"], 5)
-        assert [a["alarm_id"] for a in bed(again, "bed7")["alarms"]] == [5]
+        assert wait_until(lambda: confirmations.seqs("bed7") == [1, 2, 3, 4, 5], 5)
+        assert sorted(open_alarms(again, "bed7")) == [2, 3, 4, 5]
+        assert {body["station"] for _, body, _ in confirmations.received} == {"returning-station"}
 
 
 # Offline.
@@ -244,7 +297,7 @@ def test_a_bed_that_stops_summarising_goes_stale(broker, beds):
 
 # Bad payloads and the ward's order.
 
-def test_garbage_is_counted_and_the_station_keeps_working(station, publisher, beds):
+def test_garbage_is_counted_never_confirmed_and_the_station_keeps_working(station, publisher, beds, confirmations):
     event = as_sent(alarm(), "bed3", seq=2)
     garbage = [("appliance/bed3/summary", b"\xff\xfe"), ("appliance/bed3/summary", "not json"),
                ("appliance/bed3/summary", [1, 2]), ("appliance/bed3/summary", {**summary("bed3"), "time_s": "soon"}),
@@ -269,6 +322,8 @@ def test_garbage_is_counted_and_the_station_keeps_working(station, publisher, be
     bed3.summarise(summary("bed3", time_s=5.0))
     assert wait_until(lambda: (bed(station, "bed3") or {}).get("summary") is not None
                       and bed(station, "bed3")["events"], 5)
+    assert wait_until(lambda: confirmations.received, 5)
+    assert set(confirmations.seqs("bed3")) == {1}             # a confirmation of garbage would have come first
     assert station.bad_payloads == len(garbage)
 
 
@@ -335,6 +390,7 @@ def test_the_daemon_publishes_summaries_the_station_sees(small_mat_calibration, 
             time.sleep(0.06)
             assert daemon.maps < 100, "no pressure alarm reached the station"
         assert wait_until(lambda: bed(station, "ward-bed")["summary"]["status"]["maps"] == daemon.maps, 2)
+        assert wait_until(lambda: notifier.status()["unconfirmed"] == 0, 5)     # every event confirmed to the bed
     finally:
         daemon.close()
     seen = bed(station, "ward-bed")

@@ -12,10 +12,18 @@ subscribes to them all for every bed under one topic prefix:
   published while the station was briefly away are held by the broker and
   delivered when it is back.
 
-Every event carries its ``bed_id`` and ``seq``: numbered per bed from 1, one
-more per event, never reused, the same in a resend. Resends and redeliveries
-can come in any order and any number of times, so the station applies each
-(bed, ``seq``) once.
+A broker's PUBACK only says the broker has an event, so a bed keeps each one
+until the station confirms it, and resends it until then. Every event carries
+its ``bed_id`` and ``seq``: numbered per bed from 1, one more per event, never
+reused, the same in a resend. Resends and redeliveries can come in any order
+and any number of times, so the station applies each (bed, ``seq``) once, and
+for each message of an event it has taken (a repeat too: the bed may have lost
+the first confirmation), once the screen's state has it, publishes::
+
+    <prefix>/<bed_id>/confirm   QoS 1, not retained
+                                {seq, station: <client id>, confirmed_at: <unix time>}
+
+A payload refused as bad is never confirmed.
 
 A summary carries the bed's whole set of open alarms and the highest ``seq``
 the bed had given when it was made; the alarms reflect every event up to it.
@@ -142,11 +150,12 @@ class WardStation:
     """Subscribes to every bed under ``topic_prefix`` on the broker at ``host``:``port`` and keeps their state.
 
     ``client_id`` names the persistent session, so it must stay the same across
-    restarts and differ between stations. ``tls`` takes paho's ``tls_set``
-    arguments (``ca_certs``, ``certfile``, ``keyfile``). ``stale_after_s``
-    defaults to three summary intervals plus ``STALE_MARGIN_S``. Counters:
-    ``messages``, ``bad_payloads``; ``version`` grows with every message taken, so a screen can tell that
-    something changed without comparing the beds.
+    restarts and differ between stations, and it names the station in its
+    confirmations. ``tls`` takes paho's ``tls_set`` arguments (``ca_certs``,
+    ``certfile``, ``keyfile``). ``stale_after_s`` defaults to three summary
+    intervals plus ``STALE_MARGIN_S``. Counters: ``messages``, ``bad_payloads``,
+    ``confirmations_sent``; ``version`` grows with every message taken, so a
+    screen can tell that something changed without comparing the beds.
     """
 
     def __init__(self, host: str, port: int, *, topic_prefix: str = "appliance", keepalive_s: int = 30,
@@ -158,13 +167,12 @@ class WardStation:
         self.stale_after_s = 3 * summary_interval_s + STALE_MARGIN_S if stale_after_s is None else stale_after_s
         self.subscriptions = [(f"{topic_prefix}/+/status", 0), (f"{topic_prefix}/+/summary", 0),
                               *((f"{topic_prefix}/+/{kind}", 1) for kind in EVENT_TYPES)]
-        self.messages = self.bad_payloads = self.version = 0
+        self.client_id = client_id or f"ward-station-{socket.gethostname()}"
+        self.messages = self.bad_payloads = self.confirmations_sent = self.version = 0
         self._beds: dict[str, BedState] = {}
         self._lock = threading.Lock()
         self._subscribed = threading.Event()
-        self._client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2,
-                                   client_id=client_id or f"ward-station-{socket.gethostname()}",
-                                   clean_session=False)
+        self._client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=self.client_id, clean_session=False)
         if username is not None:
             self._client.username_pw_set(username, password)
         if tls is not None:
@@ -274,6 +282,18 @@ class WardStation:
                 bed.take_summary(body, now)
             else:
                 bed.take_event({**body, "received_at": now})
+        if kind in EVENT_TYPES:
+            self._confirm(bed_id, body["seq"])
+
+    def _confirm(self, bed_id: str, seq: int) -> None:
+        """Tell the bed its event ``seq`` is on the screen; if this is lost the bed resends and is told again."""
+        payload = json.dumps({"seq": seq, "station": self.client_id, "confirmed_at": time.time()})
+        info = self._client.publish(f"{self.topic_prefix}/{bed_id}/confirm", payload, qos=1)
+        if info.rc != mqtt.MQTT_ERR_SUCCESS:
+            log.warning("ward: confirmation of %s seq %d not sent: %s", bed_id, seq, mqtt.error_string(info.rc))
+            return
+        with self._lock:
+            self.confirmations_sent += 1
 
     def _parse_topic(self, topic: str) -> tuple[str, str]:
         parts = topic.removeprefix(self.topic_prefix + "/").split("/")
