@@ -104,7 +104,7 @@ def open_alarms(station, bed_id):
 
 def test_a_beds_summary_and_alarms_reach_the_station_in_order(station, beds):
     """Every alarm reaches the station, in order of priority; how fast is benchmarks/ward_load.py's (median
-    138 ms against the 2 s required), not a test's, which a busy machine would fail."""
+    137 ms against the 2 s required), not a test's, which a busy machine would fail."""
     bed7 = beds("bed7")
     bed7.summarise(summary("bed7", alarms=[(1, "medium")]))
     assert wait_until(lambda: (bed(station, "bed7") or {}).get("summary") is not None, 5)
