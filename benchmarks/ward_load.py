@@ -9,15 +9,16 @@ Four kinds of process, each timed on its own (CPU from /proc/<pid>/stat):
 * **The ward station**, ``appliance ward --config ward.toml --data-dir DIR --listen 127.0.0.1:PORT
   --plain-http``: the ``WardStation`` and its web view (waitress), with one nurse account made
   beforehand (``webui.users.UserStore``), keep-alive 5 s to the broker, summary interval 1 s.
-* **The load generator**, one process driving 50 production publishers (``MqttNotifier``, one MQTT
-  connection each, with its last will, keep-alive 5 s). Each bed takes a frame a second, at its own
-  phase within the second: it sends a summary in ``ward_summary()``'s format (4 to 8 regions with
+* **The load generator**, one process driving 50 production publishers (``WardLink``, each with its
+  outbox and one MQTT connection, with its last will, keep-alive 5 s). Each bed takes a frame a second,
+  at its own phase within the second: it sends a summary in ``ward_summary()``'s format (4 to 8 regions with
   zone, peak and dose, the turn countdown, its open alarms, the frame counts) through ``summarise()``,
   and, as the daemon does, notifies its new alarm events (QoS 1) in the same frame before the summary.
   Each bed raises a new alarm every 15 s on average (none in the first 3 s and the last 10 s), which a
   nurse acknowledges 8 to 20 s later (in two of three) and which ends 12 to 40 s after it was raised.
-  The wall time of every ``notify()`` is logged.
-* **Fifteen probe beds, one process each** (the same notifier, summaries only), stopped in turn from 10 %
+  The wall time of every ``notify()`` is logged. After the frames, the links are given up to 10 s for the
+  station's last confirmations; what is still unconfirmed then is counted.
+* **Fifteen probe beds, one process each** (the same ward link, summaries only), stopped in turn from 10 %
   to 80 % of the run: five frozen (SIGSTOP, a hung monitor that keeps its connection), five killed
   (SIGKILL: the kernel closes its socket), five closed cleanly (SIGTERM: ``close()`` publishes
   "offline").
@@ -74,6 +75,7 @@ QUIET_END_S = 10.0               # no new alarm in the last seconds, so every on
 ACK_AFTER_S = (8.0, 20.0)
 END_AFTER_S = (12.0, 40.0)
 STUCK_AFTER_S = 3.0
+CONFIRM_WAIT_S = 10.0            # for the last events' confirmations, after the frames
 CPU_WINDOW_S = 60.0
 PROBES_PER_KIND = 5
 STOPPING = (0.1, 0.8)            # the probe beds are stopped in turn across this share of the run
@@ -156,20 +158,21 @@ class EmulatedBed:
                 "status": {"maps": self.maps, "faults": 0}}
 
 
-def notifier(port: int, bed_id: str, folder: Path):
-    from appliance.alerts.notifiers import MqttNotifier
+def ward_link(port: int, bed_id: str, folder: Path):
+    from appliance.alerts.wardlink import WardLink
+    from appliance.store.outbox import Outbox
 
-    return MqttNotifier("127.0.0.1", port, bed_id, client_id=f"{bed_id}-monitor", keepalive_s=BED_KEEPALIVE_S,
-                        summary_interval_s=SUMMARY_INTERVAL_S, dead_letter_path=folder / f"{bed_id}.dead.jsonl")
+    return WardLink("127.0.0.1", port, bed_id, Outbox(folder / f"{bed_id}-outbox.db"), client_id=f"{bed_id}-monitor",
+                    keepalive_s=BED_KEEPALIVE_S, summary_interval_s=SUMMARY_INTERVAL_S)
 
 
 def generate(port: int, beds: int, duration_s: float, folder: Path, seed: int) -> None:
-    """The load generator: ``beds`` notifiers at 1 frame/s for ``duration_s``; logs to ``folder``."""
+    """The load generator: ``beds`` ward links at 1 frame/s for ``duration_s``; logs to ``folder``."""
     rng = random.Random(seed)
     names = [f"bed-{k:02d}" for k in range(1, beds + 1)]
     emulated = [EmulatedBed(name, random.Random(rng.random()), alarms=True) for name in names]
-    notifiers = [notifier(port, name, folder) for name in names]
-    wait_for(lambda: all(n._client.is_connected() for n in notifiers), 30, "connection of every bed")
+    links = [ward_link(port, name, folder) for name in names]
+    wait_for(lambda: all(link.status()["connected"] for link in links), 30, "connection of every bed")
     log = (folder / "events.jsonl").open("w", encoding="utf-8")
     print("ready", flush=True)
     start = time.monotonic()
@@ -186,33 +189,38 @@ def generate(port: int, beds: int, duration_s: float, folder: Path, seed: int) -
             late.append(-delay)
         for event in emulated[k].frame(at, raise_alarms=at < duration_s - QUIET_END_S):
             published_at = time.time()
-            notifiers[k].notify(event)
+            links[k].notify(event)
             log.write(json.dumps({"bed_id": names[k], "alarm_id": event.alarm_id, "kind": event.kind,
                                   "time_s": event.time_s, "published_at": published_at}) + "\n")
-        notifiers[k].summarise(emulated[k].summary())
+        links[k].summarise(emulated[k].summary())
         frames += 1
         due[k] = (at + FRAME_S, k)
     log.close()
     print("done", flush=True)
-    closing = [threading.Thread(target=n.close, kwargs={"timeout_s": 5.0}) for n in notifiers]   # all at once
+    deadline = time.monotonic() + CONFIRM_WAIT_S
+    while any(link.status()["unconfirmed"] for link in links) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    counts = {"events_published": sum(link.published for link in links),
+              "events_confirmed": sum(link.confirmed for link in links),
+              "events_unconfirmed": sum(link.status()["unconfirmed"] for link in links),
+              "confirm_latencies_s": [t for link in links for t in link.confirm_latencies_s]}
+    closing = [threading.Thread(target=link.close, kwargs={"timeout_s": 5.0}) for link in links]   # all at once
     for thread in closing:
         thread.start()
     for thread in closing:
         thread.join()
     (folder / "generator.json").write_text(json.dumps({
         "frames": frames, "late_frames": sum(d > 0.1 for d in late), "worst_lateness_s": max(late, default=0.0),
-        "summaries_sent": sum(n.summaries_sent for n in notifiers),
-        "summaries_skipped": sum(n.summaries_skipped for n in notifiers),
-        "events_delivered": sum(n.delivered for n in notifiers),
-        "events_dead_lettered": sum(n.dead_lettered for n in notifiers)}))
+        "summaries_sent": sum(link.summaries_sent for link in links),
+        "summaries_skipped": sum(link.summaries_skipped for link in links), **counts}))
 
 
 def probe_bed(port: int, bed_id: str, folder: Path) -> None:
     """One bed in its own process, summaries only, until SIGTERM (then a clean close), SIGKILL or SIGSTOP."""
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    bed, out = EmulatedBed(bed_id, random.Random(bed_id), alarms=False), notifier(port, bed_id, folder)
-    wait_for(out._client.is_connected, 30, f"connection of {bed_id}")
+    bed, out = EmulatedBed(bed_id, random.Random(bed_id), alarms=False), ward_link(port, bed_id, folder)
+    wait_for(lambda: out.status()["connected"], 30, f"connection of {bed_id}")
     print("ready", flush=True)
     start, frames = time.monotonic(), 0
     while not stop.wait(max(0.0, start + frames * FRAME_S - time.monotonic())):
@@ -633,7 +641,7 @@ def figures(beds, duration_s, use_stand_in, view: WardView, events, generated, c
              ("messages/received", "messages/sent", "publish/messages/sent") if key in counters0 and key in counters1}
     # Mosquitto 2.0.11 leaves retained QoS 0 messages (the summaries) out of publish/messages/received: count
     # what the beds sent instead (every summary and event; the probes' summaries and the statuses are few).
-    rates["publish/in (beds' own counts)"] = (generated["summaries_sent"] + generated["events_delivered"]) / elapsed
+    rates["publish/in (beds' own counts)"] = (generated["summaries_sent"] + generated["events_published"]) / elapsed
     offline = {bed: {"kind": kind, **view.offline_after(bed, at)} for bed, (kind, at) in stopped.items()}
     return {"beds": beds, "duration_s": duration_s, "station": "stand-in" if use_stand_in else "appliance ward",
             "bed_keepalive_s": BED_KEEPALIVE_S, "window_s": elapsed,
@@ -691,6 +699,8 @@ def report(result: dict, command: str) -> str:
             ["acknowledgement: notify() to the ward view's stream", stats_ms(result["ack_latencies_s"])]]
     if result["station_latencies_s"]:
         rows.append(["new alarm: notify() to the station's receipt", stats_ms(result["station_latencies_s"])])
+    rows.append(["any alarm change: notify() to the station's confirmation at the bed",
+                 stats_ms(result["generator"]["confirm_latencies_s"])])
     latency_table = "\n".join(["| path | median ms | p95 ms | max ms | n |", "|---|---|---|---|---|"]
                               + [f"| {path} | {cells} |" for path, cells in rows])
     stream = result["stream"]
@@ -719,10 +729,11 @@ def report(result: dict, command: str) -> str:
                          f"{100 * cpu['client']:.1f}", rate("publish/in (beds' own counts)"),
                          rate("publish/messages/sent"), rate("messages/received"), rate("messages/sent")]])
     generator_table = table(["frames", "frames > 100 ms late", "worst lateness ms", "summaries sent",
-                             "summaries skipped", "events delivered (PUBACK)", "events dead-lettered"],
+                             "summaries skipped", "events published (resends too)", "confirmed by the station",
+                             "unconfirmed at the end"],
                             [[gen["frames"], gen["late_frames"], f"{1000 * gen['worst_lateness_s']:.0f}",
-                              gen["summaries_sent"], gen["summaries_skipped"], gen["events_delivered"],
-                              gen["events_dead_lettered"]]])
+                              gen["summaries_sent"], gen["summaries_skipped"], gen["events_published"],
+                              gen["events_confirmed"], gen["events_unconfirmed"]]])
     windows = result.get("cpu_windows", [])
     station_trend = (f"The station's CPU went from {100 * windows[0]['station']:.1f} % in the first window to "
                      f"{100 * max(w['station'] for w in windows):.1f} % at most, by window of the run:"
@@ -767,7 +778,7 @@ max), against a keep-alive of {result['bed_keepalive_s']} s, the least a bed may
 ## Load
 
 CPU as % of one core over the measured window. PUBLISH out and MQTT packets from Mosquitto's `$SYS`
-counters; PUBLISH in from the beds' own counts (summaries sent and events acknowledged), since Mosquitto
+counters; PUBLISH in from the beds' own counts (summaries and events sent, resends too), since Mosquitto
 2.0.11 leaves retained QoS 0 messages out of its received count.
 
 {load_table}

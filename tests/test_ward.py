@@ -1,5 +1,5 @@
-"""The ward station against a real Mosquitto broker (tests/mqtt_broker.py), with beds as MqttNotifiers, raw
-paho clients, a separate process and a small monitor daemon."""
+"""The ward station against a real Mosquitto broker (tests/mqtt_broker.py), with beds as ward links, raw paho
+clients, a separate process and a small monitor daemon."""
 
 import json
 import signal
@@ -7,14 +7,15 @@ import statistics
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import paho.mqtt.client as mqtt
 import pytest
 from mqtt_broker import free_port, subscribed_station, wait_until
-from ward_payloads import alarm, summary
+from ward_payloads import alarm, as_sent, summary
 
-from appliance.alerts.notifiers import MqttNotifier
+from appliance.alerts.wardlink import WardLink
 from appliance.core.layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.service.config import config_from_mapping
@@ -22,11 +23,13 @@ from appliance.service.daemon import MonitorDaemon
 from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.loads import square_load_scene
 from appliance.store import Store
+from appliance.store.outbox import Outbox
 from appliance.ward.station import BedState, WardStation
 
 
 class Publisher:
-    """A raw paho client, to publish what no notifier would (repeats, garbage, other beds' summaries)."""
+    """A raw paho client, to publish what no ward link would (resends out of order, garbage, other beds'
+    summaries)."""
 
     def __init__(self, port):
         self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="test-publisher")
@@ -37,6 +40,10 @@ class Publisher:
         info = self.client.publish(topic, payload if isinstance(payload, (str, bytes)) else json.dumps(payload),
                                    qos=qos, retain=retain)
         info.wait_for_publish(5)
+
+    def event(self, bed_id, event, seq=None):
+        """``event`` on ``bed_id``'s topic as its ward link would send it, numbered ``seq`` (``as_sent``)."""
+        self.send(f"appliance/{bed_id}/{event.type}", as_sent(event, bed_id, seq))
 
     def close(self):
         self.client.disconnect()
@@ -50,16 +57,54 @@ def publisher(broker):
     p.close()
 
 
+class Confirmations:
+    """Every bed's confirm topic, as the beds hear it: each confirmation as (bed_id, payload, what ``look()``
+    returned as it came, if a test set ``look``)."""
+
+    def __init__(self, port):
+        self.received, self.look = [], None
+        subscribed = threading.Event()
+        self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="test-confirmations")
+        self.client.on_subscribe = lambda *args: subscribed.set()
+        self.client.on_message = self._take
+        self.client.connect("127.0.0.1", port)
+        self.client.subscribe("appliance/+/confirm", qos=1)
+        self.client.loop_start()
+        assert subscribed.wait(5), "no subscription to the confirmations"
+
+    def _take(self, client, userdata, message):
+        self.received.append((message.topic.split("/")[1], json.loads(message.payload),
+                              None if self.look is None else self.look()))
+
+    def seqs(self, bed_id):
+        return [body["seq"] for bed_id_, body, _ in self.received if bed_id_ == bed_id]
+
+    def close(self):
+        self.client.disconnect()
+        self.client.loop_stop()
+
+
+@pytest.fixture
+def confirmations(broker):
+    c = Confirmations(broker.port)
+    yield c
+    c.close()
+
+
 def bed(station, bed_id):
     """The station's view of ``bed_id``, or None while it knows nothing of it."""
     return next((b for b in station.beds() if b["bed_id"] == bed_id), None)
+
+
+def open_alarms(station, bed_id):
+    return {a["alarm_id"]: a for a in (bed(station, bed_id) or {}).get("alarms", [])}
 
 
 # What reaches the station.
 
 def test_a_beds_summary_and_alarms_reach_the_station_in_order(station, beds):
     """Every alarm reaches the station, in order of priority; how fast is benchmarks/ward_load.py's (median
-    138 ms against the 2 s required), not a test's, which a busy machine would fail."""
+    137 ms against the 2 s required), not a test's, which a busy machine would fail."""
     bed7 = beds("bed7")
     bed7.summarise(summary("bed7", alarms=[(1, "medium")]))
     assert wait_until(lambda: (bed(station, "bed7") or {}).get("summary") is not None, 5)
@@ -77,6 +122,7 @@ def test_a_beds_summary_and_alarms_reach_the_station_in_order(station, beds):
     seen = bed(station, "bed7")
     assert [a["alarm_id"] for a in seen["alarms"]] == list(range(2, 22)) + [1]   # high first, then by id
     assert seen["highest_priority"] == "high"
+    assert wait_until(lambda: bed7.confirmed == 20, 5)                        # and the bed heard each confirmed
 
 
 def test_two_beds_are_kept_apart(station, beds):
@@ -92,29 +138,62 @@ def test_two_beds_are_kept_apart(station, beds):
         (1, "high", "pressure:heel-left"), (2, "medium", "pressure:sacrum")]
 
 
-def test_a_repeated_event_is_counted_once(station, beds, publisher):
-    bed7 = beds("bed7")
-    event = alarm(3)
-    for _ in range(3):               # a retry after a lost PUBACK, and a restart's resend
-        bed7.notify(event)
-    publisher.send("appliance/bed7/alarm", event.to_dict())
-    assert wait_until(lambda: bed(station, "bed7") is not None and bed(station, "bed7")["duplicates"] == 3, 5)
+def test_a_repeated_seq_is_applied_once_and_confirmed_each_time(station, publisher, confirmations):
+    for _ in range(4):     # resent while unconfirmed, again after the bed's restart, and redelivered by the broker
+        publisher.event("bed7", alarm(3), seq=1)
+    assert wait_until(lambda: confirmations.seqs("bed7") == [1, 1, 1, 1], 5)
     seen = bed(station, "bed7")
-    assert len(seen["events"]) == 1 and [a["alarm_id"] for a in seen["alarms"]] == [3]
-    bed7.notify(alarm(3, kind="acknowledged", time_s=31.0))   # same alarm, another kind: not a repeat
-    assert wait_until(lambda: len(bed(station, "bed7")["events"]) == 2, 5)
+    assert seen["duplicates"] == 3 and [e["seq"] for e in seen["events"]] == [1]
+    assert list(open_alarms(station, "bed7")) == [3]
+    publisher.event("bed7", alarm(3, kind="acknowledged"), seq=2)
+    assert wait_until(lambda: confirmations.seqs("bed7")[-1:] == [2], 5)
+    assert [e["seq"] for e in bed(station, "bed7")["events"]] == [1, 2] and bed(station, "bed7")["duplicates"] == 3
+    assert {(bed_id, body["station"]) for bed_id, body, _ in confirmations.received} == {("bed7", "test-station")}
+    assert wait_until(lambda: station.confirmations_sent == 5, 5)
 
 
-def test_alarm_events_sent_while_the_station_was_away_are_delivered_when_it_is_back(broker, beds):
-    first = WardStation("127.0.0.1", broker.port, client_id="returning-station")
-    assert first.wait_subscribed(10)
-    first.close()
-    bed7 = beds("bed7")
-    bed7.notify(alarm(5))
-    assert wait_until(lambda: bed7.delivered == 1, 5)
+def test_a_confirmation_comes_only_once_the_station_shows_the_event(station, publisher, confirmations):
+    confirmations.look = lambda: open_alarms(station, "bed7")
+    for i in range(1, 21):
+        publisher.event("bed7", alarm(i))
+    assert wait_until(lambda: confirmations.seqs("bed7") == list(range(1, 21)), 5)
+    assert all(body["seq"] in shown for _, body, shown in confirmations.received)     # alarm i is seq i
+    assert all(isinstance(body["confirmed_at"], float) for _, body, _ in confirmations.received)
+
+
+def test_an_older_event_never_undoes_a_newer_state_of_its_alarm(station, publisher, confirmations):
+    publisher.event("bed7", alarm(1, priority="low"), seq=1)
+    publisher.event("bed7", alarm(1, kind="escalated", priority="high"), seq=3)
+    publisher.event("bed7", alarm(1, kind="escalated", priority="medium"), seq=2)   # resent, late: not back to it
+    publisher.event("bed7", alarm(2, kind="ended"), seq=6)                           # alarm 2 ended...
+    publisher.event("bed7", alarm(2), seq=5)                                         # ...before its raise came
+    publisher.event("bed7", alarm(4), seq=7)                                         # positive control
+    assert wait_until(lambda: confirmations.seqs("bed7") == [1, 3, 2, 6, 5, 7], 5)
+    assert {i: a["priority"] for i, a in open_alarms(station, "bed7").items()} == {1: "high", 4: "high"}
+
+
+def test_an_event_the_summary_already_holds_is_not_applied_over_it(station, publisher, confirmations):
+    publisher.send("appliance/bed7/summary", summary("bed7", time_s=100.0, seq=10, alarms=[(2, "low")]), qos=0)
+    assert wait_until(lambda: (bed(station, "bed7") or {}).get("summary") is not None, 5)
+    publisher.event("bed7", alarm(7, time_s=500.0), seq=8)    # over by seq 10: a clock step made its time look later
+    publisher.event("bed7", alarm(3, time_s=50.0), seq=11)    # after the summary though the clock was set back
+    assert wait_until(lambda: confirmations.seqs("bed7") == [8, 11], 5)
+    assert sorted(open_alarms(station, "bed7")) == [2, 3]
+    assert [e["seq"] for e in bed(station, "bed7")["events"]] == [8, 11]                # both on the event list
+
+
+def test_events_sent_while_the_station_was_away_are_confirmed_when_it_is_back(broker, publisher, confirmations):
+    """The broker holds them for the station's persistent session; a ward link would resend them too."""
+    with WardStation("127.0.0.1", broker.port, client_id="returning-station") as first:
+        assert first.wait_subscribed(10)
+        publisher.event("bed7", alarm(1))
+        assert wait_until(lambda: confirmations.seqs("bed7") == [1], 5)
+    for i in range(2, 6):
+        publisher.event("bed7", alarm(i))
     with WardStation("127.0.0.1", broker.port, client_id="returning-station") as again:
-        assert wait_until(lambda: bed(again, "bed7") is not None and bed(again, "bed7")["events"], 5)
-        assert [a["alarm_id"] for a in bed(again, "bed7")["alarms"]] == [5]
+        assert wait_until(lambda: confirmations.seqs("bed7") == [1, 2, 3, 4, 5], 5)
+        assert sorted(open_alarms(again, "bed7")) == [2, 3, 4, 5]
+        assert {body["station"] for _, body, _ in confirmations.received} == {"returning-station"}
 
 
 # Offline.
@@ -129,7 +208,7 @@ BED_PROCESS = textwrap.dedent("""
     client.publish("appliance/bed9/status", "online", qos=1, retain=True).wait_for_publish(5)
     print("online", flush=True)
     while True:   # a summary every 0.3 s, as a monitor's loop would send them
-        summary = {"bed_id": "bed9", "time_s": time.time(), "peak_mmhg": None, "regions": [], "alarms": []}
+        summary = {"bed_id": "bed9", "time_s": time.time(), "seq": 0, "peak_mmhg": None, "regions": [], "alarms": []}
         client.publish("appliance/bed9/summary", json.dumps(summary), qos=0, retain=True)
         time.sleep(0.3)
 """)
@@ -218,14 +297,21 @@ def test_a_bed_that_stops_summarising_goes_stale(broker, beds):
 
 # Bad payloads and the ward's order.
 
-def test_garbage_is_counted_and_the_station_keeps_working(station, publisher, beds):
+def test_garbage_is_counted_never_confirmed_and_the_station_keeps_working(station, publisher, beds, confirmations):
+    event = as_sent(alarm(), "bed3", seq=2)
     garbage = [("appliance/bed3/summary", b"\xff\xfe"), ("appliance/bed3/summary", "not json"),
                ("appliance/bed3/summary", [1, 2]), ("appliance/bed3/summary", {**summary("bed3"), "time_s": "soon"}),
                ("appliance/bed3/summary", summary("bed4")),
                ("appliance/bed3/summary", {**summary("bed3"), "alarms": [{"alarm_id": "one"}]}),
-               ("appliance/bed3/alarm", {"time_s": 1.0, "kind": "raised"}),
-               ("appliance/bed3/alarm", {**alarm().to_dict(), "type": "turn"}),
-               ("appliance/bed3/alarm", {**alarm().to_dict(), "priority": "urgent"}),
+               ("appliance/bed3/summary", {**summary("bed3"), "seq": -1}),
+               ("appliance/bed3/summary", {**summary("bed3"), "seq": False}),
+               ("appliance/bed3/alarm", {"time_s": 1.0, "kind": "raised", "bed_id": "bed3", "seq": 2}),
+               ("appliance/bed3/alarm", {**event, "type": "turn"}),
+               ("appliance/bed3/alarm", {**event, "priority": "urgent"}),
+               ("appliance/bed3/alarm", {**event, "bed_id": "bed4"}),
+               ("appliance/bed3/alarm", {k: v for k, v in event.items() if k != "seq"}),
+               ("appliance/bed3/alarm", {**event, "seq": 0}), ("appliance/bed3/alarm", {**event, "seq": True}),
+               ("appliance/bed3/alarm", {**event, "seq": 2.0}), ("appliance/bed3/alarm", {**event, "seq": "2"}),
                ("appliance/bed3/turn", "null"), ("appliance/bed3/status", "maybe")]
     for topic, payload in garbage:
         publisher.send(topic, payload)
@@ -236,6 +322,8 @@ def test_garbage_is_counted_and_the_station_keeps_working(station, publisher, be
     bed3.summarise(summary("bed3", time_s=5.0))
     assert wait_until(lambda: (bed(station, "bed3") or {}).get("summary") is not None
                       and bed(station, "bed3")["events"], 5)
+    assert wait_until(lambda: confirmations.received, 5)
+    assert set(confirmations.seqs("bed3")) == {1}             # a confirmation of garbage would have come first
     assert station.bad_payloads == len(garbage)
 
 
@@ -256,20 +344,24 @@ def test_high_alarm_beds_come_first_then_medium_low_offline_and_the_rest_by_id(b
         assert [b["bed_id"] for b in late.beds()] == [b["bed_id"] for b in station.beds()]
 
 
-def test_events_newer_than_the_last_summary_are_applied_over_it_and_older_ones_not():
+def test_events_after_the_last_summary_are_applied_over_it_in_seq_order_and_older_ones_not():
     state = BedState("bed7")
-    state.take_event({**alarm(1, time_s=5.0).to_dict(), "received_at": 0.0})
+
+    def take(event, seq):
+        state.take_event({**as_sent(event, "bed7", seq), "received_at": 0.0})
+    take(alarm(1), seq=1)
     assert list(state.open_alarms) == [1]
-    state.take_summary(summary("bed7", time_s=10.0, alarms=[(2, "low")]), now=0.0)
-    assert list(state.open_alarms) == [2]                                           # alarm 1 ended before 10 s
-    state.take_event({**alarm(3, time_s=11.0).to_dict(), "received_at": 0.0})
-    state.take_event({**alarm(2, kind="escalated", priority="medium", time_s=12.0).to_dict(), "received_at": 0.0})
-    state.take_event({**alarm(4, time_s=8.0).to_dict(), "received_at": 0.0})      # late, and the summary knew
+    state.take_summary(summary("bed7", seq=2, alarms=[(2, "low")]), now=0.0)
+    assert list(state.open_alarms) == [2]                                           # alarm 1 ended by seq 2
+    take(alarm(3), seq=3)
+    take(alarm(2, kind="escalated", priority="medium"), seq=4)
+    take(alarm(4), seq=2)                                                           # late, and the summary knew
     assert {i: a["priority"] for i, a in state.open_alarms.items()} == {2: "medium", 3: "high"}
-    state.take_event({**alarm(3, kind="acknowledged", time_s=13.0).to_dict(), "user": "nurse", "received_at": 0.0})
-    state.take_event({**alarm(3, kind="ended", time_s=14.0).to_dict(), "received_at": 0.0})
-    state.take_summary(summary("bed7", time_s=12.5, alarms=[(2, "medium"), (3, "high")]), now=0.0)
-    assert list(state.open_alarms) == [2]                                           # the end at 14 s replayed
+    take(alarm(3, kind="ended"), seq=6)
+    take(alarm(3, kind="acknowledged"), seq=5)                                      # after its end: too late
+    assert list(state.open_alarms) == [2]
+    state.take_summary(summary("bed7", seq=4, alarms=[(2, "medium"), (3, "high")]), now=0.0)
+    assert list(state.open_alarms) == [2]                              # seqs 5 and 6 replayed in order: the end last
 
 
 # The daemon's summaries.
@@ -298,12 +390,13 @@ def test_the_daemon_publishes_summaries_the_station_sees(small_mat_calibration, 
             time.sleep(0.06)
             assert daemon.maps < 100, "no pressure alarm reached the station"
         assert wait_until(lambda: bed(station, "ward-bed")["summary"]["status"]["maps"] == daemon.maps, 2)
+        assert wait_until(lambda: notifier.status()["unconfirmed"] == 0, 5)     # every event confirmed to the bed
     finally:
         daemon.close()
     seen = bed(station, "ward-bed")
     body = seen["summary"]
-    assert set(body) == {"bed_id", "time_s", "written_at", "peak_mmhg", "regions", "posture", "patient", "turn",
-                         "alarms", "status"}
+    assert set(body) == {"bed_id", "time_s", "seq", "written_at", "peak_mmhg", "regions", "posture", "patient",
+                         "turn", "alarms", "status"}
     assert body["time_s"] == daemon.pipeline.last_time_s and body["peak_mmhg"] > 0
     assert body["regions"] and set(body["regions"][0]) == {"zone", "words", "peak_mmhg", "dose"}
     assert {a["alarm_id"] for a in body["alarms"]} == {a.alarm_id for a in daemon.pipeline.engine.alarms()}
@@ -321,8 +414,8 @@ def test_an_unreachable_broker_does_not_slow_the_daemons_frames(small_mat_calibr
         return times
 
     alone = step_times(ward_daemon(small_mat_calibration, tmp_path, []))
-    unreachable = MqttNotifier("10.255.255.1", free_port(), "ward-bed", client_id="unreachable",
-                               summary_interval_s=0.001, max_attempts=1)
+    unreachable = WardLink("10.255.255.1", free_port(), "ward-bed", Outbox(tmp_path / "unreachable-outbox.db"),
+                           client_id="unreachable", summary_interval_s=0.001)
     summarise_times = []
     original = unreachable.summarise
 

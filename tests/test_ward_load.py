@@ -38,7 +38,7 @@ def test_the_run_was_the_load_asked_for(result):
     assert generated["frames"] == 50 * DURATION_S                      # 50 beds, 1 frame/s each
     assert generated["late_frames"] <= generated["frames"] // 100 and generated["summaries_skipped"] == 0
     assert generated["summaries_sent"] == generated["frames"]          # every frame's summary went out
-    assert generated["events_dead_lettered"] == 0
+    assert generated["events_unconfirmed"] == 0                        # every event confirmed by the station
     assert result["stream"]["most_beds_shown"] == 53                   # the 50 and the three probes
     assert result["load_beds_shown_offline"] == []                     # none of the 50 missed while running
     assert result["alarms_raised"] >= 50 and result["acks"] >= 15      # each bed some 1.5 alarms in the run
@@ -50,6 +50,7 @@ def test_a_new_alarm_is_on_the_ward_view_within_2_s_and_none_is_lost(result):
     assert result["alarms_lost"] == [] and len(latencies) == result["alarms_raised"]
     assert ward_load.percentile(latencies, 0.95) < 2.0
     assert max(latencies) < 5.0 and min(latencies) > 0
+    assert ward_load.percentile(result["generator"]["confirm_latencies_s"], 0.95) < 2.0    # and back at the bed
 
 
 def test_the_view_never_shows_an_alarm_twice_an_ended_one_or_one_never_raised(result):

@@ -9,8 +9,15 @@ def alarm(alarm_id=1, kind="raised", priority="high", time_s=None, key="pressure
                                key=key, category="clinical", priority=priority, message="Sacrum dose over limit"))
 
 
-def summary(bed_id, time_s=100.0, alarms=()):
-    return {"bed_id": bed_id, "time_s": time_s, "peak_mmhg": 41.5,
+def as_sent(event, bed_id, seq=None):
+    """``event`` as a bed's ward link publishes it, for a test that publishes what no ward link would (a resend out
+    of order, garbage); ``seq`` defaults to the alarm's id, so that alarms numbered in order are sent in order."""
+    return {**event.to_dict(), "bed_id": bed_id, "seq": event.alarm_id if seq is None else seq}
+
+
+def summary(bed_id, time_s=100.0, alarms=(), seq=0):
+    """A summary, holding every event up to ``seq`` (a ward link sets its own)."""
+    return {"bed_id": bed_id, "time_s": time_s, "seq": seq, "peak_mmhg": 41.5,
             "regions": [{"zone": "sacrum", "peak_mmhg": 41.5, "dose": 0.3}], "turn": {"due_in_s": 3600.0},
             "alarms": [{"alarm_id": i, "key": "pressure:sacrum", "priority": p, "state": "active",
                         "message": "Sacrum dose over limit", "acknowledged_by": None} for i, p in alarms],

@@ -1,20 +1,38 @@
 """The ward station's core: one state per bed, kept from the topics the bedside monitors publish.
 
-Each bed's daemon publishes through ``MqttNotifier`` (topics and payloads in
-``appliance.alerts.notifiers``): a retained ``status``, a retained ``summary``
+Each bed's daemon publishes through its ``WardLink`` (topics and payloads in
+``appliance.alerts.wardlink``): a retained ``status``, a retained ``summary``
 about once a second, and every ``alarm`` and ``turn`` event. The station
-subscribes to all four for every bed under one topic prefix:
+subscribes to them all for every bed under one topic prefix:
 
 - ``status`` and ``summary`` at QoS 0: each replaces the last, and the retained
   copy tells a station that has just started where every bed stands.
-- ``alarm`` and ``turn`` at QoS 1 on a persistent session (a fixed client id,
-  clean session off), so events published while the station was briefly away
-  are held by the broker and delivered when it is back. Delivery is at least
-  once, so repeats are dropped on (``alarm_id``, ``kind``, ``time_s``).
+- ``alarm`` and ``turn`` (and ``episode``: admissions and discharges) at QoS 1
+  on a persistent session (a fixed client id, clean session off), so events
+  published while the station was briefly away are held by the broker and
+  delivered when it is back.
 
-A summary carries the bed's whole set of open alarms at its ``time_s``; alarm
-events newer than the last summary are applied on top of it, so a new alarm
-shows as soon as its event arrives instead of at the next summary.
+A broker's PUBACK only says the broker has an event, so a bed keeps each one
+until the station confirms it, and resends it until then. Every event carries
+its ``bed_id`` and ``seq``: numbered per bed from 1, one more per event, never
+reused, the same in a resend. Resends and redeliveries can come in any order
+and any number of times, so the station applies each (bed, ``seq``) once, and
+for each message of an event it has taken (a repeat too: the bed may have lost
+the first confirmation), once the screen's state has it, publishes::
+
+    <prefix>/<bed_id>/confirm   QoS 1, not retained
+                                {seq, station: <client id>, confirmed_at: <unix time>}
+
+A payload refused as bad is never confirmed.
+
+A summary carries the bed's whole set of open alarms and the highest ``seq``
+the bed had given when it was made; the alarms reflect every event up to it.
+Events with a higher ``seq`` are applied on top of it, so a new alarm shows as
+soon as its event arrives instead of at the next summary; a lower one is kept
+for the event list but not applied over the summary. Order is judged by ``seq``,
+never by the bed's ``time_s``, which a clock step can send back: each alarm
+remembers the ``seq`` of the last event applied to it, and an older event for it
+changes nothing.
 
 A bed is offline when its status says so (a clean stop at once; a dead
 connection when the broker gives its last will, 1.5 keep-alives later) or when
@@ -52,7 +70,7 @@ EVENTS_KEPT = 50
 """Latest events kept per bed (for the screen, the latency record, and to replay over a summary)."""
 
 SEEN_KEPT = 1000
-"""Event keys remembered per bed to drop repeats: far more than a retry or a restart can repeat."""
+"""Event seqs remembered per bed to drop repeats: far more than a retry or a restart can repeat."""
 
 ALARM_FIELDS = ("alarm_id", "key", "priority", "state", "message", "acknowledged_by")
 
@@ -70,8 +88,9 @@ class BedState:
     summary: dict | None = None
     summary_at: float | None = None
     open_alarms: dict[int, dict] = field(default_factory=dict)
+    alarm_seqs: dict[int, int] = field(default_factory=dict)  # alarm_id -> seq of the last event applied to it
     events: deque = field(default_factory=lambda: deque(maxlen=EVENTS_KEPT))  # each with its "received_at"
-    seen: dict[tuple, None] = field(default_factory=dict)                     # an ordered set of event keys
+    seen: dict[int, None] = field(default_factory=dict)                       # an ordered set of event seqs
     duplicates: int = 0
 
     def online(self, steady_now: float, stale_after_s: float) -> bool:
@@ -84,31 +103,35 @@ class BedState:
         return PRIORITIES[max(ranks)] if ranks else None
 
     def take_summary(self, summary: dict, now: float) -> None:
-        """The summary's alarms become the open set, with the events newer than it applied again on top."""
+        """The summary's alarms become the open set, with the events newer than it applied again on top, in
+        ``seq`` order."""
         self.summary, self.summary_at = summary, now
         self.open_alarms = {a["alarm_id"]: {k: a.get(k) for k in ALARM_FIELDS} for a in summary["alarms"]}
-        for event in self.events:
-            if event["time_s"] > summary["time_s"]:
-                self.apply(event)
+        self.alarm_seqs = {}
+        for event in sorted((e for e in self.events if e["seq"] > summary["seq"]), key=lambda e: e["seq"]):
+            self.apply(event)
 
     def take_event(self, event: dict) -> bool:
-        """Record ``event`` (with its ``received_at``); False for a repeat, which changes nothing."""
-        key = (event["alarm_id"], event["kind"], event["time_s"])
-        if key in self.seen:
+        """Record ``event`` (with its ``received_at``); False for a repeat of its ``seq``, which changes nothing."""
+        if event["seq"] in self.seen:
             self.duplicates += 1
             return False
-        self.seen[key] = None
+        self.seen[event["seq"]] = None
         if len(self.seen) > SEEN_KEPT:
             del self.seen[next(iter(self.seen))]
         self.events.append(event)
-        if self.summary is None or event["time_s"] > self.summary["time_s"]:
+        if self.summary is None or event["seq"] > self.summary["seq"]:
             self.apply(event)
         return True
 
     def apply(self, event: dict) -> None:
-        """Change the open alarms as an alarm event says; events of no one alarm change nothing."""
+        """Change the open alarms as an alarm event says, unless its alarm already shows a later event; events of
+        no one alarm change nothing."""
         if event["type"] != "alarm" or event["alarm_id"] is None:
             return
+        if self.alarm_seqs.get(event["alarm_id"], 0) > event["seq"]:
+            return
+        self.alarm_seqs[event["alarm_id"]] = event["seq"]
         if event["kind"] == "ended":
             self.open_alarms.pop(event["alarm_id"], None)
             return
@@ -127,11 +150,12 @@ class WardStation:
     """Subscribes to every bed under ``topic_prefix`` on the broker at ``host``:``port`` and keeps their state.
 
     ``client_id`` names the persistent session, so it must stay the same across
-    restarts and differ between stations. ``tls`` takes paho's ``tls_set``
-    arguments (``ca_certs``, ``certfile``, ``keyfile``). ``stale_after_s``
-    defaults to three summary intervals plus ``STALE_MARGIN_S``. Counters:
-    ``messages``, ``bad_payloads``; ``version`` grows with every message taken, so a screen can tell that
-    something changed without comparing the beds.
+    restarts and differ between stations, and it names the station in its
+    confirmations. ``tls`` takes paho's ``tls_set`` arguments (``ca_certs``,
+    ``certfile``, ``keyfile``). ``stale_after_s`` defaults to three summary
+    intervals plus ``STALE_MARGIN_S``. Counters: ``messages``, ``bad_payloads``,
+    ``confirmations_sent``; ``version`` grows with every message taken, so a
+    screen can tell that something changed without comparing the beds.
     """
 
     def __init__(self, host: str, port: int, *, topic_prefix: str = "appliance", keepalive_s: int = 30,
@@ -143,13 +167,12 @@ class WardStation:
         self.stale_after_s = 3 * summary_interval_s + STALE_MARGIN_S if stale_after_s is None else stale_after_s
         self.subscriptions = [(f"{topic_prefix}/+/status", 0), (f"{topic_prefix}/+/summary", 0),
                               *((f"{topic_prefix}/+/{kind}", 1) for kind in EVENT_TYPES)]
-        self.messages = self.bad_payloads = self.version = 0
+        self.client_id = client_id or f"ward-station-{socket.gethostname()}"
+        self.messages = self.bad_payloads = self.confirmations_sent = self.version = 0
         self._beds: dict[str, BedState] = {}
         self._lock = threading.Lock()
         self._subscribed = threading.Event()
-        self._client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2,
-                                   client_id=client_id or f"ward-station-{socket.gethostname()}",
-                                   clean_session=False)
+        self._client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=self.client_id, clean_session=False)
         if username is not None:
             self._client.username_pw_set(username, password)
         if tls is not None:
@@ -242,7 +265,7 @@ class WardStation:
                     raise ValueError(f"status must be 'online' or 'offline', got {status[:40]!r}")
             else:
                 body = json.loads(message.payload)
-                body = _summary(body, bed_id) if kind == "summary" else _event(body, kind)
+                body = _summary(body, bed_id) if kind == "summary" else _event(body, bed_id, kind)
         except (ValueError, TypeError, UnicodeDecodeError) as exc:  # json's errors are ValueErrors
             with self._lock:
                 self.bad_payloads += 1
@@ -259,6 +282,18 @@ class WardStation:
                 bed.take_summary(body, now)
             else:
                 bed.take_event({**body, "received_at": now})
+        if kind in EVENT_TYPES:
+            self._confirm(bed_id, body["seq"])
+
+    def _confirm(self, bed_id: str, seq: int) -> None:
+        """Tell the bed its event ``seq`` is on the screen; if this is lost the bed resends and is told again."""
+        payload = json.dumps({"seq": seq, "station": self.client_id, "confirmed_at": time.time()})
+        info = self._client.publish(f"{self.topic_prefix}/{bed_id}/confirm", payload, qos=1)
+        if info.rc != mqtt.MQTT_ERR_SUCCESS:
+            log.warning("ward: confirmation of %s seq %d not sent: %s", bed_id, seq, mqtt.error_string(info.rc))
+            return
+        with self._lock:
+            self.confirmations_sent += 1
 
     def _parse_topic(self, topic: str) -> tuple[str, str]:
         parts = topic.removeprefix(self.topic_prefix + "/").split("/")
@@ -278,12 +313,18 @@ def _number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
+def _check_seq(seq, least: int, what: str) -> None:
+    if not isinstance(seq, int) or isinstance(seq, bool) or seq < least:
+        raise ValueError(f"{what} seq must be an integer of {least} or more, got {seq!r}")
+
+
 def _summary(body, bed_id: str) -> dict:
     """``body`` if it is a summary of ``bed_id`` as the notifier writes it; else ValueError saying what is wrong."""
     if not isinstance(body, dict):
         raise TypeError(f"a summary must be a JSON object, got {type(body).__name__}")
     if body.get("bed_id") != bed_id:
         raise ValueError(f"summary of bed {body.get('bed_id')!r} on bed {bed_id!r}'s topic")
+    _check_seq(body.get("seq"), 0, "summary")
     if not _number(body.get("time_s")):
         raise ValueError(f"summary time_s must be a number, got {body.get('time_s')!r}")
     if body.get("peak_mmhg") is not None and not _number(body["peak_mmhg"]):
@@ -299,11 +340,15 @@ def _summary(body, bed_id: str) -> dict:
     return body
 
 
-def _event(body, kind: str) -> dict:
-    """``body`` if it is an Event of type ``kind`` as the notifier writes it; else ValueError saying what is wrong."""
+def _event(body, bed_id: str, kind: str) -> dict:
+    """``body`` if it is an Event of type ``kind`` of ``bed_id`` as the notifier writes it, with its ``bed_id`` and
+    ``seq``; else ValueError saying what is wrong."""
     if not isinstance(body, dict):
         raise TypeError(f"an event must be a JSON object, got {type(body).__name__}")
-    Event(**body)  # TypeError on missing or unknown fields
+    if body.get("bed_id") != bed_id:
+        raise ValueError(f"event of bed {body.get('bed_id')!r} on bed {bed_id!r}'s topic")
+    _check_seq(body.get("seq"), 1, "event")
+    Event(**{k: v for k, v in body.items() if k not in ("bed_id", "seq")})  # TypeError on missing or unknown fields
     if body["type"] != kind:
         raise ValueError(f"{body['type']!r} event on the {kind} topic")
     if not _number(body["time_s"]) or not isinstance(body["kind"], str):
