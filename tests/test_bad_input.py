@@ -6,7 +6,7 @@ must be refused before anything expensive is built: a model build would show as 
 test that takes minutes. The web screen's forms and uploads are held to the same rule:
 a 4xx naming what is wrong, never a 500 and never "nothing changed".
 
-312 command-line cases (layout 12, protocol 11, simulate 26, reconstruct 34, sim load-test 18,
+313 command-line cases (layout 13, protocol 11, simulate 26, reconstruct 34, sim load-test 18,
 sim run 36, sim replay 14, sim map 20, acquire 24, selftest 5, run 33, calibrate pressure 28,
 calibrate sensitivity 11, ward 14, ward-broker 17, provision 6, the parser itself 3), all exiting 2; 61 web
 cases (settings 28, patient 7, accounts 8, engineering 18), all answered with a 4xx.
@@ -72,6 +72,7 @@ CASES = [
     (["layout", "--layout", "nosuch"], "nosuch"),
     (["layout", "--layout", "grid-0x4"], "0 x 4"),
     (["layout", "--layout", "grid-4x4@0x0"], "grid-4x4@0x0"),
+    (["layout", "--layout", "grid-4x4@99999999999999999999x500"], "10 to 10000 mm a side"),
     (["layout", "--layout", "grid-100000x100000"], "100000 x 100000"),
     (["layout", "--layout", "grid-axb"], "grid-axb"),
     (["layout", "--layout", "{t}/missing.toml"], "missing.toml"),

@@ -302,6 +302,10 @@ MAX_GRID_ELECTRODES = 4096
 the memory while its mesh is built."""
 
 
+GRID_SHEET_RANGE_MM = (10.0, 10_000.0)
+"""A grid sheet's sides: from a fingertip sensor to ten metres, far beyond any bed; outside it is a typo."""
+
+
 def grid_layout(rows: int, cols: int, height_mm: float, width_mm: float, name: str | None = None) -> Layout:
     """Square electrodes in a grid over a rectangular sheet, outer ones flush with the edges.
 
@@ -315,6 +319,10 @@ def grid_layout(rows: int, cols: int, height_mm: float, width_mm: float, name: s
                             "can have")
     if (rows == 1 and cols == 1):
         raise LayoutInvalid("a grid needs at least two electrodes")
+    low, high = GRID_SHEET_RANGE_MM
+    if not (low <= height_mm <= high and low <= width_mm <= high):
+        raise LayoutInvalid(f"{name or 'a grid'}: the sheet must be {low:g} to {high:g} mm a side, got {height_mm:g} x "
+                            f"{width_mm:g} mm")
     candidates = []
     if cols > 1:
         candidates.append(width_mm / (5 * (cols - 1) + 1))
