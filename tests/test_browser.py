@@ -5,8 +5,9 @@ The monitor runs the virtual bed one simulated minute per wall second: the
 patient lies supine, the sacral alarm rises after 20 minutes (an alarm dose of
 0.05 keeps the test short) and the patient is turned to the left at 50 minutes.
 A nurse account is made through the admin's pages, and the nurse logs in,
-watches the map, acknowledges the alarm, finds it in the history and sees the
-map change with the turn. Screenshots at the bedside screen's 800 x 480 and a
+watches the map, sees the alarm confirmed by the ward station (a real
+Mosquitto and a station in the test), acknowledges it, finds it in the history
+and sees the map change with the turn. Screenshots at the bedside screen's 800 x 480 and a
 station's 1920 x 1080 are written to ``docs/screenshots`` (or ``$SCREENSHOT_DIR``).
 """
 
@@ -69,9 +70,23 @@ def wait_for(condition, timeout_s: float, what: str, poll_s: float = 0.2):
 
 
 @pytest.fixture(scope="module")
-def appliance(tmp_path_factory, bed_monitoring, model_cache):
-    """The monitor (`appliance run`) and the screen (`python -m webui`, waitress) on one data directory; the
-    screen's address."""
+def ward_station():
+    """A ward's broker and a station on it that confirms what the monitor sends."""
+    from mqtt_broker import Broker, subscribed_station
+
+    broker = Broker()
+    broker.start()
+    try:
+        with subscribed_station(broker.port, client_id="browser-test-station") as station:
+            yield broker.port, station
+    finally:
+        broker.stop()
+
+
+@pytest.fixture(scope="module")
+def appliance(tmp_path_factory, bed_monitoring, model_cache, ward_station):
+    """The monitor (`appliance run`, reporting to the ward station) and the screen (`python -m webui`, waitress)
+    on one data directory; the screen's address."""
     folder = tmp_path_factory.mktemp("appliance")
     (folder / "scene.toml").write_text(SCENE)
     (folder / "monitor.toml").write_text(textwrap.dedent(f"""
@@ -88,6 +103,10 @@ def appliance(tmp_path_factory, bed_monitoring, model_cache):
 
         [alerts]
         alarm_dose = 0.05
+
+        [notify.mqtt]
+        host = "127.0.0.1"
+        port = {ward_station[0]}
         """))
     port = free_port()
     logs = [open(folder / name, "w") for name in ("monitor.log", "screen.log")]
@@ -217,6 +236,8 @@ def test_a_nurse_acknowledges_the_alarm_finds_it_in_the_history_and_sees_the_pat
     wait_for(lambda: "frame" in text(driver, "#status"), 30, "the live map")
     supine = driver.execute_script(MAP_PIXELS)
     wait_for(lambda: "sacrum" in text(driver, "#alarms"), 60, "the sacral alarm on the live view")
+    wait_for(lambda: "[shown at the ward station]" in text(driver, "#alarms"), 30, "the ward's confirmation")
+    wait_for(lambda: text(driver, "#ward") == "connected, every alarm confirmed", 30, "the ward link's state")
     assert live_time_s(driver) < TURN_AT_S - 600, "the test machine is too slow: the turn would come first"
     screenshot(driver, "live", 800, 480)
     supine_regions = text(driver, "#regions")

@@ -60,7 +60,7 @@ function draw(snapshot) {
     const div = document.createElement("div");
     div.className = "alarm " + a.priority;
     div.textContent = `${a.priority.toUpperCase()}: ${a.message}` + (a.acknowledged_by ? ` (acknowledged by ${a.acknowledged_by})` : "") +
-                      (a.delivery ? ` [${DELIVERY_WORDS[a.delivery]}]` : "");
+                      (a.delivery ? ` [${deliveryWords(a.delivery, snapshot.ward_link)}]` : "");
     alarms.appendChild(div);
   }
   const link = snapshot.ward_link;
@@ -70,9 +70,11 @@ function draw(snapshot) {
                        `${Math.round(snapshot.age_s)} s old`;
 }
 
-// How far an alarm's latest change got (the snapshot's "delivery").
-const DELIVERY_WORDS = {"bed": "at this bed only", "broker": "sent, not yet confirmed by the ward",
-                        "ward station": "shown at the ward station"};
+// How far an alarm's latest change got (the snapshot's "delivery"); without confirmation the broker's receipt is all.
+function deliveryWords(delivery, link) {
+  if (delivery === "broker") return link && !link.confirming ? "sent to the ward" : "sent, not yet confirmed by the ward";
+  return delivery === "bed" ? "at this bed only" : "shown at the ward station";
+}
 
 function wardWords(link) {
   if (!link.connected) return "not connected: alarms are shown only at this bed";
