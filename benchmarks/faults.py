@@ -114,7 +114,7 @@ ROWS = (
      ["tests/test_web_hardening.py::test_every_kind_of_response_carries_the_security_headers",
       "tests/test_web_hardening.py::test_the_accounts_database_and_the_session_key_are_made_owner_only"]),
     ("bad input on the command line and the forms (24 tracebacks, 16 silent acceptances of 277)",
-     "a table of 330 cases: exit 2 or a 4xx naming what is wrong",
+     "a table of 374 cases (313 commands, every number bounded; 61 forms): exit 2 or a 4xx naming what is wrong",
      ["tests/test_bad_input.py"]),
 )
 
