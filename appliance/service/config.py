@@ -184,7 +184,10 @@ def config_from_mapping(data: dict, base: Path | None = None) -> MonitorConfig:
     if gpio is not None and source == "virtual":
         raise ConfigError("[notify.gpio] needs a board: the virtual bed has no buzzer or LED lines")
     mqtt = dict(_section(notify, "mqtt", "notify.mqtt"))
-    confirmation = _confirmation({key: mqtt.pop(key) for key in ("confirm", "confirm_timeout_s") if key in mqtt})
+    confirming = {key: mqtt.pop(key) for key in ("confirm", "confirm_timeout_s") if key in mqtt}
+    if confirming and not mqtt:
+        raise ConfigError("[notify.mqtt] is missing 'host'")
+    confirmation = _confirmation(confirming)
     board = _section(data, "board")
     try:
         board_profile(board)
