@@ -118,7 +118,7 @@ class EmulatedADS1115(I2CChipEmulator, InputSource):
         self._finish_if_done()
         return 1 if self.conversion is not None else 0
 
-    def next_edge(self, now: float, edge: str) -> float | None:
+    def next_edge(self, after: float, edge: str) -> float | None:
         if edge == FALLING and self._ready_mode() and self.conversion is not None:
-            return max(now, self.conversion[1])
+            return max(after, self.conversion[1])
         return None
