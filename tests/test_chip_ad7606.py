@@ -182,6 +182,17 @@ def test_busy_that_never_falls_is_reported():
         rig.array.convert()
 
 
+def test_busys_edge_stays_queued_until_a_wait_takes_it_or_a_drain_discards_it():
+    rig = Rig()
+    for _ in range(2):
+        rig.lines.set_values({"GPIO17": 1})
+        rig.lines.set_values({"GPIO17": 0})
+        rig.clock.sleep(2 * CONVERSION_S[1])
+    assert rig.lines.wait_edge("GPIO27", 0.0) is True                 # came long before the wait
+    assert rig.lines.drain_edges("GPIO27") == 1
+    assert rig.lines.wait_edge("GPIO27", 1.0) is False
+
+
 def test_read_many_starts_with_the_converter_already_addressed():
     rig = Rig()
     rig.array.convert()

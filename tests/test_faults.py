@@ -12,7 +12,7 @@ from appliance.drivers.frontend import open_front_end
 from appliance.drivers.profile import board_profile
 from appliance.drivers.scan import Flag, ScanEngine
 from appliance.drivers.selftest import run_self_test
-from appliance.errors import DeviceMissing, ScanError
+from appliance.errors import ChipNotResponding, DeviceMissing, ScanError
 from conftest import sensor_of, sensor_readings
 
 PROTOCOL = default_protocol(get_layout("grid-4x4"))
@@ -153,6 +153,18 @@ def test_an_excitation_that_cannot_start_stops_the_scan_with_the_source_off(emul
         engine.scan()
     assert board.bank.driven[board.profile.gpio["source_enable"]] == 0
     assert engine.scan().usable.all()                   # the fault cleared: the next scan works
+
+
+def test_an_adc_ready_line_that_never_fires_stops_the_scan_naming_chip_and_line_with_the_source_off(emulated):
+    board, front_end = emulated()
+    ready = board.profile.gpio["adc_ready"]
+    chip = board.bank.sources.pop(ready)                 # the ALERT/RDY wire broken
+    engine = ScanEngine(front_end, PROTOCOL, contact_check=False)
+    with pytest.raises(ChipNotResponding, match=rf"ADS1115\(0x48\): ALERT/RDY on {ready} did not signal"):
+        engine.scan()
+    assert board.bank.driven[board.profile.gpio["source_enable"]] == 0
+    board.bank.connect(ready, chip)
+    assert engine.scan().usable.all()                   # mended: the next scan works
 
 
 def test_the_ad5933_board_survives_a_nack_too(emulated):

@@ -17,7 +17,7 @@ from types import SimpleNamespace
 import pytest
 
 from appliance.drivers import linux_gpio, linux_i2c, linux_spi
-from appliance.drivers.bus import FALLING, RISING, Clock, LineRequest
+from appliance.drivers.bus import FALLING, PULL_UP, RISING, Clock, LineRequest
 from appliance.drivers.linux_board import LinuxBoard
 from appliance.drivers.linux_gpio import LinuxGPIOLines, find_line_chips, gpiochip_paths
 from appliance.drivers.linux_i2c import LinuxI2CBus
@@ -404,6 +404,20 @@ def test_an_input_without_edge_has_no_edge_detection(gpio):
         2: gpio.settings(direction=line.Direction.INPUT, edge_detection=line.Edge.NONE)}
 
 
+def test_an_input_for_an_open_drain_output_is_requested_with_the_pull_up(gpio):
+    line = gpio.line
+    LinuxGPIOLines(LineRequest({}, {"GPIO27": FALLING}, bias={"GPIO27": PULL_UP}), consumer="adc")
+    assert gpio.rec.named("request_lines")[0][2] == {
+        27: gpio.settings(direction=line.Direction.INPUT, edge_detection=line.Edge.FALLING, bias=line.Bias.PULL_UP)}
+
+
+def test_a_bias_is_for_inputs_and_is_a_pull_up_or_down():
+    with pytest.raises(ValueError, match="GPIO17: a bias is for inputs"):
+        LineRequest({"GPIO17": 0}, {}, bias={"GPIO17": PULL_UP})
+    with pytest.raises(ValueError, match="GPIO27: bias must be one of"):
+        LineRequest({}, {"GPIO27": FALLING}, bias={"GPIO27": "up"})
+
+
 def test_set_values_touches_each_chip_once(gpio):
     value = gpio.line.Value
     lines = LinuxGPIOLines(LineRequest({"GPIO2": 0, "GPIO3": 0, "GPIO17": 0}, {}), consumer="mux")
@@ -459,11 +473,24 @@ def test_wait_edge_keeps_other_lines_events_for_their_own_wait(gpio):
     assert lines.wait_edge("GPIO17", 0.0) is False
 
 
-def test_wait_edge_needs_an_edge_input(gpio):
+def test_drain_edges_empties_the_kernel_queue_without_waiting_and_keeps_other_lines_edges(gpio):
+    gpio.rec.will("wait_edge_events", True, True, False)
+    gpio.rec.will("read_edge_events", [gpio.fake.event(27), gpio.fake.event(17)], [gpio.fake.event(27)])
+    lines = LinuxGPIOLines(LineRequest({}, {"GPIO17": RISING, "GPIO27": FALLING}), consumer="adc")
+    assert lines.drain_edges("GPIO27") == 2
+    assert [timeout for _, _, timeout in gpio.rec.named("wait_edge_events")] == [timedelta(0)] * 3
+    assert lines.wait_edge("GPIO17", 1.0) is True
+    gpio.rec.will("wait_edge_events", False)
+    assert lines.wait_edge("GPIO27", 0.0) is False
+
+
+def test_wait_edge_and_drain_edges_need_an_edge_input(gpio):
     lines = LinuxGPIOLines(LineRequest({"GPIO2": 0}, {"GPIO3": None}), consumer="adc")
     for name in ("GPIO2", "GPIO3"):
         with pytest.raises(ValueError, match=f"{name} of adc was not requested with edge detection"):
             lines.wait_edge(name, 0.1)
+        with pytest.raises(ValueError, match=f"{name} of adc was not requested with edge detection"):
+            lines.drain_edges(name)
 
 
 def test_release_is_idempotent_and_final(gpio):

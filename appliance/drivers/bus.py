@@ -26,7 +26,7 @@ import logging
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TypeVar
 
 from appliance.errors import BusInUse, DeviceMissing, TransferFailed
@@ -38,6 +38,9 @@ T = TypeVar("T")
 RISING = "rising"
 FALLING = "falling"
 EDGES = (RISING, FALLING)
+PULL_UP = "pull-up"
+PULL_DOWN = "pull-down"
+BIASES = (PULL_UP, PULL_DOWN)
 
 
 class Clock:
@@ -149,7 +152,15 @@ class GPIOLines(ABC):
     def wait_edge(self, name: str, timeout_s: float) -> bool:
         """Wait up to ``timeout_s`` for the edge the input ``name`` was requested with.
 
-        Returns True if it came, False on timeout.
+        Returns True if it came, False on timeout. Edges are queued from the request on, so one that
+        came before this call (and was not taken by an earlier wait) returns at once.
+        """
+
+    @abstractmethod
+    def drain_edges(self, name: str) -> int:
+        """Discard the edges of the input ``name`` queued so far, so the next wait sees only newer ones.
+
+        Returns how many there were.
         """
 
     def release(self) -> None:
@@ -158,10 +169,15 @@ class GPIOLines(ABC):
 
 @dataclass(frozen=True)
 class LineRequest:
-    """What a driver asks of its GPIO lines: outputs with their first values, inputs with an edge."""
+    """What a driver asks of its GPIO lines: outputs with their first values, inputs with an edge.
+
+    ``bias`` gives inputs the SoC's internal pull-up or pull-down: an open-drain output wired to an
+    input only pulls low, and without a pull-up the line floats.
+    """
 
     outputs: Mapping[str, int]
     inputs: Mapping[str, str | None]
+    bias: Mapping[str, str] = field(default_factory=dict)
 
     def __post_init__(self):
         clash = set(self.outputs) & set(self.inputs)
@@ -170,6 +186,11 @@ class LineRequest:
         for name, edge in self.inputs.items():
             if edge is not None and edge not in EDGES:
                 raise ValueError(f"GPIO line {name}: edge must be one of {EDGES} or None, got {edge!r}")
+        for name, bias in self.bias.items():
+            if name not in self.inputs:
+                raise ValueError(f"GPIO line {name}: a bias is for inputs, and it is not requested as one")
+            if bias not in BIASES:
+                raise ValueError(f"GPIO line {name}: bias must be one of {BIASES}, got {bias!r}")
 
     @property
     def names(self) -> tuple[str, ...]:

@@ -17,7 +17,7 @@ import math
 from appliance.drivers.ad8251 import AD8251
 from appliance.drivers.ad9833 import AD9833
 from appliance.drivers.ads1115 import ADS1115
-from appliance.drivers.bus import FALLING, Board, LineRequest
+from appliance.drivers.bus import FALLING, PULL_UP, Board, LineRequest
 from appliance.drivers.frontend import RANGING_ACCURACY, ChipCheck, FrontEnd, Range, Sample, range_ladder
 from appliance.drivers.mcp4017 import MCP4017
 from appliance.drivers.mcp9808 import MCP9808
@@ -57,8 +57,8 @@ class RMSFrontEnd(FrontEnd):
         gain_lines = board.gpio(LineRequest(outputs={gpio["gain_a0"]: 0, gpio["gain_a1"]: 0, gpio["gain_wr"]: 1},
                                             inputs={}), consumer="AD8251 gain")
         self.pga = AD8251(gain_lines, a0=gpio["gain_a0"], a1=gpio["gain_a1"], wr=gpio["gain_wr"])
-        self.inputs = board.gpio(LineRequest(outputs={}, inputs={gpio["adc_ready"]: FALLING,
-                                                                 gpio["phase_sign"]: None}),
+        self.inputs = board.gpio(LineRequest(outputs={}, inputs={gpio["adc_ready"]: FALLING, gpio["phase_sign"]: None},
+                                             bias={gpio["adc_ready"]: PULL_UP}),     # ALERT/RDY is open drain
                                  consumer="ADC ready and phase sign")
         self.adc = ADS1115(i2c, self.clock, address=profile.i2c["adc"], ready=self.inputs,
                            ready_line=gpio["adc_ready"])

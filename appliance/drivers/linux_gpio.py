@@ -18,7 +18,7 @@ import time
 from collections.abc import Iterable, Mapping, Sequence
 from datetime import timedelta
 
-from appliance.drivers.bus import FALLING, RISING, GPIOLines, LineRequest, os_error_to_bus_error
+from appliance.drivers.bus import FALLING, PULL_DOWN, PULL_UP, RISING, GPIOLines, LineRequest, os_error_to_bus_error
 from appliance.errors import BackendUnavailable, BusError, DeviceMissing
 
 try:
@@ -116,12 +116,14 @@ class LinuxGPIOLines(GPIOLines):
             raise
 
     def _settings(self, name: str, request: LineRequest):
-        """An output at its first value, or an input watching the edge it was requested with."""
+        """An output at its first value, or an input watching the edge it was requested with, biased as asked."""
         line = gpiod.line
         if name in self._outputs:
             return gpiod.LineSettings(direction=line.Direction.OUTPUT, output_value=_value(request.outputs[name]))
         edge = {RISING: line.Edge.RISING, FALLING: line.Edge.FALLING, None: line.Edge.NONE}[self._edges[name]]
-        return gpiod.LineSettings(direction=line.Direction.INPUT, edge_detection=edge)
+        bias = {PULL_UP: line.Bias.PULL_UP, PULL_DOWN: line.Bias.PULL_DOWN, None: line.Bias.AS_IS}[
+            request.bias.get(name)]
+        return gpiod.LineSettings(direction=line.Direction.INPUT, edge_detection=edge, bias=bias)
 
     def _by_chip(self, names: Iterable[str]) -> dict[str, list[tuple[str, int]]]:
         groups: dict[str, list[tuple[str, int]]] = {}
@@ -171,19 +173,36 @@ class LinuxGPIOLines(GPIOLines):
         Edges of the chip's other lines read meanwhile are counted, and returned
         by those lines' next :meth:`wait_edge` (as the kernel's queue would).
         """
+        path = self._edge_input(name)
+        deadline = time.monotonic() + timeout_s
+        while not self._pending[name]:
+            if not self._read_events(name, path, max(0.0, deadline - time.monotonic())):
+                return False
+        self._pending[name] -= 1
+        return True
+
+    def drain_edges(self, name: str) -> int:
+        """Read the kernel's queue empty without blocking, then forget ``name``'s edges; returns how many."""
+        path = self._edge_input(name)
+        while self._read_events(name, path, 0.0):
+            pass
+        drained, self._pending[name] = self._pending[name], 0
+        return drained
+
+    def _edge_input(self, name: str) -> str:
+        """The chip path of ``name``, refused unless it is an input with edge detection."""
         self._check([name])
         if self._edges.get(name) is None:
             raise ValueError(f"GPIO line {name} of {self.consumer} was not requested with edge detection")
-        path, _ = self._where[name]
+        return self._where[name][0]
+
+    def _read_events(self, name: str, path: str, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for events on chip ``path`` and count each for its line; False if none came."""
         request = self._requests[path]
-        deadline = time.monotonic() + timeout_s
-        while not self._pending[name]:
-            remaining = timedelta(seconds=max(0.0, deadline - time.monotonic()))
-            if not self._call([name], request.wait_edge_events, remaining):
-                return False
-            for event in self._call([name], request.read_edge_events):
-                self._pending[self._line_at[path, event.line_offset]] += 1
-        self._pending[name] -= 1
+        if not self._call([name], request.wait_edge_events, timedelta(seconds=timeout_s)):
+            return False
+        for event in self._call([name], request.read_edge_events):
+            self._pending[self._line_at[path, event.line_offset]] += 1
         return True
 
     def release(self) -> None:

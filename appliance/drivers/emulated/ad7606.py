@@ -146,7 +146,7 @@ class AD7606Pins(InputSource):
     def __init__(self, bank: GPIOBank, chips: list[EmulatedAD7606], *, convst: str, reset: str, range_line: str):
         self.bank, self.chips = bank, chips
         self.convst, self.reset_line, self.range_line = convst, reset, range_line
-        self._edges: list[float] = []             # BUSY falling edges not yet taken by a waiter
+        self._edges: list[float] = []             # BUSY falling edges a waiter may not have taken yet
         self._range_changed_at: tuple[float, int] | None = None
         bank.watch(convst, self._convst_changed)
         bank.watch(reset, self._reset_changed)
@@ -190,8 +190,8 @@ class AD7606Pins(InputSource):
     def level(self, now: float) -> int:
         return int(any(chip.busy(now) for chip in self.chips))
 
-    def next_edge(self, now: float, edge: str) -> float | None:
-        """The next falling edge not yet delivered, as the kernel's edge queue holds it (it may be past)."""
-        if edge != FALLING or not self._edges:
-            return None
-        return self._edges.pop(0)
+    def next_edge(self, after: float, edge: str) -> float | None:
+        """The first falling edge of BUSY later than ``after`` (it may be past); older ones are forgotten."""
+        while self._edges and self._edges[0] <= after:
+            self._edges.pop(0)
+        return self._edges[0] if edge == FALLING and self._edges else None

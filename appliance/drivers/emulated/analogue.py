@@ -207,5 +207,5 @@ class _PhaseComparator(InputSource):
             return int(self.chain.rng.integers(0, 2))
         return int(value > 0)
 
-    def next_edge(self, now: float, edge: str) -> float | None:
+    def next_edge(self, after: float, edge: str) -> float | None:
         return None

@@ -17,7 +17,8 @@ import errno
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
-from appliance.drivers.bus import FALLING, RISING, GPIOLines, I2CBus, LineRequest, SPIDevice, os_error_to_bus_error
+from appliance.drivers.bus import (FALLING, PULL_UP, RISING, GPIOLines, I2CBus, LineRequest, SPIDevice,
+                                   os_error_to_bus_error)
 from appliance.drivers.emulated.clock import SimulatedClock
 
 
@@ -219,13 +220,22 @@ def _exactly(data: bytes, n: int, chip: I2CChipEmulator) -> bytes:
 
 
 class InputSource:
-    """What drives an emulated input line: a level now, and when it next makes an edge."""
+    """What drives an emulated input line: a level now, and the edges it made and will make.
+
+    ``open_drain`` sources only pull low: their line reads high through a pull-up, or floats.
+    """
+
+    name = "input source"
+    open_drain = False
 
     def level(self, now: float) -> int:
         raise NotImplementedError
 
-    def next_edge(self, now: float, edge: str) -> float | None:
-        """The time of the next ``edge`` after ``now``, or None if none is scheduled."""
+    def next_edge(self, after: float, edge: str) -> float | None:
+        """The time of the first ``edge`` later than ``after``, past or scheduled, or None if none is known.
+
+        The line's reader asks with ``after`` never going back, so a source may forget older edges.
+        """
         raise NotImplementedError
 
 
@@ -267,7 +277,11 @@ class GPIOBank:
 
 
 class EmulatedGPIOLines(GPIOLines):
-    """Lines of a :class:`GPIOBank` requested by one consumer."""
+    """Lines of a :class:`GPIOBank` requested by one consumer.
+
+    Each edge input keeps the kernel's queue: edges from the request on stay pending until a
+    wait takes them or a drain discards them, however long ago they came.
+    """
 
     def __init__(self, bank: GPIOBank, request: LineRequest, consumer: str, timing: BusTiming):
         unknown = [n for n in request.names if n not in bank.names]
@@ -278,6 +292,7 @@ class EmulatedGPIOLines(GPIOLines):
         self.bank, self.request, self.consumer, self._timing = bank, request, consumer, timing
         self.names = request.names
         self.released = False
+        self._taken_until = dict.fromkeys(request.inputs, bank.clock.monotonic())   # edges up to here are gone
         bank.drive({name: int(bool(v)) for name, v in request.outputs.items()})
 
     def _check(self, names) -> None:
@@ -286,6 +301,10 @@ class EmulatedGPIOLines(GPIOLines):
         for name in names:
             if name not in self.names:
                 raise EmulatorViolation(f"GPIO line {name} was not requested by {self.consumer}")
+            source = self.bank.sources.get(name)
+            if source is not None and source.open_drain and self.request.bias.get(name) != PULL_UP:
+                raise EmulatorViolation(f"GPIO line {name} of {self.consumer}: {source.name} drives it open drain "
+                                        "and nothing pulls it up; request it with the pull-up bias")
 
     def set_values(self, values: Mapping[str, int]) -> None:
         self._check(values)
@@ -305,19 +324,35 @@ class EmulatedGPIOLines(GPIOLines):
         return {name: self.bank.level(name) for name in names}
 
     def wait_edge(self, name: str, timeout_s: float) -> bool:
-        self._check([name])
-        edge = self.request.inputs.get(name)
-        if edge not in (RISING, FALLING):
-            raise EmulatorViolation(f"GPIO line {name} of {self.consumer} was not requested with edge detection")
+        self._check_edge_input(name)
         clock = self.bank.clock
         clock.sleep(self._timing.call_overhead_s)      # the wait is a call too: its events are read by ioctl
-        source = self.bank.sources.get(name)
-        when = source.next_edge(clock.monotonic(), edge) if source is not None else None
+        when = self._next_edge(name)
         if when is not None and when <= clock.monotonic() + timeout_s:
             clock.sleep(max(0.0, when - clock.monotonic()))
+            self._taken_until[name] = when
             return True
         clock.sleep(timeout_s)
         return False
+
+    def drain_edges(self, name: str) -> int:
+        self._check_edge_input(name)
+        self.bank.clock.sleep(self._timing.call_overhead_s)
+        now, drained = self.bank.clock.monotonic(), 0
+        while (when := self._next_edge(name)) is not None and when <= now:
+            self._taken_until[name], drained = when, drained + 1
+        self._taken_until[name] = now
+        return drained
+
+    def _check_edge_input(self, name: str) -> None:
+        self._check([name])
+        if self.request.inputs.get(name) not in (RISING, FALLING):
+            raise EmulatorViolation(f"GPIO line {name} of {self.consumer} was not requested with edge detection")
+
+    def _next_edge(self, name: str) -> float | None:
+        """When the first edge of ``name`` not yet taken came or will come; None if none is known."""
+        source = self.bank.sources.get(name)
+        return None if source is None else source.next_edge(self._taken_until[name], self.request.inputs[name])
 
     def release(self) -> None:
         self.released = True
