@@ -28,9 +28,9 @@ pins (RP1's pin functions were not read), and every controller's clock limit (no
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Mapping
 
 HEADER_GPIOS = 28
 """GPIO 0..27 reach the 40-pin header on every board here."""
