@@ -1,14 +1,19 @@
 """Board profiles held against the host boards and systems of drivers/boards.py: each mistake the issue
 found on a real Pi, put back into a profile, is named; every built-in profile fits every board it claims."""
 
+import errno
+
 import pytest
 
 from appliance.cli import main
 from appliance.drivers.adg7xx import ADG725
 from appliance.drivers.board_check import check_profile, running_host
-from appliance.drivers.boards import HOST_BOARDS
+from appliance.drivers.boards import HOST_BOARDS, SYSTEMS
+from appliance.drivers.bus import LineRequest
+from appliance.drivers.emulated.board import EmulatedBoard
 from appliance.drivers.profile import BUILTIN_PROFILES, board_profile
-from appliance.errors import BoardMismatch
+from appliance.errors import BoardMismatch, DeviceMissing, TransferFailed
+from conftest import sensor_of
 
 
 def mismatch(table: dict, board: str) -> str:
@@ -89,6 +94,22 @@ def test_the_linux_board_refuses_a_profile_that_does_not_fit_before_opening_anyt
     monkeypatch.setattr("appliance.drivers.board_check.running_host", lambda: HOST_BOARDS["pi4b"])
     with pytest.raises(BoardMismatch, match="GPIO 16 is already SPI1 CE2"):
         open_board({"backend": "linux", "profile": "reference-32", "gpio": {"status_led": "GPIO16"}})
+
+
+def test_the_emulated_spi1_refuses_cpha_1_as_the_kernel_does():
+    board = EmulatedBoard(board_profile({"profile": "reference"}), sensor_of("grid-4x4"))
+    with pytest.raises(TransferFailed, match="spidev1.0: Invalid argument: mode 1") as caught:
+        board.spi(1, 0, mode=1, max_speed_hz=1_000_000, consumer="measure_mux")
+    assert caught.value.errno == errno.EINVAL
+    board.spi(1, 0, mode=2, max_speed_hz=1_000_000, consumer="measure_mux").close()
+
+
+def test_the_emulated_lines_carry_the_names_of_the_systems_kernel():
+    board = EmulatedBoard(board_profile({"profile": "ad5933", "system": "appliance-image"}), sensor_of("grid-4x4"))
+    assert "GPIO_GCLK" in board.bank.names and "GPIO4" not in board.bank.names
+    with pytest.raises(DeviceMissing, match="GPIO4"):
+        board.gpio(LineRequest(outputs={"GPIO4": 0}, inputs={}), consumer="test")
+    assert SYSTEMS["appliance-image"].kernel == "mainline"
 
 
 def test_selftest_check_passes_and_fails_with_status_2(tmp_path, capsys):
