@@ -154,8 +154,8 @@ class EmulatedBoard(Board):
         if chip is None or name in self.faults.missing:
             raise DeviceMissing(f"SPI {name}: no such device (is SPI enabled with dtparam=spi=on, and does the "
                                 "board have this chip select?)")
-        controller = HOST.spi[bus]
-        if mode not in controller.modes:
+        controller = HOST.spi.get(bus)
+        if controller is not None and mode not in controller.modes:
             raise os_error_to_bus_error(f"SPI {name}", OSError(errno.EINVAL, f"Invalid argument: mode {mode} on "
                                                                               f"{controller.driver}"))
         return EmulatedSPIDevice(name, mode, max_speed_hz, chip, self.clock, self.timing, self.log, self.faults)
