@@ -73,10 +73,11 @@ def test_the_serial_console_of_the_image_keeps_its_pins():
 
 
 def test_unverified_names_place_only_numbered_lines():
-    assert HOST_BOARDS["pi3b-plus"].names("raspberrypi") is None
-    check_profile(board_profile({"profile": "reference"}), HOST_BOARDS["pi3b-plus"])
-    message = mismatch({"profile": "reference", "gpio": {"buzzer": "GPIO_GCLK"}}, "pi3b-plus")
-    assert "line names of pi3b-plus under the raspberrypi kernel are not verified" in message
+    assert HOST_BOARDS["pi5"].names("mainline") is None
+    check_profile(board_profile({"profile": "ad5933", "system": "appliance-image", "spi": {
+        "measure_mux": {"bus": 0, "chip_select": 0, "max_speed_hz": 10_000_000}}}), HOST_BOARDS["pi5"])
+    message = mismatch({"profile": "reference", "system": "appliance-image", "gpio": {"buzzer": "GPIO_GCLK"}}, "pi5")
+    assert "line names of pi5 under the mainline kernel are not verified" in message
 
 
 def test_the_running_board_is_read_from_the_device_tree(tmp_path):

@@ -11,8 +11,9 @@ is ``None`` and is not checked, never guessed. Sources:
 
 * mainline line names: torvalds/linux arch/arm/boot/dts/broadcom/bcm2837-rpi-3-b.dts,
   bcm2837-rpi-3-b-plus.dts and bcm2711-rpi-4-b.dts (``&gpio`` ``gpio-line-names``);
-* Raspberry Pi kernel line names: raspberrypi/linux arch/arm/boot/dts/broadcom/bcm2710-rpi-3-b.dts and
-  bcm2711-rpi-4-b.dts (``&gpio``), arch/arm64/boot/dts/broadcom/bcm2712-rpi-5-b.dts (``&rp1_gpio``);
+* Raspberry Pi kernel line names: raspberrypi/linux arch/arm/boot/dts/broadcom/bcm2710-rpi-3-b.dts (still
+  the mainline names in the version read), bcm2710-rpi-3-b-plus.dts and bcm2711-rpi-4-b.dts (``&gpio``),
+  arch/arm64/boot/dts/broadcom/bcm2712-rpi-5-b.dts (``&rp1_gpio``);
 * SPI0 pins: raspberrypi/linux bcm2710-rpi-3-b.dts (``spi0_pins`` 9 10 11, ``cs-gpios`` 8 then 7), the same
   chip selects in bcm2711-rpi-4-b.dts; SPI1 pins: raspberrypi/linux arch/arm/boot/dts/overlays/
   spi1-1cs-overlay.dts and spi1-3cs-overlay.dts (19 20 21 in ALT4, chip selects 18, 17, 16); I2C1 pins:
@@ -22,8 +23,9 @@ is ``None`` and is not checked, never guessed. Sources:
   DesignWare driver RP1's SPI uses (drivers/spi/spi-dw-core.c, ``dw_spi_add_host``) and spi-bcm2835.c
   (``BCM2835_SPI_MODE_BITS``, SPI0 on a Pi 3 or 4) both include SPI_CPOL | SPI_CPHA: all four modes.
 
-Not verified: the Raspberry Pi kernel's names on a Pi 3B+, the mainline names on a Pi 5, the Pi 5's bus
-pins (RP1's pin functions were not read), and every controller's clock limit (no source read states one).
+Not verified: the mainline names on a Pi 5 (torvalds/linux bcm2712-rpi-5-b.dts and bcm2712-rpi-5-b-ovl-rp1.dts
+give ``&rp1_gpio`` none; rp1-common.dtsi was not read), the Pi 5's bus pins (RP1's pin functions were not
+read), and every controller's clock limit (no source read states one).
 """
 
 from __future__ import annotations
@@ -39,9 +41,9 @@ KERNELS = ("mainline", "raspberrypi")
 _MAINLINE_BCM283X = ("ID_SDA", "ID_SCL", "SDA1", "SCL1", "GPIO_GCLK", "GPIO5", "GPIO6", "SPI_CE1_N", "SPI_CE0_N",
                      "SPI_MISO", "SPI_MOSI", "SPI_SCLK", "GPIO12", "GPIO13", "TXD1", "RXD1",
                      *(f"GPIO{n}" for n in range(16, 28)))
-"""Identical in the mainline trees of the Pi 3B, 3B+ and 4B, and in the Raspberry Pi kernel's Pi 3B tree."""
+"""Identical in the mainline trees of the Pi 3B, 3B+ and 4B, and in the Raspberry Pi kernel's Pi 3B tree as read."""
 _GPIO_NUMBERED = ("ID_SDA", "ID_SCL", *(f"GPIO{n}" for n in range(2, 28)))
-"""The Raspberry Pi kernel's names on a Pi 4B (``&gpio``) and a Pi 5 (``&rp1_gpio``)."""
+"""The Raspberry Pi kernel's names on a Pi 3B+ and 4B (``&gpio``) and a Pi 5 (``&rp1_gpio``)."""
 
 
 @dataclass(frozen=True)
@@ -105,7 +107,7 @@ HOST_BOARDS = MappingProxyType({board.name: board for board in (
     _board("pi3b", "Raspberry Pi 3 Model B", "raspberrypi,3-model-b", "&gpio (gpio@7e200000)",
            _MAINLINE_BCM283X, _MAINLINE_BCM283X, _BCM283X_SPI, (2, 3)),
     _board("pi3b-plus", "Raspberry Pi 3 Model B+", "raspberrypi,3-model-b-plus", "&gpio (gpio@7e200000)",
-           _MAINLINE_BCM283X, None, _BCM283X_SPI, (2, 3)),
+           _MAINLINE_BCM283X, _GPIO_NUMBERED, _BCM283X_SPI, (2, 3)),
     _board("pi4b", "Raspberry Pi 4 Model B", "raspberrypi,4-model-b", "&gpio (gpio@7e200000)",
            _MAINLINE_BCM283X, _GPIO_NUMBERED, _BCM283X_SPI, (2, 3)),
     _board("pi5", "Raspberry Pi 5", "raspberrypi,5-model-b", "&rp1_gpio (on RP1)",
