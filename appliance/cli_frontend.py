@@ -17,6 +17,7 @@ MAX_SERIES = 60             # sets in one series: watching for longer is the mon
 
 def add_parsers(sub) -> None:
     from appliance.cli import whole_within, within
+    from appliance.drivers.boards import HOST_BOARDS
     from appliance.service.config import FRAME_INTERVAL_RANGE_S
 
     p = sub.add_parser("acquire", help="acquire frames of readings from the front end")
@@ -36,6 +37,11 @@ def add_parsers(sub) -> None:
 
     p = sub.add_parser("selftest", help="check every chip, the signal path and each electrode's contact")
     _board_options(p)
+    p.add_argument("--check", action="store_true",
+                   help="only hold the profile against a host board (names, pins, SPI modes, enabled buses); "
+                        "no hardware is touched")
+    p.add_argument("--board", choices=sorted(HOST_BOARDS),
+                   help="with --check: the host board (default: every board the profile claims)")
     p.set_defaults(run=_selftest)
 
 
@@ -139,7 +145,12 @@ def _report(k: int, n: int, path: Path, frame, kind: str, profile: str) -> None:
 
 def _selftest(args) -> int:
     from appliance.drivers.selftest import run_self_test
+    from appliance.errors import ConfigError
 
+    if args.check:
+        return _check_board(args)
+    if args.board:
+        raise ConfigError("--board names the host for --check; a self-test runs on the board it finds")
     layout, board, profile, front_end, kind = _open(args)
     with board:
         try:
@@ -149,3 +160,23 @@ def _selftest(args) -> int:
     print(f"self-test of the {profile.name} front end ({kind}), {layout.name} layout")
     print(report.text())
     return 0 if report.passed else 1
+
+
+def _check_board(args) -> int:
+    """Hold the profile against ``--board`` or each board it claims; a mismatch is a ConfigError (status 2)."""
+    from appliance.drivers.board_check import check_profile
+    from appliance.drivers.boards import HOST_BOARDS, SYSTEMS
+    from appliance.drivers.profile import board_profile
+    from appliance.errors import ConfigError
+
+    profile = board_profile(board_table(args))
+    hosts = [args.board] if args.board else list(profile.boards)
+    if not hosts:
+        raise ConfigError(f"profile {profile.name} claims no board; name one with --board")
+    kernel = SYSTEMS[profile.system].kernel
+    for name in hosts:
+        host = HOST_BOARDS[name]
+        check_profile(profile, host)
+        unverified = "" if host.names(kernel) else " (its line names are not verified: only GPIOn names were placed)"
+        print(f"profile {profile.name} fits {host.name} ({host.model}) running {profile.system}{unverified}")
+    return 0

@@ -27,6 +27,10 @@ class CurveInvalid(ConfigError, ValueError):
     """A tolerance curve is unknown or its points are not positive and monotone; the message names the point."""
 
 
+class BoardMismatch(ConfigError, ValueError):
+    """A board profile asks of the host what it cannot give: a line it lacks, a pin taken, a mode, a bus not enabled."""
+
+
 class DataFileInvalid(ApplianceError, ValueError):
     """A data file (protocol, frame, calibration) cannot be parsed; the message names file and row."""
 

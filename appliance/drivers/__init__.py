@@ -61,12 +61,16 @@ def open_board(board: Mapping | None, *, sensor: Callable[[], object] | None = N
 def _linux_board(profile: BoardProfile, gpio_chip: str | None) -> Board:
     """A Linux board whose device files and lines have been found, so a missing one shows now.
 
-    Lines are only looked up, not requested: requesting an output as an input,
-    even briefly, could let the current source's enable float.
+    The profile is first held against the Pi it runs on (names, pins, SPI modes, enabled buses), so a
+    mistake is named in one error instead of surfacing as a bare errno from one device. Lines are only
+    looked up, not requested: requesting an output as an input, even briefly, could let the current
+    source's enable float.
     """
+    from appliance.drivers.board_check import check_profile, running_host
     from appliance.drivers.linux_board import LinuxBoard
     from appliance.drivers.linux_gpio import find_line_chips
 
+    check_profile(profile, running_host())
     board = LinuxBoard(gpio_chip=gpio_chip)
     try:
         board.i2c(profile.i2c_bus)

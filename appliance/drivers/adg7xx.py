@@ -29,8 +29,8 @@ def _check_channel(chip: str, mux: str, channel: int, ways: int) -> None:
 class ADG725:
     """Dual 16:1 mux: mux A and mux B, each on one of 16 channels or off."""
 
-    SPI_MODE = 1
-    """Data is latched on SCLK falling edges; mode 2 would do as well."""
+    SPI_MODE = 2
+    """Data is latched on SCLK falling edges (modes 1 and 2); mode 2, because SPI1 on a Pi 3 or 4 refuses CPHA = 1."""
     MAX_SPEED_HZ = 10_000_000
     """A third of the chip's 30 MHz."""
 
@@ -77,8 +77,8 @@ class ADG725:
 class ADG731:
     """32:1 mux: one of 32 channels or off."""
 
-    SPI_MODE = 1
-    """Data is latched on SCLK falling edges; mode 2 would do as well."""
+    SPI_MODE = 2
+    """Data is latched on SCLK falling edges (modes 1 and 2); mode 2, because SPI1 on a Pi 3 or 4 refuses CPHA = 1."""
     MAX_SPEED_HZ = 10_000_000
     """A third of the chip's 30 MHz."""
 

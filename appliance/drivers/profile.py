@@ -3,10 +3,13 @@
 A profile is the ``[board]`` section of the appliance's TOML configuration. It
 names a built-in profile (``reference``, ``reference-32``, ``ad5933``, ``parallel``;
 files in ``drivers/profiles/``) and may override any of its keys, so a board that
-moved a chip select or settles more slowly needs two lines, not a copy. Pins are
-named as on the header ("GPIO17"), never as a GPIO chip and offset. The parallel
-front end is built for a grid of electrodes given in its ``[grid]`` table, so the
-same profile describes the bed mat and a small test mat (``grid = {rows = 4, cols = 8}``).
+moved a chip select or settles more slowly needs two lines, not a copy. GPIO lines are
+named as the kernel of the profile's ``system`` names them ("GPIO17"; "GPIO_GCLK" for
+GPIO 4 under the mainline device trees), never as a GPIO chip and offset; ``boards``
+lists the host boards it is wired for (``drivers/board_check.py`` holds it against
+them). The parallel front end is built for a grid of electrodes given in its ``[grid]``
+table, so the same profile describes the bed mat and a small test mat
+(``grid = {rows = 4, cols = 8}``).
 
 >>> profile = board_profile({"profile": "reference", "gpio": {"buzzer": "GPIO21"}})
 >>> profile.gpio["buzzer"], profile.spi["dds"].chip_select, profile.timing.drive_settle_s
@@ -23,6 +26,7 @@ from types import MappingProxyType
 from typing import Any, Mapping
 
 from appliance.core.toml_files import read_toml
+from appliance.drivers.boards import DEFAULT_SYSTEM, HOST_BOARDS, SYSTEMS
 from appliance.errors import ConfigError
 
 BUILTIN_PROFILES = ("reference", "reference-32", "ad5933", "parallel")
@@ -145,6 +149,9 @@ class BoardProfile:
     i2c: Mapping[str, int]
     gpio: Mapping[str, str] = field(default_factory=dict)
     grid: Grid | None = None
+    system: str = DEFAULT_SYSTEM
+    boards: tuple[str, ...] = ()
+    """The host boards (``drivers/boards.py``) this profile is wired for and checked against."""
 
     @property
     def adc_address_lines(self) -> tuple[str, ...]:
@@ -215,6 +222,13 @@ def _profile_from_mapping(data: dict) -> BoardProfile:
     i2c = dict(_take(data, "i2c", dict, where))
     i2c_bus = _take(i2c, "bus", int, "[board.i2c]")
     gpio = _take(data, "gpio", dict, where) if "gpio" in data else {}
+    system = _take(data, "system", str, where) if "system" in data else DEFAULT_SYSTEM
+    if system not in SYSTEMS:
+        raise ConfigError(f"{where} system must be one of {tuple(SYSTEMS)}, got {system!r}")
+    boards = tuple(_take(data, "boards", list, where)) if "boards" in data else ()
+    unknown = [board for board in boards if board not in HOST_BOARDS]
+    if unknown:
+        raise ConfigError(f"{where} boards: {unknown[0]!r} is not one of {tuple(HOST_BOARDS)}")
     if data:
         raise ConfigError(f"{where}: unknown key {sorted(data)[0]!r}")
     roles = ROLES_BY_CHAIN[chain]
@@ -240,7 +254,7 @@ def _profile_from_mapping(data: dict) -> BoardProfile:
                            excitation=sections["excitation"], measurement=sections["measurement"],
                            accuracy=sections["accuracy"], contact=sections["contact"], timing=sections["timing"],
                            spi=MappingProxyType(spi), i2c_bus=i2c_bus, i2c=MappingProxyType(i2c),
-                           gpio=MappingProxyType(gpio), grid=grid)
+                           gpio=MappingProxyType(gpio), grid=grid, system=system, boards=boards)
     if chain == "parallel":
         _check_parallel(profile, where)
     return profile

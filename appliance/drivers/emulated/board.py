@@ -3,7 +3,8 @@
 It is a complete :class:`~appliance.drivers.bus.Board`: the same front end and
 scan engine that run on a Raspberry Pi run here, and every transfer is logged
 (``board.log``) and charged to the simulated clock at the profile's bus timing,
-so the time a scan takes is the profile's timing model.
+so the time a scan takes is the profile's timing model. It stands on a Pi 4B
+(:data:`HOST`) under the kernel of the profile's system, whose facts it enforces.
 
 Faults for tests and demonstrations: ``board.faults.fail_next(target, count,
 errno)`` for transfer errors, ``board.faults.missing`` for device files absent
@@ -14,9 +15,12 @@ at open, ``board.chain.open_electrodes`` for electrodes that lost contact,
 
 from __future__ import annotations
 
+import errno
+
 import numpy as np
 
-from appliance.drivers.bus import Board, LineRequest
+from appliance.drivers.boards import HOST_BOARDS, SYSTEMS
+from appliance.drivers.bus import Board, LineRequest, os_error_to_bus_error
 from appliance.drivers.emulated.ad5933 import EmulatedAD5933
 from appliance.drivers.emulated.ad8251 import EmulatedAD8251
 from appliance.drivers.emulated.ad9833 import EmulatedAD9833
@@ -31,7 +35,8 @@ from appliance.drivers.emulated.mcp9808 import EmulatedMCP9808
 from appliance.drivers.profile import BoardProfile
 from appliance.errors import DeviceMissing
 
-HEADER_LINES = tuple(f"GPIO{n}" for n in range(28))
+HOST = HOST_BOARDS["pi4b"]
+"""The Pi the emulated front end sits on: its lines carry that board's names and its SPI1 refuses CPHA = 1."""
 POWERED_BEFORE_OPEN_S = 1.0     # the board is powered a while before software opens it (thermometer converted)
 
 
@@ -57,7 +62,7 @@ class EmulatedBoard(Board):
         self.log: list[Transaction] = []
         self.faults = FaultPlan()
         self.timing = BusTiming(profile.timing.i2c_clock_hz, profile.timing.call_overhead_s)
-        self.bank = GPIOBank(self.clock, HEADER_LINES, self.log)
+        self.bank = GPIOBank(self.clock, HOST.names(SYSTEMS[profile.system].kernel), self.log)
         self.i2c_bus = EmulatedI2CBus(profile.i2c_bus, self.clock, self.timing, self.log, self.faults)
         self.spi_chips: dict[tuple[int, int], object] = {}
         self.temperature_c = temperature_c
@@ -149,6 +154,10 @@ class EmulatedBoard(Board):
         if chip is None or name in self.faults.missing:
             raise DeviceMissing(f"SPI {name}: no such device (is SPI enabled with dtparam=spi=on, and does the "
                                 "board have this chip select?)")
+        controller = HOST.spi.get(bus)
+        if controller is not None and mode not in controller.modes:
+            raise os_error_to_bus_error(f"SPI {name}", OSError(errno.EINVAL, f"Invalid argument: mode {mode} on "
+                                                                              f"{controller.driver}"))
         return EmulatedSPIDevice(name, mode, max_speed_hz, chip, self.clock, self.timing, self.log, self.faults)
 
     def _open_i2c(self, bus):
