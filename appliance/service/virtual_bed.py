@@ -98,9 +98,13 @@ class VirtualBedSource:
         self.front_end.schedule_faults(self.scene.faults)
 
     def mat_key(self) -> str:
-        """SHA-256 of what the virtual mat's readings follow from: its mechanics, mesh and front end."""
+        """SHA-256 of what the virtual mat's readings follow from: its mechanics, mesh and front end's analogue
+        parts."""
+        # The profile without its wiring (pins, buses, host boards): moving a chip select changes no reading.
+        profile = dataclasses.replace(self.front_end.chain.profile, spi={}, i2c={}, i2c_bus=0, gpio={}, system="",
+                                      boards=())
         description = {"mat": self.bed.params.description(), "density": self.bed.density,
-                       "front_end": repr(self.front_end.chain.profile), "current_a": self.front_end.chain.current_a}
+                       "front_end": repr(profile), "current_a": self.front_end.chain.current_a}
         return hashlib.sha256(json.dumps(description, sort_keys=True, default=str).encode()).hexdigest()
 
     def fits(self, calibration: PressureCalibration, model: ReconstructionModel) -> bool:
