@@ -15,7 +15,7 @@ import pytest
 from mqtt_broker import free_port, subscribed_station, wait_until
 from ward_payloads import alarm, as_sent, summary
 
-from appliance.alerts.wardlink import WardLink
+from appliance.alerts.wardlink import WardLink, release
 from appliance.core.layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.service.config import config_from_mapping
@@ -46,8 +46,7 @@ class Publisher:
         self.send(f"appliance/{bed_id}/{event.type}", as_sent(event, bed_id, seq))
 
     def close(self):
-        self.client.disconnect()
-        self.client.loop_stop()
+        release(self.client)
 
 
 @pytest.fixture
@@ -80,8 +79,7 @@ class Confirmations:
         return [body["seq"] for bed_id_, body, _ in self.received if bed_id_ == bed_id]
 
     def close(self):
-        self.client.disconnect()
-        self.client.loop_stop()
+        release(self.client)
 
 
 @pytest.fixture
