@@ -2,11 +2,11 @@
 
 It builds (or loads) the reconstruction model, calibrates the virtual mat the
 first time, takes the empty-mat reference, puts the scenario's patient on and
-prints one line per pressure map, keeping the newest map in the data directory
-(``live.png``, ``live.csv`` in kPa) for anyone to look at. Each map goes through
+prints one line per pressure map. Each map goes through
 the alert pipeline (regions, dose, turn clock, alarms); alarm and turn events are
 printed and, with the alert state, committed to the SQLite store
-(``appliance.db``) frame by frame; ``live.json`` is the web screen's view.
+(``appliance.db``); ``live.json`` is the web screen's view of the newest map. Nothing
+else is written per frame: a Pi's SD card and CPU are spent only on what is read.
 
 ``--config`` reads the monitor's TOML file (:mod:`appliance.service.config`);
 the options override it. Started again on the same data directory, it resumes
@@ -18,8 +18,6 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
-
-LIVE_FULL_SCALE_MMHG = 100.0      # the live map's colour scale: white at 0, darkest at 100 mmHg and over
 
 
 def add_parsers(sub) -> None:
@@ -115,8 +113,7 @@ def _run(args) -> int:
     say(f"appliance: monitoring {where}; bed {config.bed_id}")
     try:
         daemon = assemble(config, say=say, on_event=lambda e: print(f"  {_event_line(e)}", flush=True),
-                          on_map=lambda m: _show(m, daemon.grid, daemon.config.data_dir,
-                                                 len(daemon.model.setup.protocol)))
+                          on_map=lambda m: _show(m, len(daemon.model.setup.protocol)))
         signal.signal(signal.SIGTERM, daemon.request_stop)
         started = time.perf_counter()
         try:
@@ -162,13 +159,9 @@ def listen_address(where: str, option: str) -> tuple[str, int]:
     return host or "127.0.0.1", int(port)
 
 
-def _show(pressure_map, grid, data_dir: Path, n_readings: int) -> None:
-    """One line for the map, and the map itself kept as the newest in ``data_dir``."""
-    import numpy as np
-
+def _show(pressure_map, n_readings: int) -> None:
+    """One line for the map."""
     from appliance.core.pressure import KPA_PER_MMHG
-    from appliance.core.render import write_png
-    from appliance.files import write_atomic
 
     m = pressure_map
     t = int(round(m.time_s))
@@ -177,10 +170,6 @@ def _show(pressure_map, grid, data_dir: Path, n_readings: int) -> None:
     print(f"{t // 3600}:{t % 3600 // 60:02d}:{t % 60:02d}  peak {m.peak_kpa:.1f} kPa ({m.peak_kpa / KPA_PER_MMHG:.0f} "
           f"mmHg)  {len(m.regions)} region(s) >= 32 mmHg{': ' + regions if regions else ''}  "
           f"[{m.usable_readings}/{n_readings} readings]", flush=True)
-    rows = "\n".join(",".join("nan" if np.isnan(v) else f"{v:.3f}" for v in row) for row in m.pressure_kpa)
-    write_atomic(data_dir / "live.csv", rows + "\n")
-    write_png(data_dir / "live.png", m.pressure_kpa, vmin=0.0, vmax=LIVE_FULL_SCALE_MMHG * KPA_PER_MMHG,
-              palette="sequential", scale=16)
 
 
 def _event_line(event) -> str:

@@ -10,6 +10,7 @@ from appliance.core.pressure import load_pressure_calibration, save_pressure_cal
 from appliance.core.protocols import default_protocol
 from appliance.errors import ConfigError
 from appliance.service.config import MonitorConfig
+from appliance.service.live import read_live
 from appliance.service.monitor import Monitor
 from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.loads import square_load_scene
@@ -74,9 +75,9 @@ def test_run_starts_on_the_virtual_bed_calibrates_once_and_maps_the_patient(bed_
     with Store.open(data / "appliance.db") as store:
         assert [e["kind"] for e in store.events_since(0.0)] == ["lay-down"]
         assert store.load_state("alerts")["last_time_s"] == 120.0
-    assert (data / "live.png").stat().st_size > 0
-    live = np.genfromtxt(data / "live.csv", delimiter=",")
-    assert live.shape == (30, 64) and np.nanmax(live) > 4.3          # a supine patient loads the sacrum
+    newest = np.array(read_live(data / "live.json")["map"]["mmhg"], dtype=float)
+    assert newest.shape == (30, 64) and np.nanmax(newest) > 32       # a supine patient loads the sacrum
+    assert sorted(p.name for p in data.glob("live.*")) == ["live.json"]  # no per-frame files nothing reads
     assert main(args) == 0                                               # the second start reuses it
     assert "loaded from" in capsys.readouterr().err
 

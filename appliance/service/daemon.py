@@ -20,8 +20,8 @@ each is applied exactly once even across a crash.
 
 Faults around the loop are technical alarms too, never its end: a full or
 failing disk (the store's writes held in memory, :mod:`appliance.store.holding`),
-a helper thread that fails (restarted by its supervisor), map files that cannot
-be written, and a saved state that cannot be continued.
+a helper thread that fails (restarted by its supervisor), and a saved state that
+cannot be continued.
 
 Under systemd (``Type=notify``) it reports ready once the first map is made,
 pings the watchdog every frame, and on SIGTERM finishes the frame, flushes the
@@ -59,6 +59,8 @@ CommandHandler = Callable[[float, dict, str, int], tuple[list[Event], str]]
 NO_DATA_FRAMES = 3
 """Frames in a row without a map before ``technical:no-data`` is raised (within the 3 frames an
 electrode fault must be reported in)."""
+PRUNE_EVERY_S = 3600.0
+"""How often (monitoring time) the store drops history and events past their retention or its size cap."""
 
 
 def ward_summary(snapshot: dict) -> dict:
@@ -103,8 +105,8 @@ class MonitorDaemon:
         self.stop_requested = threading.Event()
         self.maps = self.faults = self.consecutive_faults = 0
         self.last_fault: str | None = None
-        self.map_fault: str | None = None
         self.resumed_from_s: float | None = None
+        self.last_prune_s: float | None = None
         self.start_faults: dict[str, tuple[str, float]] = {}   # technical alarm key -> (message, shown until)
         self._ready = False
         self.commands: dict[str, CommandHandler] = {"acknowledge": self._acknowledge,
@@ -258,8 +260,9 @@ class MonitorDaemon:
                                  {"alerts": self.pipeline.state(), "outbox": {"events": [e.to_dict() for e in events]}},
                                  outcomes)
         self._tell(events, now)
+        self._prune_when_due(now)
         if pressure_map is not None and self.on_map is not None:
-            self._show_map(pressure_map)
+            self.on_map(pressure_map)
         if self.live is not None:
             self.live.publish(snapshot)
         if self.ward_link is not None:
@@ -324,6 +327,22 @@ class MonitorDaemon:
         if self.gpio is not None:
             self.gpio.show(self.pipeline.engine.audible(now), now)
 
+    def _prune_when_due(self, now: float) -> None:
+        """Retention: at the first frame and every ``PRUNE_EVERY_S`` after (a clock step counts as due), so the
+        store keeps to its ages and size cap however long the bed runs. A disk that refuses is the storage alarm's
+        business; the next attempt comes an interval later."""
+        if self.last_prune_s is not None and abs(now - self.last_prune_s) < PRUNE_EVERY_S:
+            return
+        self.last_prune_s = now
+        try:
+            deleted = self.store.prune(now)
+        except (sqlite3.OperationalError, OSError) as exc:
+            self.say(f"the store's retention could not run: {exc}")
+            return
+        if any(deleted.values()):
+            self.say(f"retention: {deleted['history']} map(s) and {deleted['events']} event(s) past their keeping "
+                     f"dropped from the store")
+
     def _clock_steps(self, now: float) -> list[Event]:
         """A wall-clock step since the last frame, as a record for the log (not a notification: the frame
         times, kept on the monotonic clock, did not step)."""
@@ -337,7 +356,7 @@ class MonitorDaemon:
 
     def _helper_faults(self) -> dict[str, str]:
         """A technical alarm for each helper that is failing: the live view's writer, a notifier's threads
-        (restarted with a back-off by their supervisors), the newest map's files."""
+        (restarted with a back-off by their supervisors)."""
         faults = {}
         if self.live is not None and self.live.fault is not None:
             faults["technical:live-view"] = f"the live view cannot be written (retrying): {self.live.fault}"
@@ -347,21 +366,7 @@ class MonitorDaemon:
                                                                  f"(restarting): {fault}"
         if self.ward_link is not None:
             faults.update(self.ward_link.conditions())
-        if self.map_fault is not None:
-            faults["technical:map-files"] = f"the newest map's files cannot be written: {self.map_fault}"
         return faults
-
-    def _show_map(self, pressure_map) -> None:
-        """Hand the map to ``on_map`` (files for anyone to look at): a failure is a technical alarm, not the
-        end of monitoring."""
-        try:
-            self.on_map(pressure_map)
-        except OSError as exc:
-            if self.map_fault is None:
-                self.say(f"the newest map's files cannot be written: {exc}")
-            self.map_fault = f"{type(exc).__name__}: {exc}"
-        else:
-            self.map_fault = None
 
     def _snapshot(self, now: float, pressure_map, alerts: FrameAlerts) -> dict:
         """What the live view shows: the map, regions with their dose, the turn clock, alarms and status."""
