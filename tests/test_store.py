@@ -11,7 +11,7 @@ import pytest
 from appliance.alerts.alarms import AlarmEvent
 from appliance.alerts.turns import TurnEvent
 from appliance.store import SchemaTooNew, Store, StoreClosed, StoreCorrupt
-from appliance.store.database import DAY_S, SCHEMA_VERSION
+from appliance.store.database import DAY_S, SCHEMA_VERSION, STATE_SYNC_S
 
 
 def raw(path, sql):
@@ -77,6 +77,34 @@ def test_a_failed_frame_leaves_neither_state_nor_events(tmp_path):
             store.commit_frame(2.0, [alarm_event(2.0), {"kind": "no time"}], {"alarms": {"n": 2}})
         assert store.load_state("alarms") == {"n": 1}
         assert [e["time_s"] for e in store.events_since(0.0)] == [1.0]
+
+
+class CountingStore(Store):
+    """A store that notes the synchronous level of every write it makes."""
+
+    def _transaction(self, synchronous):
+        self.levels.append(synchronous)
+        return super()._transaction(synchronous)
+
+
+def test_quiet_frames_are_synced_once_a_state_sync_period_and_events_and_commands_at_once(tmp_path):
+    store = CountingStore.open(tmp_path / "store.db")
+    store.levels = []
+    try:
+        for t in range(60):                                      # a quiet minute at the bed's 1 s
+            store.commit_frame(float(t), [], {"alerts": {"t": t}})
+        assert [t for t, level in enumerate(store.levels) if level == "FULL"] == \
+            list(range(0, 60, int(STATE_SYNC_S)))
+        assert store.load_state("alerts") == {"t": 59}          # NORMAL commits are committed all the same
+        store.levels.clear()
+        store.commit_frame(60.0, [alarm_event(60.0)], {"alerts": {"t": 60}})       # an event: at once
+        command = store.queue_command("acknowledge", {"alarm_id": 1}, "nurse.a")
+        store.commit_frame(61.0, [], {"alerts": {"t": 61}}, [(command, True, "1 event(s)")])
+        store.commit_frame(62.0, [], {"alerts": {"t": 62}})                        # 2 s after the last: NORMAL
+        store.commit_frame(30.0, [], {"alerts": {"t": 30}})                        # the clock stepped back
+        assert store.levels == ["FULL", "FULL", "FULL", "NORMAL", "FULL"]
+    finally:
+        store.close()
 
 
 def test_a_process_killed_inside_a_frame_keeps_every_committed_frame_and_nothing_partial(tmp_path):

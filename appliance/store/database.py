@@ -1,13 +1,17 @@
 """The appliance's persistence: one SQLite file holding the event log, alert checkpoints and pressure history.
 
-Durability is chosen per write. The file runs in WAL mode; alarm events and
-alert state are committed with ``synchronous=FULL`` (the WAL is fsynced before
-the commit returns), because an acknowledged alarm that reappears after a power
-cut, or an audit entry that vanishes, is a safety defect. The pressure history
-is committed with ``synchronous=NORMAL``: a power cut may lose the last few
-maps but never corrupts the file, and it spares the SD card an fsync per map.
-Because the WAL is written in order, the next FULL commit also makes every
-earlier NORMAL commit durable.
+Durability is chosen per write. The file runs in WAL mode; alarm events,
+commands and their outcomes are committed with ``synchronous=FULL`` (the WAL is
+fsynced before the commit returns), because an acknowledged alarm that reappears
+after a power cut, or an audit entry that vanishes, is a safety defect. The
+alert state of a frame without events (doses growing, the turn clock running)
+is committed FULL once ``STATE_SYNC_S`` of monitoring time have passed since
+the last FULL commit, and with ``synchronous=NORMAL`` in between, as is the
+pressure history: a power cut may lose the last seconds of dose and the last few
+maps, never an event, and never corrupts the file, and the SD card is spared an
+fsync per frame. Because the WAL is written in order, the next FULL commit also
+makes every earlier NORMAL commit durable. A killed process loses nothing
+committed either way: NORMAL commits are in the operating system's hands.
 
 Times are seconds on whatever clock the caller runs (the alarm engine's); the
 store only compares them, so retention ages are measured on that clock too.
@@ -31,6 +35,9 @@ from appliance.errors import SchemaTooNew, StoreClosed, StoreCorrupt, StoreError
 
 SCHEMA_VERSION = 3
 BUSY_TIMEOUT_S = 5.0
+STATE_SYNC_S = 15.0
+"""Longest stretch of monitoring time whose alert state a power cut may take back: 15 s of a dose that alarms
+after hours (Reswick-Rogers allows 32 mmHg for about 8 h), and one fsync per 15 frames at the bed's 1 s."""
 DAY_S = 86400.0
 
 EVENT_COLUMNS = ("time_s", "kind", "alarm_id", "key", "category", "priority", "user", "channel", "message")
@@ -102,6 +109,7 @@ class Store:
         self.max_bytes = max_bytes
         self._last_map_s = db.execute("SELECT max(time_s) FROM pressure_history").fetchone()[0]
         self._wrote = False
+        self._last_full_s: float | None = None        # monitoring time of the last FULL frame commit
 
     @classmethod
     def open(cls, path, *, history_interval_s: float = 60.0, history_days: float = 30.0, event_days: float = 365.0,
@@ -183,14 +191,20 @@ class Store:
     def commit_frame(self, now_s: float, events: Iterable, states: Mapping[str, dict],
                      commands_done: Iterable[tuple[int, bool, str]] = ()) -> None:
         """A frame's events, the states they led to and the commands it applied (id, applied, result), in one
-        transaction: a crash keeps all or none, so a command is applied exactly once."""
-        with self._transaction("FULL") as db:
+        transaction: a crash keeps all or none, so a command is applied exactly once. Durable (FULL) when it
+        carries an event or a command, or ``STATE_SYNC_S`` after the last durable one (see the module's notes)."""
+        events, commands_done = list(events), list(commands_done)
+        durable = bool(events or commands_done) or self._last_full_s is None \
+            or not 0.0 <= now_s - self._last_full_s < STATE_SYNC_S      # a clock step back syncs at once
+        with self._transaction("FULL" if durable else "NORMAL") as db:
             for name, state in states.items():
                 _upsert_state(db, name, state, now_s)
             _insert_events(db, events)
             for command_id, applied, result in commands_done:
                 db.execute("UPDATE commands SET state = ?, result = ?, done_s = ? WHERE id = ?",
                            ("done" if applied else "refused", result, now_s, command_id))
+        if durable:
+            self._last_full_s = now_s
 
     # Commands: what other processes (the web screen) ask the monitor to do.
 
