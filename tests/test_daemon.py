@@ -19,12 +19,13 @@ from appliance.core.layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.errors import ConfigError, TransferFailed
 from appliance.service.config import config_from_mapping, load_config
-from appliance.service.daemon import NO_DATA_FRAMES, MonitorDaemon
+from appliance.service.daemon import NO_DATA_FRAMES, PRUNE_EVERY_S, MonitorDaemon
 from appliance.service.live import LiveChannel, read_live
 from appliance.service.systemd import SystemdNotifier
 from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.loads import square_load_scene
 from appliance.store import Store
+from appliance.store.database import DAY_S
 
 GRID = get_layout("grid-4x4")
 INTERVAL = 600.0            # ten minutes a frame: 45 mmHg uses 5 % of the tolerance in a few frames
@@ -225,6 +226,21 @@ def test_acknowledgement_is_applied_at_the_next_frame_and_recorded(small_mat_cal
         assert store.command(good)["state"] == "done" and store.command(bad)["state"] == "refused"
         assert "alarm 999 is unknown" in store.command(bad)["result"]
         assert [e["user"] for e in store.events_since(0) if e["kind"] == "acknowledged"] == ["nurse.jones"]
+
+
+def test_retention_runs_at_the_first_frame_and_every_hour_of_monitoring(small_mat_calibration, tmp_path):
+    model, calibration = small_mat_calibration
+    config = config_from_mapping({"monitor": {"layout": "grid-4x4", "frame_interval_s": INTERVAL}})
+    store = Store.open(tmp_path / "appliance.db", history_interval_s=0.0, history_days=1800.0 / DAY_S)
+    said = []
+    daemon = MonitorDaemon(config, FlakySource(failing=()), model, calibration, store, say=said.append)
+    daemon.start()
+    daemon.run(14)                                   # 14 maps ten minutes apart, from 0 to 2 h 10 min
+    kept = [t for t, _ in store.history_between(0.0, 1e9)]
+    daemon.close()
+    assert daemon.last_prune_s == 2 * PRUNE_EVERY_S                  # pruned at 0, 1 h and 2 h
+    assert kept == [k * INTERVAL for k in range(14) if k * INTERVAL >= 2 * PRUNE_EVERY_S - 1800.0]  # the last 30 min
+    assert any(line.startswith("retention: ") for line in said)
 
 
 # The real process: systemd readiness and a clean SIGTERM.
