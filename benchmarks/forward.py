@@ -240,7 +240,7 @@ electrodes, the 16th being ground) and takes every reading from the electrodes' 
 
 Assemble, factorise and solve for every drive of the 448-reading protocol on the default mesh
 ({default_nodes} nodes): **median {default_seconds * 1e3:.1f} ms over 200 runs**, {verdict} the 50 ms budget
-(`tests/test_forward.py::test_default_grid_solves_all_24_drives_within_50_ms` asserts it on every test run).
+(checked here, not in the tests: a timing belongs to a benchmark, where a busy machine cannot fail a build).
 
 ## Time against mesh size (grid-4x4)
 

@@ -14,7 +14,6 @@ from appliance.core.layouts import get_layout
 from appliance.core.network import build_network_model, network_for_layout
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from report import median_seconds  # noqa: F401  (one timing helper for benchmarks and tests)
 
 PERIPHERAL_AND_GRID = ("circular-16", "square-16", "grid-4x4")
 
