@@ -293,8 +293,8 @@ def test_a_bed_that_stops_summarising_goes_stale(broker, beds):
         bed7.summarise(summary("bed7"))
         assert wait_until(lambda: (bed(station, "bed7") or {}).get("summary") is not None, 5)
         assert bed(station, "bed7")["status"] == "online"      # connected, but its loop has stopped
-        delay = offline_after({"stale": station}, "bed7", 2)["stale"]
-        assert bed(station, "bed7")["status"] == "online" and 0.2 < delay <= 1.0
+        delay = offline_after({"stale": station}, "bed7", GENEROUS_S)["stale"]
+        assert bed(station, "bed7")["status"] == "online" and delay > 0.2     # stale by silence, not at once
         bed7.summarise(summary("bed7", time_s=101.0))
         assert wait_until(lambda: bed(station, "bed7")["online"], 2)
 
