@@ -156,7 +156,7 @@ def test_a_failing_helper_thread_is_a_technical_alarm_and_is_restarted(small_mat
         assert frames < 30 and live._worker.is_alive()
         daemon.step()
         frames += 1
-        wait_until(lambda: live.written > 0, timeout_s=0.2)
+        wait_until(lambda: live.written > 0, timeout_s=1.0)
     daemon.step()
     daemon.close()
     assert [e.kind for e in events if e.key == "technical:live-view"] == ["raised", "ended"]

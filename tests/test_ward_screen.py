@@ -70,7 +70,7 @@ def test_a_new_alarm_is_pushed_to_the_stream_and_an_offline_bed_is_shown(tmp_pat
     assert view["beds"][0]["alarms"][0]["alarm_id"] == 9
     stream.close()
     bed.close(timeout_s=2.0)                                   # a clean stop says "offline" at once
-    assert wait_until(lambda: ward(nurse)["counts"]["offline"] == 1, timeout_s=3)
+    assert wait_until(lambda: ward(nurse)["counts"]["offline"] == 1)
     assert ward(nurse)["beds"][0]["status"] == "offline"
 
 
