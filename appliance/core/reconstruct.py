@@ -403,7 +403,7 @@ def spd_solver(a: np.ndarray):
         # the sum only semi-definite, where a least-squares solve still gives a finite answer.
         inverse = np.linalg.pinv(a, hermitian=True)
         return lambda b: inverse @ b
-    return lambda b: sla.cho_solve(factor, b)
+    return lambda b: sla.cho_solve(factor, b, check_finite=False)   # the factor was checked as it was made
 
 
 def _desired_image(grid: PixelGrid, areas: np.ndarray, blur_px: float) -> np.ndarray:

@@ -91,4 +91,6 @@ def read_live(path: Path) -> dict | None:
 def map_mmhg(pressure_kpa: np.ndarray) -> list[list[float | None]]:
     """A map in whole tenths of mmHg for the screen, None where nothing could be read."""
     mmhg = np.round(np.asarray(pressure_kpa, dtype=float) / KPA_PER_MMHG, 1)
-    return [[None if not np.isfinite(v) else float(v) for v in row] for row in mmhg]
+    shown = mmhg.astype(object)             # Python floats, element by element in C rather than in a loop here
+    shown[~np.isfinite(mmhg)] = None
+    return shown.tolist()
