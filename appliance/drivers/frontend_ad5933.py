@@ -3,8 +3,10 @@
 Ranges combine the AD8251 gain with the AD5933's receive PGA (x1, x5). A reading
 is one *Repeat frequency* point: the chip waits its settling cycles after the
 command, so a multiplexer switch needs no RMS lag, only the switch's own
-settling. The DFT gives a phasor, so the sign of a reading is its projection on
-the system phase, which is measured once on a two-electrode reading (always
+settling. The DFT gives a phasor, and a reading is its projection on the system
+phase: the in-phase (resistive) part, with its sign, while the quadrature part
+that contact capacitance adds is left out (an RMS detector would add it to the
+magnitude). The system phase is measured once on a two-electrode reading (always
 positive: current in at the first electrode, out at the second), the way the
 datasheet calibrates phase with a known resistor.
 """
@@ -122,8 +124,8 @@ class AD5933FrontEnd(FrontEnd):
         if AD5933.is_saturated(z):
             return Sample(magnitude, 1.0, z)
         phase = self.system_phase if self.system_phase is not None else 0.0
-        in_phase = math.cos(cmath.phase(z) - phase) >= 0
-        return Sample(magnitude if in_phase else -magnitude, abs(z) / AD5933.CODE_LIMIT, z,
+        in_phase = magnitude * math.cos(cmath.phase(z) - phase)
+        return Sample(in_phase, abs(z) / AD5933.CODE_LIMIT, z,
                       sign_known=magnitude >= self.profile.measurement.sign_floor_v)
 
     def converter_name(self) -> str:
