@@ -7,7 +7,10 @@ moved a chip select or settles more slowly needs two lines, not a copy. GPIO lin
 named as the kernel of the profile's ``system`` names them ("GPIO17"; "GPIO_GCLK" for
 GPIO 4 under the mainline device trees), never as a GPIO chip and offset; ``boards``
 lists the host boards it is wired for (``drivers/board_check.py`` holds it against
-them). The parallel front end is built for a grid of electrodes given in its ``[grid]``
+them). ``[supply]`` gives the analogue parts' rails, from which ``drivers/rails.py``
+derives the current source's compliance (a profile whose parts do not fit their rails
+is refused); ``[measurement] detector``, if given, must be what the chain's detector is.
+The parallel front end is built for a grid of electrodes given in its ``[grid]``
 table, so the same profile describes the bed mat and a small test mat
 (``grid = {rows = 4, cols = 8}``).
 
