@@ -106,7 +106,7 @@ def run() -> str:
         sections.append(
             f"### {name}: {profile.excitation.frequency_hz / 1e3:g} kHz, {current_of(profile) * 1e3:.2f} mA, "
             f"inputs {m.input_capacitance_f * 1e12:g} pF to ground, detector `{m.detector}`\n\n"
-            + table(["contact C (nF)", "|Zc| ohm", "RMS: static error median / max (%)", "RMS: change error (%)",
+            + table(["contact C (nF)", "contact impedance (ohm)", "RMS: static error median / max (%)", "RMS: change error (%)",
                      "in-phase: static median / max (%)", "in-phase: change error (%)",
                      "contact check 1-2 ohm: RMS / in-phase / resistive", "drives at compliance"], rows))
     summary = table(["board", "its detector", "worst change error, magnitude (RMS)", "worst change error, in-phase"],
