@@ -87,3 +87,12 @@ def test_a_phase_sensitive_chain_described_as_rms_is_refused():
 def test_each_chain_states_what_its_detector_reports(name, detector):
     assert board_profile({"profile": name}).measurement.detector == detector
     assert board_profile({"profile": name, "measurement": {"detector": detector}}).measurement.detector == detector
+
+
+def test_selftest_check_refuses_the_profile_before_any_hardware(tmp_path, capsys):
+    from appliance.cli import main
+
+    config = tmp_path / "monitor.toml"
+    config.write_text('[board]\nprofile = "reference"\n[board.supply]\ncurrent_source = [-12.0, 12.0]\n')
+    assert main(["selftest", "--check", "--config", str(config)]) == 2
+    assert "exceeds what the ADG725 multiplexers pass" in capsys.readouterr().err
