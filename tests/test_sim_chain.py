@@ -133,6 +133,28 @@ def test_the_parallel_shortcut_matches_the_transfer_level_scan_on_a_small_grid()
     assert frame.usable.all()
 
 
+def test_the_parallel_shortcut_matches_the_scan_through_capacitive_contacts():
+    """200 ohm parallel 10 nF contacts (+/-30 %): both keep the in-phase part, which the contacts move; the
+    scan's reciprocity check finds the pairs the contacts made disagree."""
+    import dataclasses
+
+    from appliance.drivers.emulated.electrode_interface import ElectrodeContact
+
+    contact = ElectrodeContact.uniform(32, resistance_ohm=200.0, capacitance_f=1e-8, spread=0.3)
+    plain = sensor_of("grid-4x8")
+    profile = board_profile(SMALL_GRID)
+    frame, _ = settled_parallel_scan(profile, dataclasses.replace(plain, contact=contact), SMALL_PROTOCOL, seed=4)
+    volts, _ = FrameChain(profile, seed=4, contact=contact).readings(plain.transfer, SMALL_PROTOCOL)
+    usable = np.isfinite(frame.volts)
+    assert np.array_equal(~usable, (frame.flags & int(Flag.RECIPROCITY)) != 0)
+    assert usable.sum() > len(SMALL_PROTOCOL) / 3
+    accuracy = profile.accuracy
+    allowed = 2 * (accuracy.relative * np.abs(volts) + accuracy.absolute_v)
+    assert np.all(np.abs(volts - frame.volts)[usable] <= allowed[usable])
+    without = FrameChain(profile, seed=4).ideal(plain.transfer, SMALL_PROTOCOL)
+    assert np.max(np.abs(volts - without)) > 0.01 * np.max(np.abs(without)), "the contacts move the readings"
+
+
 def test_the_parallel_shortcut_saturates_where_the_scan_does():
     sensor = ForwardSensor.of_layout(SMALL, sheet_conductance_s=0.0015)
     frame, flags = compare_parallel(board_profile(SMALL_GRID), sensor, SMALL_PROTOCOL, seed=5)
