@@ -1,4 +1,5 @@
-"""The operator functions that use the front end (thesis 3.3): ``acquire`` and ``selftest``.
+"""The operator functions that use the front end (thesis 3.3): ``acquire`` and ``selftest``; and ``wiring``,
+the tables a front end is built and checked by.
 
 ``--emulated`` runs them on the emulated board measuring the layout's mat (with
 ``--inclusion`` objects on it); without it they open the real board named by
@@ -43,6 +44,13 @@ def add_parsers(sub) -> None:
     p.add_argument("--board", choices=sorted(HOST_BOARDS),
                    help="with --check: the host board (default: every board the profile claims)")
     p.set_defaults(run=_selftest)
+
+    p = sub.add_parser("wiring", help="print a profile's wiring (chip, bus, BCM GPIO, header pin, line name) and "
+                                      "its analogue rails, as markdown")
+    p.add_argument("--config", type=Path, help="appliance TOML configuration; its [board] table describes the board")
+    p.add_argument("--profile", help="a built-in profile (overrides --config); default: every built-in profile")
+    p.add_argument("--out", type=Path, help="write the tables to this .md file instead of printing them")
+    p.set_defaults(run=_wiring)
 
 
 def _board_options(p: argparse.ArgumentParser) -> None:
@@ -179,4 +187,22 @@ def _check_board(args) -> int:
         check_profile(profile, host)
         unverified = "" if host.names(kernel) else " (its line names are not verified: only GPIOn names were placed)"
         print(f"profile {profile.name} fits {host.name} ({host.model}) running {profile.system}{unverified}")
+    return 0
+
+
+def _wiring(args) -> int:
+    from appliance.drivers.profile import BUILTIN_PROFILES, board_profile
+    from appliance.drivers.wiring import wiring_markdown
+    from appliance.files import check_writable, write_atomic
+
+    if args.out:
+        check_writable(args.out, "--out", (".md",))
+    if args.config or args.profile:
+        text = wiring_markdown(board_profile(board_table(args)))
+    else:
+        text = "\n".join(wiring_markdown(board_profile({"profile": name})) for name in BUILTIN_PROFILES)
+    if args.out:
+        write_atomic(args.out, text)
+    else:
+        print(text, end="")
     return 0

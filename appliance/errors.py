@@ -31,6 +31,11 @@ class BoardMismatch(ConfigError, ValueError):
     """A board profile asks of the host what it cannot give: a line it lacks, a pin taken, a mode, a bus not enabled."""
 
 
+class AnalogueMismatch(ConfigError, ValueError):
+    """A profile's analogue chain cannot do what it states: a part on rails it is not specified for, a current
+    source that drives an electrode beyond what its multiplexers pass, a detector other than the chain's."""
+
+
 class DataFileInvalid(ApplianceError, ValueError):
     """A data file (protocol, frame, calibration) cannot be parsed; the message names file and row."""
 

@@ -170,3 +170,14 @@ def test_alerts_benchmark_nights_and_scoring():
     assert restless.segment_at(0.0) == (restless.segments[0][0], restless.segments[0][2])
     got = alerts.compare({"sacrum": 100.0, "heel-left": 500.0}, {"sacrum": 160.0, "occiput": 50.0})
     assert got == {"truth": 2, "missed": ["heel-left"], "late_s": [60.0], "false": ["occiput"]}
+
+
+def test_contact_capacitance_benchmark_compares_the_detectors(monkeypatch):
+    bench = load("contact_capacitance")
+    monkeypatch.setattr(bench, "CAPACITANCES_F", (0.0, 1e-8))
+    monkeypatch.setattr(bench, "BOARDS", {"reference": {}})
+    body = bench.run()
+    rows = [line.split(" | ") for line in body.splitlines() if line.startswith("| 10 |")]
+    assert len(rows) == 1
+    rms_change, in_phase_change = float(rows[0][3]), float(rows[0][5])
+    assert rms_change > 20 * in_phase_change, body

@@ -38,6 +38,35 @@ def test_ranges_currents_and_readings_agree_with_a_scan(profile):
     assert not flags.any()
 
 
+@pytest.mark.parametrize(("profile", "detector"), [("reference", "rms"), ("ad5933", "synchronous")])
+def test_with_unequal_contacts_a_scan_reports_what_the_profiles_detector_does(profile, detector):
+    """Contacts within +/-30 % of 30 ohm behind 1 nF inputs put quadrature into the differential: the RMS
+    board's scan gives its magnitude, the AD5933 board's its in-phase part, each as the frame chain does."""
+    import dataclasses
+
+    from appliance.drivers.emulated.electrode_interface import ElectrodeContact, detect, reading_phasors
+
+    table = {"profile": profile, "measurement": {"input_capacitance_f": 1e-9}}
+    contact = ElectrodeContact.uniform(16, resistance_ohm=30.0, capacitance_f=0.0, spread=0.3)
+    sensor = dataclasses.replace(sensor_of("grid-4x4"), contact=contact)
+    board = EmulatedBoard(board_profile(table), sensor, seed=0)
+    engine = ScanEngine(open_front_end(board, board.profile), PROTOCOL)
+    engine.scan()
+    frame = engine.scan()
+    chain = FrameChain(board_profile(table), seed=0, contact=contact)
+    volts, _ = chain.readings(sensor.transfer, PROTOCOL)
+    usable = np.isfinite(frame.volts)
+    assert usable.sum() > 400
+    accuracy = chain.profile.accuracy
+    allowed = 2 * (accuracy.relative * np.abs(frame.volts) + accuracy.absolute_v)
+    assert np.all(np.abs(volts - frame.volts)[usable] <= allowed[usable])
+    x, m = chain.profile.excitation, chain.profile.measurement
+    phasors = reading_phasors(sensor.transfer, PROTOCOL.readings - 1, chain.current_a, contact, x.frequency_hz,
+                              m.input_capacitance_f, x.compliance_v)[0]
+    other = detect(phasors, "synchronous" if detector == "rms" else "rms")
+    assert (np.abs(frame.volts - other) > allowed)[usable].sum() >= 5, "the other detector's view is told apart"
+
+
 def test_saturation_is_flagged_where_a_scan_flags_it():
     sensor = sensor_of("grid-4x4", (Inclusion("disc", 50, 50, 50, 50, 1e-3),))
     frame = scanned("reference", sensor)
@@ -102,6 +131,28 @@ def test_the_parallel_shortcut_matches_the_transfer_level_scan_on_a_small_grid()
     profile = board_profile(SMALL_GRID)
     frame, flags = compare_parallel(profile, sensor_of("grid-4x8"), SMALL_PROTOCOL, seed=4)
     assert frame.usable.all()
+
+
+def test_the_parallel_shortcut_matches_the_scan_through_capacitive_contacts():
+    """200 ohm parallel 10 nF contacts (+/-30 %): both keep the in-phase part, which the contacts move; the
+    scan's reciprocity check finds the pairs the contacts made disagree."""
+    import dataclasses
+
+    from appliance.drivers.emulated.electrode_interface import ElectrodeContact
+
+    contact = ElectrodeContact.uniform(32, resistance_ohm=200.0, capacitance_f=1e-8, spread=0.3)
+    plain = sensor_of("grid-4x8")
+    profile = board_profile(SMALL_GRID)
+    frame, _ = settled_parallel_scan(profile, dataclasses.replace(plain, contact=contact), SMALL_PROTOCOL, seed=4)
+    volts, _ = FrameChain(profile, seed=4, contact=contact).readings(plain.transfer, SMALL_PROTOCOL)
+    usable = np.isfinite(frame.volts)
+    assert np.array_equal(~usable, (frame.flags & int(Flag.RECIPROCITY)) != 0)
+    assert usable.sum() > len(SMALL_PROTOCOL) / 3
+    accuracy = profile.accuracy
+    allowed = 2 * (accuracy.relative * np.abs(volts) + accuracy.absolute_v)
+    assert np.all(np.abs(volts - frame.volts)[usable] <= allowed[usable])
+    without = FrameChain(profile, seed=4).ideal(plain.transfer, SMALL_PROTOCOL)
+    assert np.max(np.abs(volts - without)) > 0.01 * np.max(np.abs(without)), "the contacts move the readings"
 
 
 def test_the_parallel_shortcut_saturates_where_the_scan_does():

@@ -3,10 +3,13 @@
 Ranges combine the AD8251 gain with the AD5933's receive PGA (x1, x5). A reading
 is one *Repeat frequency* point: the chip waits its settling cycles after the
 command, so a multiplexer switch needs no RMS lag, only the switch's own
-settling. The DFT gives a phasor, so the sign of a reading is its projection on
-the system phase, which is measured once on a two-electrode reading (always
-positive: current in at the first electrode, out at the second), the way the
-datasheet calibrates phase with a known resistor.
+settling. The DFT gives a phasor, and a reading is its projection on the system
+phase: the in-phase (resistive) part, with its sign, while the quadrature part
+that contact capacitance adds is left out (an RMS detector would add it to the
+magnitude). The system phase is measured once, on a four-electrode reading whose
+sign a two-electrode one tells (:meth:`AD5933FrontEnd._measure_system_phase`), as
+the datasheet calibrates phase with a known resistor: a two-electrode reading
+alone would carry the contacts' capacitive phase into every projection.
 """
 
 from __future__ import annotations
@@ -74,15 +77,24 @@ class AD5933FrontEnd(FrontEnd):
         return ACTUAL_VPP[vpp] / (2 * math.sqrt(2)) * self.profile.excitation.transconductance_a_per_v
 
     def _measure_system_phase(self) -> None:
-        """Phase of a two-electrode reading at the smallest excitation: the phase every positive reading has."""
+        """The phase every positive reading has: that of a four-electrode reading (the sheet is resistive, so
+        it carries the electronics' phase alone), its sign told by a two-electrode reading at the smallest
+        excitation (always positive, but shifted by the contacts' capacitance, up to a quarter turn)."""
         before = self.output_range_vpp
         self.impedance.set_output_range(CONTACT_RANGE_VPP)
         self.mux.select((1, 2), (1, 2))
         self.set_range(0)
         self.clock.sleep(self.profile.timing.drive_settle_s)
-        z = self.impedance.measure()
-        self.system_phase = cmath.phase(z)
+        two = cmath.phase(self.impedance.measure())
         self.impedance.set_output_range(before)
+        self.system_phase = two
+        if self.profile.channels >= 4:
+            self.mux.select((1, 2), (3, 4))
+            self.clock.sleep(self.profile.timing.drive_settle_s)
+            z = self.impedance.measure()
+            if not AD5933.is_saturated(z) and abs(z) > 0:
+                four = cmath.phase(z)
+                self.system_phase = min((four, four + math.pi), key=lambda p: abs(cmath.phase(cmath.rect(1, p - two))))
         self.forget_routing()
 
     def contact_current(self) -> None:
@@ -122,8 +134,8 @@ class AD5933FrontEnd(FrontEnd):
         if AD5933.is_saturated(z):
             return Sample(magnitude, 1.0, z)
         phase = self.system_phase if self.system_phase is not None else 0.0
-        in_phase = math.cos(cmath.phase(z) - phase) >= 0
-        return Sample(magnitude if in_phase else -magnitude, abs(z) / AD5933.CODE_LIMIT, z,
+        in_phase = magnitude * math.cos(cmath.phase(z) - phase)
+        return Sample(in_phase, abs(z) / AD5933.CODE_LIMIT, z,
                       sign_known=magnitude >= self.profile.measurement.sign_floor_v)
 
     def converter_name(self) -> str:

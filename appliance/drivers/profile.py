@@ -7,7 +7,10 @@ moved a chip select or settles more slowly needs two lines, not a copy. GPIO lin
 named as the kernel of the profile's ``system`` names them ("GPIO17"; "GPIO_GCLK" for
 GPIO 4 under the mainline device trees), never as a GPIO chip and offset; ``boards``
 lists the host boards it is wired for (``drivers/board_check.py`` holds it against
-them). The parallel front end is built for a grid of electrodes given in its ``[grid]``
+them). ``[supply]`` gives the analogue parts' rails, from which ``drivers/rails.py``
+derives the current source's compliance (a profile whose parts do not fit their rails
+is refused); ``[measurement] detector``, if given, must be what the chain's detector is.
+The parallel front end is built for a grid of electrodes given in its ``[grid]``
 table, so the same profile describes the bed mat and a small test mat
 (``grid = {rows = 4, cols = 8}``).
 
@@ -63,10 +66,17 @@ FIELDS_BY_CHAIN = {
 }
 
 
+DETECTORS = {"rms": "rms", "ad5933": "dft", "parallel": "synchronous"}
+"""What each chain's detector reports: ``rms`` the magnitude (an AD8436: the quadrature from contact capacitance
+included, the sign from a phase comparator), ``dft`` the real and imaginary parts (the AD5933), ``synchronous``
+the in-phase part alone (a demodulator switched by the excitation). ``dft`` and ``synchronous`` are phase-sensitive."""
+PHASE_SENSITIVE = ("dft", "synchronous")
+
+
 @dataclass(frozen=True)
 class Excitation:
     frequency_hz: float
-    compliance_v: float
+    compliance_v: float | None = None          # rms; the current source's clamp, else what its rails allow
     current_a: float | None = None
     full_scale_current_a: float | None = None
     output_range_vpp: float | None = None
@@ -88,6 +98,18 @@ class Measurement:
     adc_oversampling: int | None = None        # AD7606 OS[2:0] strap
     channels_per_adc: int | None = None
     adc_tile_rows: int | None = None           # grid rows one ADC's channels span
+    detector: str | None = None                # what the chain's detector reports: one of DETECTORS' values
+    input_capacitance_f: float | None = None   # each measuring input to ground: multiplexer, cable, in-amp
+
+
+@dataclass(frozen=True)
+class Supply:
+    """The analogue parts' rails, volts (negative, positive), and how close the source's output comes to its own."""
+
+    multiplexers: tuple[float, float]
+    current_source: tuple[float, float]
+    amplifiers: tuple[float, float]
+    source_headroom_v: float
 
 
 @dataclass(frozen=True)
@@ -144,6 +166,7 @@ class BoardProfile:
     accuracy: Accuracy
     contact: Contact
     timing: Timing
+    supply: Supply
     spi: Mapping[str, SPIAddress]
     i2c_bus: int
     i2c: Mapping[str, int]
@@ -217,6 +240,7 @@ def _profile_from_mapping(data: dict) -> BoardProfile:
     sections = {key: _section(cls, _take(data, key, dict, where), f"[board.{key}]")
                 for key, cls in (("excitation", Excitation), ("measurement", Measurement),
                                  ("accuracy", Accuracy), ("contact", Contact), ("timing", Timing))}
+    supply = _supply(_take(data, "supply", dict, where))
     spi = {role: _section(SPIAddress, value, f"[board.spi] {role}")
            for role, value in _take(data, "spi", dict, where).items()}
     i2c = dict(_take(data, "i2c", dict, where))
@@ -250,14 +274,50 @@ def _profile_from_mapping(data: dict) -> BoardProfile:
         missing = [n for n in names if getattr(sections[key], n) is None]
         if missing:
             raise ConfigError(f"[board.{key}] needs {missing[0]!r} for a {chain} front end")
+    excitation, measurement = _analogue(name, chain, multiplexer, supply, sections, "dds" in spi)
     profile = BoardProfile(name=name, chain=chain, multiplexer=multiplexer, channels=channels,
-                           excitation=sections["excitation"], measurement=sections["measurement"],
+                           excitation=excitation, measurement=measurement,
                            accuracy=sections["accuracy"], contact=sections["contact"], timing=sections["timing"],
-                           spi=MappingProxyType(spi), i2c_bus=i2c_bus, i2c=MappingProxyType(i2c),
+                           supply=supply, spi=MappingProxyType(spi), i2c_bus=i2c_bus, i2c=MappingProxyType(i2c),
                            gpio=MappingProxyType(gpio), grid=grid, system=system, boards=boards)
     if chain == "parallel":
         _check_parallel(profile, where)
     return profile
+
+
+def _supply(values: Mapping) -> Supply:
+    values, where = dict(values), "[board.supply]"
+    rails = {}
+    for key in ("multiplexers", "current_source", "amplifiers"):
+        pair = _take(values, key, list, where)
+        if len(pair) != 2 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pair):
+            raise ConfigError(f"{where} {key} must be two numbers, the negative and the positive rail in volts, "
+                              f"got {pair!r}")
+        rails[key] = (float(pair[0]), float(pair[1]))
+    headroom = _take(values, "source_headroom_v", float, where)
+    if headroom < 0:
+        raise ConfigError(f"{where} source_headroom_v must not be negative, got {headroom!r}")
+    if values:
+        raise ConfigError(f"{where}: unknown key {sorted(values)[0]!r}")
+    return Supply(**rails, source_headroom_v=headroom)
+
+
+def _analogue(name: str, chain: str, multiplexer: str, supply: Supply, sections: dict, uses_dds: bool):
+    """The excitation with the compliance its rails give, and the measurement with its chain's detector."""
+    from appliance.drivers.rails import check_supplies
+    from appliance.errors import AnalogueMismatch
+
+    excitation, measurement = sections["excitation"], sections["measurement"]
+    own = DETECTORS[chain]
+    if measurement.detector not in (None, own):
+        claimed = measurement.detector
+        why = (f"the {chain} chain's detector reports {own!r}"
+               + (": the AD8436 RMS-to-DC converter gives the magnitude, quadrature from contact capacitance "
+                  "included, so it is not phase-sensitive" if own == "rms" and claimed in PHASE_SENSITIVE else ""))
+        raise AnalogueMismatch(f"profile {name}: [board.measurement] detector = {claimed!r}, but {why}")
+    compliance = check_supplies(name, multiplexer, chain, supply, excitation.compliance_v, uses_dds)
+    return (dataclasses.replace(excitation, compliance_v=compliance),
+            dataclasses.replace(measurement, detector=own))
 
 
 def _grid(data: dict, where: str) -> Grid:
@@ -322,7 +382,7 @@ def _section(cls, values: Mapping, where: str):
             if f.default is dataclasses.MISSING:
                 raise ConfigError(f"{where} is missing {f.name!r}")
             continue
-        kind = int if f.type in ("int", "int | None") else str if f.type == "str" else float
+        kind = int if f.type in ("int", "int | None") else str if f.type in ("str", "str | None") else float
         value = _take(values, f.name, kind, where)
         if kind is float and not value > 0:
             raise ConfigError(f"{where} {f.name} must be positive, got {value!r}")

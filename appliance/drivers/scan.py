@@ -65,6 +65,7 @@ class Flag(enum.IntFlag):
     LOW_SIGNAL = 32
     SIGN_UNCERTAIN = 64
     HELD = 128              # not taken this frame (adaptive): the last frame's value, with its flags
+    COMPLIANCE = 256        # the drive needed more than the source's compliance: scaled down (models only)
 
 
 UNUSABLE = Flag.SATURATED | Flag.OPEN_ELECTRODE | Flag.BUS_ERROR | Flag.STUCK | Flag.RECIPROCITY

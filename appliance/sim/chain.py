@@ -7,7 +7,12 @@ compliance, each reading auto-ranged to the largest gain that does not
 saturate (the profile's range ladder), the chain's gain errors
 (:class:`~appliance.drivers.emulated.analogue.ChainErrors`), its noise, the
 converter's quantisation at that range, saturation at the least sensitive
-range, and the sign lost below the phase comparator's floor.
+range, and the sign lost below the phase comparator's floor. Given the
+electrodes' contacts (:class:`~appliance.drivers.emulated.electrode_interface.ElectrodeContact`,
+R parallel C), each reading is the profile's detector's view of the complex
+differential: the RMS chain's magnitude, quadrature included, or the in-phase
+part of the AD5933's DFT and the parallel board's synchronous demodulators.
+Drives that need more than the source's compliance are flagged COMPLIANCE.
 
 >>> import numpy as np
 >>> from appliance.core.protocols import adjacent_protocol
@@ -28,6 +33,7 @@ import numpy as np
 
 from appliance.core.protocols import Protocol
 from appliance.drivers.emulated.analogue import ChainErrors, compliant_current
+from appliance.drivers.emulated.electrode_interface import ElectrodeContact, detect, reading_phasors
 from appliance.drivers.frontend import OVER_RANGE
 from appliance.drivers.profile import BoardProfile
 from appliance.drivers.scan import Flag
@@ -44,8 +50,10 @@ class FrameChain:
             cls = ParallelFrameChain
         return super().__new__(cls)
 
-    def __init__(self, profile: BoardProfile, *, errors: ChainErrors | None = None, seed: int = 0):
-        self.profile = profile
+    def __init__(self, profile: BoardProfile, *, errors: ChainErrors | None = None, seed: int = 0,
+                 contact: ElectrodeContact | None = None):
+        self.profile, self.contact = profile, contact
+        self.at_compliance = np.zeros(0, dtype=bool)
         self.rng = np.random.default_rng(seed)
         self.errors = errors or ChainErrors.drawn(np.random.default_rng(seed))
         if profile.chain == "rms":
@@ -66,12 +74,25 @@ class FrameChain:
         """Refuse a protocol this front end cannot take (every reading suits the serial chains)."""
 
     def ideal(self, transfer: np.ndarray, protocol: Protocol) -> np.ndarray:
-        """V(meas+) - V(meas-) at the set current (less where the source reaches compliance), volts rms."""
+        """V(meas+) - V(meas-) at the set current (less where the source reaches compliance), volts rms,
+        as the detector reports it; :attr:`at_compliance` marks the readings whose drive hit compliance."""
+        return self._detected(transfer, protocol, 0.0)[0]
+
+    def _detected(self, transfer: np.ndarray, protocol: Protocol, series_ohm: float,
+                  phase_error_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(what the detector reports, the quadrature part it was given), volts rms."""
         a, b, c, d = (protocol.readings - 1).T
-        z = transfer
-        current = compliant_current(self.current_a, z[a, a] - z[a, b] - z[b, a] + z[b, b],
-                                    self.profile.excitation.compliance_v)
-        return current * (z[c, a] - z[c, b] - z[d, a] + z[d, b])
+        z, compliance = transfer, self.profile.excitation.compliance_v
+        if self.contact is None:
+            drive_ohm = z[a, a] - z[a, b] - z[b, a] + z[b, b] + series_ohm
+            current = compliant_current(self.current_a, drive_ohm, compliance)
+            self.at_compliance = self.current_a * np.abs(drive_ohm) > compliance
+            return current * (z[c, a] - z[c, b] - z[d, a] + z[d, b]), np.zeros(len(a))
+        x, m = self.profile.excitation, self.profile.measurement
+        phasors, _, self.at_compliance = reading_phasors(z, protocol.readings - 1, self.current_a, self.contact,
+                                                         x.frequency_hz, m.input_capacitance_f or 0.0, compliance,
+                                                         series_ohm)
+        return detect(phasors, m.detector, phase_error_rad), phasors.imag
 
     def ranges_for(self, volts: np.ndarray) -> np.ndarray:
         """The most sensitive range keeping each reading under the headroom (0 where none does)."""
@@ -89,6 +110,7 @@ class FrameChain:
         step = self._step(r, total_gain)
         measured = np.round(np.clip(noisy, 0, None) / step) * step / total_gain
         flags = np.zeros(len(ideal), dtype=np.int64)
+        flags[self.at_compliance] |= Flag.COMPLIANCE
         saturated = (r == 0) & (np.abs(ideal) > OVER_RANGE * self.full_scale[0])
         flags[saturated] |= Flag.SATURATED
         unsure = measured < m.sign_floor_v
@@ -120,13 +142,15 @@ class ParallelFrameChain(FrameChain):
     (NaN); below ``sign_floor_v`` they are flagged LOW_SIGNAL and SIGN_UNCERTAIN.
     """
 
-    def __init__(self, profile: BoardProfile, *, errors=None, seed: int = 0):
+    def __init__(self, profile: BoardProfile, *, errors=None, seed: int = 0, contact: ElectrodeContact | None = None):
         from appliance.drivers.channel_map import ChannelMap
         from appliance.drivers.emulated.parallel import ParallelErrors
         from appliance.drivers.frontend_parallel import parallel_ranges
         from appliance.drivers.frontend_rms import digipot_setting
 
-        self.profile = profile
+        self.profile, self.contact = profile, contact
+        self.at_compliance = np.zeros(0, dtype=bool)
+        self.quadrature_v = np.zeros(0)
         self.rng = np.random.default_rng(seed)
         self.cmap = ChannelMap.of_profile(profile)
         self.errors = errors or ParallelErrors.drawn(np.random.default_rng(seed), self.cmap.n_channels)
@@ -149,13 +173,12 @@ class ParallelFrameChain(FrameChain):
         return self._mapped[1], self._mapped[2]
 
     def ideal(self, transfer: np.ndarray, protocol: Protocol) -> np.ndarray:
+        """The in-phase differential (through two switches' on resistance); its quadrature part, which the
+        demodulators pass as ``sin`` of their phase error, is kept in :attr:`quadrature_v`."""
         from appliance.drivers.emulated.parallel import SWITCH_OHM
 
-        a, b, c, d = (protocol.readings - 1).T
-        z = transfer
-        current = compliant_current(self.current_a, z[a, a] - z[a, b] - z[b, a] + z[b, b] + 2 * SWITCH_OHM,
-                                    self.profile.excitation.compliance_v)
-        return current * (z[c, a] - z[c, b] - z[d, a] + z[d, b])
+        in_phase, self.quadrature_v = self._detected(transfer, protocol, 2 * SWITCH_OHM)
+        return in_phase
 
     def drive_ranges(self, volts: np.ndarray, protocol: Protocol) -> np.ndarray:
         """Each reading's range: the most sensitive one keeping its whole drive under the headroom."""
@@ -171,7 +194,9 @@ class ParallelFrameChain(FrameChain):
         r = self.drive_ranges(ideal, protocol)
         e, n = self.errors, len(ideal)
         lsb = np.array([rng.second_stage for rng in self.ranges])[r] / 32768
-        pin = self.gain * e.channel_factor()[channels] * signs * ideal + e.offset_v[channels]
+        pin = self.gain * signs * (e.channel_factor()[channels] * ideal
+                                   + e.scale * (1 + e.channel_gain[channels]) * np.sin(e.phase_error_rad)
+                                   * self.quadrature_v) + e.offset_v[channels]
         pin += e.input_noise_v * self.gain * self.rng.standard_normal(n)
         oversampling = self.profile.measurement.adc_oversampling
         codes = np.clip(np.round(pin / lsb + e.adc_noise_lsb / np.sqrt(oversampling) * self.rng.standard_normal(n)),
@@ -181,6 +206,7 @@ class ParallelFrameChain(FrameChain):
         zero = e.offset_v[channels] + zero_noise * self.rng.standard_normal(n)
         measured = signs * (codes * lsb - zero) / self.gain
         flags = np.zeros(n, dtype=np.int64)
+        flags[self.at_compliance] |= Flag.COMPLIANCE
         saturated = (r == 0) & (np.abs(codes) / 32768 > OVER_RANGE)
         flags[saturated] |= Flag.SATURATED
         quiet = ~saturated & (np.abs(measured) < self.profile.measurement.sign_floor_v)

@@ -16,7 +16,12 @@ the AD5933's VIN. It models what a driver has to respect:
   than for rising steps, so reading too early gives the previous pair's value;
 - an open measuring electrode floats and picks up interference (``pickup_v``),
   which saturates any gain; per-electrode pickup also models a faulty channel;
-- fixed gain errors within the parts' tolerances and white noise.
+- fixed gain errors within the parts' tolerances and white noise;
+- contacts of R parallel C, when the mat has them (``sensor.contact``, an
+  :class:`~appliance.drivers.emulated.electrode_interface.ElectrodeContact`): the
+  differential is then a phasor, the RMS converter sees its magnitude (quadrature
+  included), the phase comparator the sign of its in-phase part, and the AD5933's
+  VIN the phasor itself.
 
 Voltages are rms unless a name says peak; the sensor's transfer impedances are
 ohms (``SensorModel.transfer_ohm``).
@@ -32,6 +37,7 @@ from typing import Protocol
 import numpy as np
 
 from appliance.drivers.emulated.buses import InputSource
+from appliance.drivers.emulated.electrode_interface import reading_phasors
 
 INAMP_CLIP_V = 7.0          # in-amp / AD8251 output swing on +/-12 V rails, rms of the largest clean sine
 RMS_SATURATION_V = 3.3      # AD8436 output ceiling
@@ -48,7 +54,8 @@ def compliant_current(current_a, drive_ohm, compliance_v):
 
 
 class SensorModel(Protocol):
-    """The mat as the chain sees it: transfer impedances between electrodes at a time."""
+    """The mat as the chain sees it: transfer impedances between electrodes at a time, and the electrodes'
+    contacts (``contact``: R parallel C, or None for the forward model's resistive contacts alone)."""
 
     n_electrodes: int
 
@@ -98,8 +105,11 @@ class AnalogueChain:
     def __init__(self, clock, sensor: SensorModel, *, state: Callable[[], ChainState], inamp_gain: float,
                  compliance_v: float, drive_settle_s: float, settle_accuracy: float = 1e-4,
                  rms_rise_tau_s: float = 0.35e-3, rms_fall_tau_s: float = 0.7e-3, sign_floor_v: float = 2e-6,
-                 errors: ChainErrors | None = None, seed: int = 0):
+                 errors: ChainErrors | None = None, seed: int = 0, frequency_hz: float = 0.0,
+                 input_capacitance_f: float = 0.0):
         self.clock, self.sensor, self.read_state = clock, sensor, state
+        self.contact = getattr(sensor, "contact", None)
+        self.frequency_hz, self.input_capacitance_f = frequency_hz, input_capacitance_f
         self.inamp_gain, self.compliance_v, self.sign_floor_v = inamp_gain, compliance_v, sign_floor_v
         self.drive_tau_s = drive_settle_s / math.log(1 / settle_accuracy)
         self.rise_tau_s, self.fall_tau_s = rms_rise_tau_s, rms_fall_tau_s
@@ -111,6 +121,7 @@ class AnalogueChain:
         self.drive_changed_at = -math.inf
         self.rms_v, self.rms_at = 0.0, clock.monotonic()
         self.input_v = 0.0                            # steady signed input-referred differential
+        self.input_angle = 0.0                        # its phasor's angle from the signed real axis
 
     # -- state -------------------------------------------------------------------------
     def state_changed(self) -> None:
@@ -121,6 +132,7 @@ class AnalogueChain:
         if new.drive != self.state.drive or (new.current_a == 0) != (self.state.current_a == 0):
             self.drive_changed_at = now
         self.state = new
+        self.input_angle = 0.0
         self.input_v = self.steady_input_v(now)
 
     def steady_input_v(self, now: float) -> float:
@@ -136,6 +148,12 @@ class AnalogueChain:
             rail = {a: self.compliance_v, b: -self.compliance_v}
             return sum(rail[e] * ((c == e) - (d == e)) for e in broken) + self._pickup(s.measure, skip=broken)
         z = self.sensor.transfer_ohm(now)
+        if self.contact is not None:
+            phasor = reading_phasors(z, np.array([[a, b, c, d]]), s.current_a, self.contact, self.frequency_hz,
+                                     self.input_capacitance_f, self.compliance_v)[0][0]
+            signed = abs(phasor) if phasor.real >= 0 else -abs(phasor)
+            self.input_angle = float(np.angle(phasor / signed)) if signed else 0.0
+            return self._pickup(s.measure) + signed
         current = compliant_current(s.current_a, z[a, a] - z[a, b] - z[b, a] + z[b, b], self.compliance_v)
         return self._pickup(s.measure) + current * (z[c, a] - z[c, b] - z[d, a] + z[d, b])
 
@@ -187,10 +205,11 @@ class AnalogueChain:
         return self.rms_output_v(t) if pin == "AIN0" else 0.0
 
     def vin_phasor(self, t: float, vin_gain: float) -> complex:
-        """The AD5933's VIN: the amplified differential through ``vin_gain``, volts peak, phase 0 or pi."""
+        """The AD5933's VIN: the amplified differential through ``vin_gain``, volts peak, at its phase."""
         self._advance(t)
         noise = self.errors.input_noise_v * self.inamp_gain * self.state.gain * self.rng.standard_normal()
-        return complex(vin_gain * math.sqrt(2) * (self.amplified_v(t) + noise), 0.0)
+        return vin_gain * math.sqrt(2) * (self.amplified_v(t) + noise) * complex(math.cos(self.input_angle),
+                                                                               math.sin(self.input_angle))
 
     def phase_source(self) -> InputSource:
         """The phase comparator's output: 1 while the reading is in phase with the drive."""

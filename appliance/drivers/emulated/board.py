@@ -80,7 +80,9 @@ class EmulatedBoard(Board):
                              compliance_v=p.excitation.compliance_v, drive_settle_s=t.drive_settle_s,
                              settle_accuracy=t.settle_accuracy or 1e-4,
                              rms_rise_tau_s=t.rms_rise_tau_s or 0.35e-3, rms_fall_tau_s=t.rms_fall_tau_s or 0.7e-3,
-                             sign_floor_v=p.measurement.sign_floor_v, errors=ChainErrors.drawn(rng), seed=seed)
+                             sign_floor_v=p.measurement.sign_floor_v, errors=ChainErrors.drawn(rng), seed=seed,
+                             frequency_hz=p.excitation.frequency_hz,
+                             input_capacitance_f=p.measurement.input_capacitance_f or 0.0)
 
     def _build_chips(self, seed: int) -> None:
         p = self.profile

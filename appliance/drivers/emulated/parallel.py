@@ -17,6 +17,9 @@ time, what each AD7606 input sees; it models what the drivers must respect:
 - the in-amp clips a large differential (a floating open electrode's pickup,
   a broken drive electrode at the source's rail), and the low-pass output
   stops at its rails;
+- contacts of R parallel C, when the mat has them (``sensor.contact``): each
+  channel's differential is then a phasor, whose quadrature part joins the
+  channel's own leak;
 - fixed per-channel gain and offset errors (the offsets sit after the
   demodulator, which turns the in-amp's own offset into a square wave the
   low-pass removes), the current source's scale error, and white noise.
@@ -34,6 +37,7 @@ import numpy as np
 
 from appliance.drivers.channel_map import CHANNELS_PER_ADC, ChannelMap
 from appliance.drivers.emulated.analogue import INAMP_CLIP_V, OPEN_PICKUP_V, SensorModel, compliant_current
+from appliance.drivers.emulated.electrode_interface import reading_phasors
 
 DEMODULATOR_GAIN = 2 * math.sqrt(2) / math.pi
 LOWPASS_RAIL_V = 11.0          # the low-pass op-amp's output swing on +/-12 V rails
@@ -94,8 +98,10 @@ class ParallelChain:
 
     def __init__(self, clock, sensor: SensorModel, cmap: ChannelMap, *, state: Callable[[], DriveState],
                  inamp_gain: float, lowpass_gain: float, lowpass_hz: float, compliance_v: float,
-                 errors: ParallelErrors, seed: int = 0):
+                 errors: ParallelErrors, seed: int = 0, frequency_hz: float = 0.0, input_capacitance_f: float = 0.0):
         self.clock, self.sensor, self.cmap, self.read_state = clock, sensor, cmap, state
+        self.contact = getattr(sensor, "contact", None)
+        self.frequency_hz, self.input_capacitance_f = frequency_hz, input_capacitance_f
         self.inamp_gain, self.lowpass_gain, self.compliance_v = inamp_gain, lowpass_gain, compliance_v
         self.tau = pole_time_constant_s(lowpass_hz)
         self.errors = errors
@@ -107,6 +113,7 @@ class ParallelChain:
         self.pickup_v: dict[int, float] = {}          # 1-based electrode -> interference, volts rms
         n = cmap.n_channels
         self.y, self.slope, self.x = np.zeros(n), np.zeros(n), np.zeros(n)
+        self.quadrature_v = np.zeros(n)               # the contacts' quadrature part of each differential
         self.since = clock.monotonic()
         self.state = DriveState()
         self._cache: tuple[float | None, np.ndarray | None] = (None, None)
@@ -140,9 +147,11 @@ class ParallelChain:
         return self.x + (error + b * dt) * decay, decay * (self.slope - b * dt / self.tau)
 
     def differential_v(self, now: float) -> np.ndarray:
-        """The in-phase differential each channel's in-amp sees once settled, volts rms."""
+        """The in-phase differential each channel's in-amp sees once settled, volts rms (its quadrature part
+        from the contacts in :attr:`quadrature_v`)."""
         s, first, second = self.state, self.first, self.second
         v = np.zeros(self.cmap.n_channels)
+        self.quadrature_v = np.zeros(self.cmap.n_channels)
         broken: list[int] = []
         if s.drive is not None and s.current_a > 0:
             a, b = s.drive
@@ -152,6 +161,12 @@ class ParallelChain:
                 for e, rail in ((a, self.compliance_v), (b, -self.compliance_v)):
                     if e in broken:
                         v += rail * ((first == e).astype(float) - (second == e))
+            elif self.contact is not None:
+                readings = np.column_stack([np.full_like(first, a), np.full_like(first, b), first, second])
+                phasors = reading_phasors(self.sensor.transfer_ohm(now), readings, s.current_a, self.contact,
+                                          self.frequency_hz, self.input_capacitance_f, self.compliance_v,
+                                          2 * SWITCH_OHM)[0]
+                v, self.quadrature_v = phasors.real, phasors.imag
             else:
                 z = self.sensor.transfer_ohm(now)
                 current = compliant_current(s.current_a, z[a, a] - z[a, b] - z[b, a] + z[b, b] + 2 * SWITCH_OHM,
@@ -169,7 +184,7 @@ class ParallelChain:
         """Each low-pass output once settled (volts, before its rails)."""
         v = self.differential_v(now)
         e = self.errors
-        quadrature = e.quadrature * v
+        quadrature = e.quadrature * v + self.quadrature_v
         amplitude = self.inamp_gain * np.hypot(v, quadrature)
         clip = np.minimum(1.0, INAMP_CLIP_V / np.maximum(amplitude, 1e-300))
         demodulated = DEMODULATOR_GAIN * self.inamp_gain * clip * (v * math.cos(e.phase_error_rad)

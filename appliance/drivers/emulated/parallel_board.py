@@ -38,7 +38,9 @@ class EmulatedParallelBoard(EmulatedBoard):
         self.errors = ParallelErrors.drawn(rng, self.cmap.n_channels)
         return ParallelChain(self.clock, self.sensor, self.cmap, state=self._drive_state, inamp_gain=m.inamp_gain,
                              lowpass_gain=m.lowpass_gain, lowpass_hz=m.lowpass_hz,
-                             compliance_v=p.excitation.compliance_v, errors=self.errors, seed=seed)
+                             compliance_v=p.excitation.compliance_v, errors=self.errors, seed=seed,
+                             frequency_hz=p.excitation.frequency_hz,
+                             input_capacitance_f=m.input_capacitance_f or 0.0)
 
     def _build_chips(self, seed: int) -> None:
         p = self.profile

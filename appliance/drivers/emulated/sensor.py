@@ -18,15 +18,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from appliance.core.layouts import Layout
+from appliance.drivers.emulated.electrode_interface import ElectrodeContact
 
 SALINE_SHEET_S = 0.02
 
 
 @dataclass(frozen=True)
 class ForwardSensor:
-    """A mat that does not change: one transfer-impedance matrix, ohm."""
+    """A mat that does not change: one transfer-impedance matrix, ohm, and optionally its electrodes' contacts."""
 
     transfer: np.ndarray
+    contact: ElectrodeContact | None = None
 
     @property
     def n_electrodes(self) -> int:
@@ -37,7 +39,7 @@ class ForwardSensor:
 
     @classmethod
     def of_layout(cls, layout: Layout, *, inclusions=(), sheet_conductance_s: float = SALINE_SHEET_S,
-                  density: float = 1.0) -> "ForwardSensor":
+                  density: float = 1.0, contact: ElectrodeContact | None = None) -> "ForwardSensor":
         """Solve the layout's finite-element model once; ``inclusions`` scale the sheet locally."""
         from appliance.core.fem import build_fem_model
         from appliance.core.forward import solve_electrodes
@@ -45,4 +47,4 @@ class ForwardSensor:
 
         model = build_fem_model(layout, density=density)
         sigma = conductivity(model, inclusions, background=sheet_conductance_s)
-        return cls(solve_electrodes(model, sigma).transfer)
+        return cls(solve_electrodes(model, sigma).transfer, contact)
