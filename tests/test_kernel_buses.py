@@ -25,7 +25,7 @@ pytestmark = pytest.mark.kernel
 REPO = Path(__file__).resolve().parents[1]
 GUEST_TESTS = Path(__file__).with_name("kernel") / "guest_linux_board.py"
 GUEST_TIMEOUT_S = 900
-"""Boot and run take about 20 s under KVM and 40 s under TCG here; a slow shared machine gets room."""
+"""Boot and run take 30 to 40 s under TCG emulation on the 2-vCPU build machine; a slower one gets room."""
 
 
 def guest_test_names() -> list[str]:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import getpass
 import lzma
 import os
+import platform
 import re
 import shlex
 import shutil
@@ -77,6 +78,9 @@ def cache_root() -> Path:
 
 def prepare(cache: Path | None = None) -> Kernel:
     """The newest kernel prepared in ``cache``; the first time, download and prepare the suite's current one."""
+    if platform.machine() != "x86_64":
+        raise VMUnavailable(f"the test VM shares this host's programs, so it needs an x86-64 host, not "
+                            f"{platform.machine()}")
     cache = cache or cache_root()
     ready = sorted(cache.glob("*/initramfs.cpio"), key=lambda path: path.stat().st_mtime)
     if ready:
