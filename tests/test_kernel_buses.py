@@ -37,7 +37,7 @@ def guest_command(out: Path) -> str:
     """The shell line the guest runs: this checkout's guest tests under this Python, as JUnit XML into ``out``."""
     pytest_args = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--noconftest",
                    f"--junitxml={out / 'guest.xml'}", str(GUEST_TESTS.relative_to(REPO))]
-    return (f"cd {shlex.quote(str(REPO))} && APPLIANCE_KERNEL_GUEST=1 PYTHONDONTWRITEBYTECODE=1 HOME=/tmp "
+    return (f"cd {shlex.quote(str(REPO))} && APPLIANCE_KERNEL_GUEST=1 PYTHONDONTWRITEBYTECODE=1 "
             f"PYTHONPATH={shlex.quote(str(REPO))} exec {shlex.join(pytest_args)}")
 
 

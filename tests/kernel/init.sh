@@ -3,8 +3,9 @@
 #
 # It loads the modules listed in /modules/order, mounts the host's root file system (shared read-only over
 # virtio-9p, tag "host") at /host and the output folder (writable, tag "out") at the path it has on the host,
-# runs that folder's run.sh chrooted into the host's root with the guest's own /proc, /sys, /dev and /tmp,
-# writes its exit status to the folder's "status" file, and powers off. The kernel hands the unknown
+# runs that folder's run.sh chrooted into the host's root with the guest's own /proc, /sys and /dev, writes
+# its exit status to the folder's "status" file, and powers off. Scratch space is a tmpfs at /dev/shm
+# (TMPDIR and HOME), not over /tmp: the host's /tmp stays visible, since the checkout may be there. The kernel hands the unknown
 # parameters of its command line to init as variables: "out" (the output folder's host path) and
 # "i2c_stub_chips" (the addresses i2c-stub answers at).
 /bin/busybox --install -s /bin
@@ -32,7 +33,9 @@ mount -t proc proc /host/proc
 mount -t sysfs sysfs /host/sys
 mount -t configfs configfs /host/sys/kernel/config
 mount -t devtmpfs devtmpfs /host/dev
-mount -t tmpfs -o mode=1777 tmpfs /host/tmp
+mkdir -p /host/dev/shm
+mount -t tmpfs -o mode=1777 tmpfs /host/dev/shm
+export HOME=/dev/shm TMPDIR=/dev/shm
 mkdir -p "/host$out"
 mount -t 9p -o trans=virtio,version=9p2000.L,msize=512000 out "/host$out" || fail "no output share"
 

@@ -4,13 +4,13 @@ Why a VM: the simulators are kernel modules, so loading them takes root and a ke
 host's kernel is neither ours to change nor built with them (Debian bookworm's 6.1 and trixie's 6.12 lack
 CONFIG_GPIO_SIM; Debian's 7.x kernels have it). So the tests boot Debian's kernel from ``SUITE`` under QEMU:
 
-* the kernel and the few modules used come from Debian's archive through ``apt-get download`` with a
-  package list of their own (the host's apt configuration is left alone), unpacked with ``dpkg-deb`` and
-  cached per kernel version, so only the first run downloads (about 125 MB);
+* the kernel and its modules come from Debian's archive through ``apt-get download`` with a package list
+  of their own (the host's apt configuration is left alone), unpacked with ``dpkg-deb`` and cached per
+  kernel version, so only the first run downloads (about 125 MB);
 * the guest's root file system is the host's own, shared read-only over virtio-9p: the guest runs the same
   Python, virtual environment and checkout as the host, and nothing is installed twice;
-* a small initramfs (Debian's static busybox, the modules, ``init.sh``) loads the modules, mounts the
-  shares, runs a command and powers off. The command's output and exit status come back through a second,
+* a small initramfs made for each boot (Debian's static busybox, the modules used, ``init.sh``) loads the
+  modules, mounts the shares, runs a command and powers off. The command's output and exit status come back through a second,
   writable share.
 
 KVM is used when it can run the guest, else QEMU's TCG emulation (slower, works anywhere). Needs
@@ -53,11 +53,11 @@ class VMUnavailable(RuntimeError):
 
 @dataclass(frozen=True)
 class Kernel:
-    """A prepared kernel: its version, its image and an initramfs holding ``init.sh``, busybox and the modules."""
+    """An unpacked kernel: its version, its image and its tree of modules."""
 
     version: str
     vmlinuz: Path
-    initramfs: Path
+    modules: Path
 
 
 @dataclass(frozen=True)
@@ -77,15 +77,15 @@ def cache_root() -> Path:
 
 
 def prepare(cache: Path | None = None) -> Kernel:
-    """The newest kernel prepared in ``cache``; the first time, download and prepare the suite's current one."""
+    """The newest kernel unpacked in ``cache``; the first time, download and unpack the suite's current one."""
     if platform.machine() != "x86_64":
         raise VMUnavailable(f"the test VM shares this host's programs, so it needs an x86-64 host, not "
                             f"{platform.machine()}")
     cache = cache or cache_root()
-    ready = sorted(cache.glob("*/initramfs.cpio"), key=lambda path: path.stat().st_mtime)
+    ready = sorted(cache.glob("*/vmlinuz"), key=lambda path: path.stat().st_mtime)
     if ready:
         folder = ready[-1].parent
-        return Kernel(folder.name, folder / "vmlinuz", folder / "initramfs.cpio")
+        return Kernel(folder.name, folder / "vmlinuz", _module_root(folder / "unpacked"))
     for tool in ("apt-get", "dpkg-deb"):
         if shutil.which(tool) is None:
             raise VMUnavailable(f"preparing the test kernel needs {tool} (a Debian or Ubuntu host)")
@@ -102,12 +102,9 @@ def prepare(cache: Path | None = None) -> Kernel:
         subprocess.run(["dpkg-deb", "-x", str(deb), str(unpacked)], check=True)
         deb.unlink()
     module_root = _module_root(unpacked)
-    shutil.copyfile(_vmlinuz(unpacked, module_root), folder / "vmlinuz")
-    _build_initramfs(module_root, folder / "staging", folder / "initramfs.cpio.part")
-    shutil.rmtree(unpacked)
-    shutil.rmtree(folder / "staging")
-    (folder / "initramfs.cpio.part").rename(folder / "initramfs.cpio")
-    return Kernel(folder.name, folder / "vmlinuz", folder / "initramfs.cpio")
+    shutil.copyfile(_vmlinuz(unpacked, module_root), folder / "vmlinuz.part")
+    (folder / "vmlinuz.part").rename(folder / "vmlinuz")    # last: a kernel with a vmlinuz is complete
+    return Kernel(folder.name, folder / "vmlinuz", module_root)
 
 
 class _PrivateApt:
@@ -161,8 +158,11 @@ def _vmlinuz(unpacked: Path, module_root: Path) -> Path:
     raise VMUnavailable(f"no vmlinuz in the kernel packages of {module_root.name}")
 
 
-def _build_initramfs(module_root: Path, staging: Path, out: Path) -> None:
-    """A newc cpio archive: /init, busybox, and /modules with ``order`` listing them in loading order."""
+def build_initramfs(module_root: Path, staging: Path, out: Path) -> None:
+    """A newc cpio archive: /init, busybox, and /modules with ``order`` listing them in loading order.
+
+    Made for every boot (well under a second), so a change to ``init.sh`` or ``MODULES`` is never stale.
+    """
     if BUSYBOX.is_file() and b"/ld-linux" in BUSYBOX.read_bytes()[:4096]:
         raise VMUnavailable(f"{BUSYBOX} is dynamically linked; the initramfs needs busybox-static: {INSTALL_HINT}")
     if not BUSYBOX.is_file():
@@ -245,6 +245,8 @@ def run(kernel: Kernel, command: str, out: Path, *, i2c_chips: list[int], timeou
     out = out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     (out / "run.sh").write_text(f"{command}\n")
+    shutil.rmtree(out / "initramfs", ignore_errors=True)
+    build_initramfs(kernel.modules, out / "initramfs", out / "initramfs.cpio")
     chips = ",".join(f"0x{address:02x}" for address in i2c_chips)
     cmdline = f"console=ttyS0 panic=-1 quiet out={out} i2c_stub_chips={chips}"
     for accel in accelerators():
@@ -253,7 +255,7 @@ def run(kernel: Kernel, command: str, out: Path, *, i2c_chips: list[int], timeou
         qemu = [QEMU, "-machine", "pc", "-accel", accel, "-cpu", "host" if accel == "kvm" else "max",
                 "-smp", "1", "-m", str(memory_mb), "-nodefaults", "-no-user-config", "-display", "none",
                 "-no-reboot", "-serial", f"file:{out / 'console.txt'}",
-                "-kernel", str(kernel.vmlinuz), "-initrd", str(kernel.initramfs), "-append", cmdline,
+                "-kernel", str(kernel.vmlinuz), "-initrd", str(out / "initramfs.cpio"), "-append", cmdline,
                 "-fsdev", "local,id=host,path=/,readonly=on,security_model=none,multidevs=remap",
                 "-device", "virtio-9p-pci,fsdev=host,mount_tag=host",
                 "-fsdev", f"local,id=out,path={out},security_model=none",
@@ -291,4 +293,4 @@ def _text(path: Path) -> str:
 
 if __name__ == "__main__":
     prepared = prepare()
-    print(f"kernel {prepared.version}: {prepared.vmlinuz} {prepared.initramfs}")
+    print(f"kernel {prepared.version}: {prepared.vmlinuz}, modules in {prepared.modules}")
