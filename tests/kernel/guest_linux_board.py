@@ -11,8 +11,8 @@ reported back as one host test. It refuses to run anywhere else (it would reconf
   them) and keeps one 16-bit word per register. It never converts: a test writes the conversion register
   as the chip would, and makes ALERT/RDY's edge through gpio-sim. An address nobody answers at gives
   ENODEV from i2c-stub, where a Pi's controller gives EREMOTEIO.
-* SPI: the kernel has no SPI controller to simulate a chip on (``spi-loopback-test`` needs a wired
-  controller, and the VM has none), so only a missing device node is checked.
+* SPI: the kernel has no SPI controller that simulates a chip (Debian does not build ``spi-loopback-test``,
+  which needs a wired controller anyway), so only a missing device node is checked.
 """
 
 import errno
