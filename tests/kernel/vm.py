@@ -10,8 +10,8 @@ CONFIG_GPIO_SIM; Debian's 7.x kernels have it). So the tests boot Debian's kerne
 * the guest's root file system is the host's own, shared read-only over virtio-9p: the guest runs the same
   Python, virtual environment and checkout as the host, and nothing is installed twice;
 * a small initramfs made for each boot (Debian's static busybox, the modules used, ``init.sh``) loads the
-  modules, mounts the shares, runs a command and powers off. The command's output and exit status come back through a second,
-  writable share.
+  modules, mounts the shares, runs a command and powers off. The command's output and exit status come
+  back through a second, writable share.
 
 KVM is used when it can run the guest, else QEMU's TCG emulation (slower, works anywhere). Needs
 ``qemu-system-x86`` and ``busybox-static`` (Debian packages; ``.ci/run`` installs them) and the network on
@@ -29,6 +29,7 @@ import shlex
 import shutil
 import struct
 import subprocess
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -159,16 +160,17 @@ def _vmlinuz(unpacked: Path, module_root: Path) -> Path:
 
 
 def build_initramfs(module_root: Path, staging: Path, out: Path) -> None:
-    """A newc cpio archive: /init, busybox, and /modules with ``order`` listing them in loading order.
+    """A newc cpio archive of ``staging`` (an empty folder, filled here): /init, busybox, and /modules with
+    ``order`` listing them in loading order.
 
     Made for every boot (well under a second), so a change to ``init.sh`` or ``MODULES`` is never stale.
     """
-    if BUSYBOX.is_file() and b"/ld-linux" in BUSYBOX.read_bytes()[:4096]:
-        raise VMUnavailable(f"{BUSYBOX} is dynamically linked; the initramfs needs busybox-static: {INSTALL_HINT}")
     if not BUSYBOX.is_file():
         raise VMUnavailable(f"no {BUSYBOX}: {INSTALL_HINT}")
+    if b"/ld-linux" in BUSYBOX.read_bytes()[:4096]:
+        raise VMUnavailable(f"{BUSYBOX} is dynamically linked; the initramfs needs busybox-static: {INSTALL_HINT}")
     for folder in ("bin", "modules", "proc", "sys", "dev"):
-        (staging / folder).mkdir(parents=True)
+        (staging / folder).mkdir()
     shutil.copy2(BUSYBOX, staging / "bin" / "busybox")
     shutil.copyfile(INIT, staging / "init")
     (staging / "init").chmod(0o755)
@@ -245,8 +247,8 @@ def run(kernel: Kernel, command: str, out: Path, *, i2c_chips: list[int], timeou
     out = out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     (out / "run.sh").write_text(f"{command}\n")
-    shutil.rmtree(out / "initramfs", ignore_errors=True)
-    build_initramfs(kernel.modules, out / "initramfs", out / "initramfs.cpio")
+    with tempfile.TemporaryDirectory() as staging:
+        build_initramfs(kernel.modules, Path(staging), out / "initramfs.cpio")
     chips = ",".join(f"0x{address:02x}" for address in i2c_chips)
     cmdline = f"console=ttyS0 panic=-1 quiet out={out} i2c_stub_chips={chips}"
     for accel in accelerators():
