@@ -175,8 +175,8 @@ class FakeSMBus:
                 message.data = reply
 
     def __getattr__(self, method):
-        if method not in ("write_byte", "read_byte", "write_byte_data", "read_byte_data",
-                          "write_i2c_block_data", "read_i2c_block_data", "close"):
+        if method not in ("write_byte", "read_byte", "write_byte_data", "read_byte_data", "write_word_data",
+                          "read_word_data", "write_i2c_block_data", "read_i2c_block_data", "close"):
             raise AttributeError(method)
         return functools.partial(self.rec.record, method)
 
@@ -207,6 +207,8 @@ def test_i2c_primitives_are_i2c_rdwr_transactions(i2c):
     ("read_byte", (0x2F,), 0x40, ("read_byte", 0x2F), 0x40),
     ("write_byte_data", (0x0D, 0x80, 0x10), None, ("write_byte_data", 0x0D, 0x80, 0x10), None),
     ("read_byte_data", (0x0D, 0x8F), 0x04, ("read_byte_data", 0x0D, 0x8F), 0x04),
+    ("write_word_swapped", (0x48, 0x01, 0x8583), None, ("write_word_data", 0x48, 0x01, 0x8385), None),
+    ("read_word_swapped", (0x18, 0x06), 0x5400, ("read_word_data", 0x18, 0x06), 0x0054),
     ("write_block", (0x0D, 0x82, b"\x01\x02\x03"), None, ("write_i2c_block_data", 0x0D, 0x82, [1, 2, 3]), None),
     ("read_block", (0x0D, 0x94, 4), [1, 2, 3, 4], ("read_i2c_block_data", 0x0D, 0x94, 4), b"\x01\x02\x03\x04"),
 ])

@@ -4,7 +4,8 @@ The front end reads the RMS-to-DC converter's output on AIN0. Each conversion is
 started by writing the config register with OS = 1; without the ALERT/RDY pin the
 driver sleeps the conversion time and polls OS. Registers are big-endian 16-bit
 words behind a pointer byte: write [pointer, MSB, LSB]; read by writing [pointer]
-then reading two bytes.
+then reading two bytes. Both are SMBus word transfers with the bytes swapped, so
+an adapter that speaks only SMBus carries them too.
 
 What the driver relies on, from TI's data sheet (SBAS444D, January 2018):
 
@@ -78,11 +79,10 @@ class ADS1115:
         return f"ADS1115(0x{self.address:02X})"
 
     def write_register(self, pointer: int, value: int) -> None:
-        self.i2c.write(self.address, bytes([pointer, value >> 8, value & 0xFF]))
+        self.i2c.write_word_swapped(self.address, pointer, value)
 
     def read_register(self, pointer: int) -> int:
-        high, low = self.i2c.write_read(self.address, bytes([pointer]), 2)
-        return high << 8 | low
+        return self.i2c.read_word_swapped(self.address, pointer)
 
     def check(self) -> None:
         """Write a config word and read it back (OS masked): the chip is there and its registers hold."""

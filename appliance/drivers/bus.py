@@ -119,6 +119,19 @@ class I2CBus(ABC):
         """SMBus read byte: register, repeated start, one byte."""
         return self.write_read(address, bytes([register]), 1)[0]
 
+    def write_word_swapped(self, address: int, register: int, value: int) -> None:
+        """A 16-bit register written most significant byte first: register, MSB, LSB.
+
+        On the wire an SMBus write word with its bytes swapped (SMBus sends the low byte first), as Linux's
+        ``i2c_smbus_write_word_swapped``; for chips such as the ADS1115 and the MCP9808.
+        """
+        self.write(address, bytes([register, value >> 8, value & 0xFF]))
+
+    def read_word_swapped(self, address: int, register: int) -> int:
+        """A 16-bit register read most significant byte first: register, repeated start, MSB, LSB."""
+        high, low = self.write_read(address, bytes([register]), 2)
+        return high << 8 | low
+
     def write_block(self, address: int, register: int, data: bytes) -> None:
         """I2C block write: register then the bytes (a 16-bit register is sent MSB first by the caller)."""
         self.write(address, bytes([register]) + bytes(data))

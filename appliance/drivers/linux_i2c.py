@@ -3,7 +3,8 @@
 The three primitives are ``i2c_rdwr`` transactions built from ``i2c_msg``
 messages, so :meth:`LinuxI2CBus.write_read` is one transaction with a repeated
 start. The SMBus helpers use smbus2's native SMBus calls instead, which more
-adapters support than raw ``I2C_RDWR``. Every OSError becomes the appliance's
+adapters support than raw ``I2C_RDWR`` (an SMBus-only controller, or the
+kernel's ``i2c-stub`` the real-kernel tests run on, refuses it with EOPNOTSUPP). Every OSError becomes the appliance's
 error naming bus and address: a chip that does not acknowledge (errno 121 on
 the Pi's controller) gives :class:`~appliance.errors.TransferFailed` with errno 121.
 """
@@ -84,6 +85,14 @@ class LinuxI2CBus(I2CBus):
         """SMBus read byte: register, repeated start, one byte."""
         return self._call(address, "read_byte_data", address, register)
 
+    def write_word_swapped(self, address: int, register: int, value: int) -> None:
+        """SMBus write word, given the value byte-swapped so the chip receives its MSB first."""
+        self._call(address, "write_word_data", address, register, _swap_bytes(value))
+
+    def read_word_swapped(self, address: int, register: int) -> int:
+        """SMBus read word, byte-swapped back: the chip sent its MSB first, SMBus takes the first byte as low."""
+        return _swap_bytes(self._call(address, "read_word_data", address, register))
+
     def write_block(self, address: int, register: int, data: bytes) -> None:
         """SMBus I2C-block write; more than 32 bytes go as one I2C write message."""
         if len(data) > SMBUS_BLOCK_MAX:
@@ -102,3 +111,7 @@ class LinuxI2CBus(I2CBus):
         if self._smbus is not None:
             self._smbus.close()
             self._smbus = None
+
+
+def _swap_bytes(word: int) -> int:
+    return (word & 0xFF) << 8 | word >> 8

@@ -1,11 +1,12 @@
 """MCP9808 I2C temperature sensor: the board temperature, for drift compensation and over-heat alarms.
 
 Registers are selected by a pointer byte and are 16 bits, most significant byte
-first. The ambient temperature register (0x05) carries three alert-comparison
-flags in bits 15..13, the sign in bit 12 and the temperature in 1/16 degC below
-it, so the 13 bits 12..0 are one two's-complement number. The flags are set
-whenever the temperature is beyond the limit registers (all 0 degC at power-on,
-so at room temperature they read as set) and must be masked off.
+first (read as an SMBus read word with its bytes swapped). The ambient
+temperature register (0x05) carries three alert-comparison flags in bits 15..13,
+the sign in bit 12 and the temperature in 1/16 degC below it, so the 13 bits
+12..0 are one two's-complement number. The flags are set whenever the
+temperature is beyond the limit registers (all 0 degC at power-on, so at room
+temperature they read as set) and must be masked off.
 """
 
 from __future__ import annotations
@@ -61,4 +62,4 @@ class MCP9808:
         return decode_ambient(self._read16(AMBIENT))
 
     def _read16(self, register: int) -> int:
-        return int.from_bytes(self.i2c.read_block(self.address, register, 2), "big")
+        return self.i2c.read_word_swapped(self.address, register)
