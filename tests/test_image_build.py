@@ -7,6 +7,12 @@ the service account, groups, folders and device rules exist, first-boot provisio
 nginx accepts its configuration and the file system table makes the root read-only beside a data
 partition. It needs root, mmdebstrap and the network (Debian's archive and PyPI); ``.ci/run`` installs
 mmdebstrap. The build takes a few minutes, once for the module.
+
+The Raspberry Pi builds (``--board pi3-4 --arch arm64|armhf``, ``--board pi5 --arch arm64``) need an ARM
+emulator to run whole; what they do to the boot partition is checked here without one: the boot settings each
+board's hook writes, and the device trees of the very kernel each build installs (fetched from Debian's archive
+by ``kernel-device-trees.sh``) with the front end's buses written in by ``device-trees.sh``, held against the
+image's systems in ``appliance/drivers/boards.py``.
 """
 
 import os
@@ -18,6 +24,9 @@ import time
 from pathlib import Path
 
 import pytest
+
+from appliance.drivers.boards import SYSTEMS
+from appliance.drivers.profile import BUILTIN_PROFILES, board_profile
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "image-build"
@@ -154,3 +163,115 @@ def test_first_boot_provisioning_runs_inside_and_nginx_accepts_its_certificate(r
     assert (root / "data/etc/hostname").read_text() == "ward3-bed12\n"
     assert "correct horse" not in setup.read_text()
     assert not list((root / "etc/appliance").iterdir())          # the mount point itself stays empty
+
+
+PI_BUILDS = (("pi3-4", "arm64"), ("pi3-4", "armhf"), ("pi5", "arm64"))
+SPI1_CHIP_SELECTS = {"appliance-image": 1, "appliance-image-spi1-3cs": 3}
+"""The Pi 3 and 4 image's systems, by the chip selects device-trees.sh gives SPI1 (build-image.sh --profile)."""
+
+
+@pytest.fixture(scope="module")
+def kernel_trees(tmp_path_factory):
+    """(board, arch) -> the folder of the Pi device trees of the kernel that build installs."""
+    for tool in ("apt-get", "apt-cache", "dpkg-deb", "dtc", "fdtoverlay", "fdtget", "fdtput"):
+        if shutil.which(tool) is None:
+            pytest.fail(f"{tool} is needed to check the image's device trees (.ci/run installs device-tree-compiler)")
+    folders = {}
+    for board, arch in PI_BUILDS:
+        folder = tmp_path_factory.mktemp(f"trees-{board}-{arch}")
+        result = subprocess.run([str(RECIPE / "kernel-device-trees.sh"), board, arch, str(folder)],
+                                capture_output=True, text=True)
+        assert result.returncode == 0, result.stderr[-3000:]
+        folders[board, arch] = folder
+    return folders
+
+
+def fdtget(tree: Path, node: str, prop: str, kind: str = "u") -> list:
+    result = subprocess.run(["fdtget", "-t", kind, str(tree), node, prop], capture_output=True, text=True)
+    assert result.returncode == 0, f"{tree.name}: {node} {prop}: {result.stderr}"
+    return [int(v) for v in result.stdout.split()] if kind == "u" else result.stdout.strip()
+
+
+def subnodes(tree: Path, node: str) -> set[str]:
+    return set(subprocess.run(["fdtget", "-l", str(tree), node], capture_output=True, text=True,
+                              check=True).stdout.split())
+
+
+@pytest.mark.parametrize("build", PI_BUILDS[:2], ids="-".join)
+@pytest.mark.parametrize("system", sorted(SPI1_CHIP_SELECTS))
+def test_the_pi3_4_trees_get_the_buses_the_image_s_system_claims(kernel_trees, tmp_path, build, system):
+    facts = SYSTEMS[system]
+    overlay = tmp_path / "appliance-buses.dtbo"
+    subprocess.run(["dtc", "-@", "-q", "-I", "dts", "-O", "dtb", "-o", str(overlay),
+                    str(RECIPE / "files/appliance-buses.dts")], check=True)
+    stock = sorted(kernel_trees[build].glob("bcm2[78][13]*-rpi-*.dtb"))
+    assert {t.name for t in stock} >= {"bcm2837-rpi-3-b.dtb", "bcm2837-rpi-3-b-plus.dtb", "bcm2711-rpi-4-b.dtb"}
+    trees = []
+    for tree in stock:
+        trees.append(tmp_path / tree.name)
+        shutil.copy(tree, trees[-1])
+    result = subprocess.run([str(RECIPE / "device-trees.sh"), str(overlay), str(SPI1_CHIP_SELECTS[system]),
+                             *map(str, trees)], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    for tree, original in zip(trees, stock):
+        controller = fdtget(tree, "/soc/gpio@7e200000", "phandle")
+        assert controller == fdtget(original, "/soc/gpio@7e200000", "phandle"), tree.name     # references intact
+        spi0 = "/soc/spi@7e204000"
+        assert fdtget(tree, spi0, "status", "s") == "okay" and subnodes(tree, spi0) == {"spidev@0", "spidev@1"}
+        assert fdtget(tree, "/soc/gpio@7e200000/appliance-spi0-pins", "brcm,pins") == [7, 8, 9, 10, 11]
+        spi1, chip_selects = "/soc/spi@7e215080", facts.spi_chip_selects[1]
+        assert fdtget(tree, spi1, "status", "s") == "okay", tree.name
+        assert fdtget(tree, spi1, "cs-gpios") == [v for pin in chip_selects for v in (*controller, pin, 1)]
+        assert subnodes(tree, spi1) == {f"spidev@{k}" for k in range(len(chip_selects))}
+        assert fdtget(tree, "/soc/gpio@7e200000/appliance-spi1-pins", "brcm,pins") == [19, 20, 21]
+        assert fdtget(tree, "/soc/gpio@7e200000/appliance-spi1-pins", "brcm,function") == [3]     # ALT4
+        assert fdtget(tree, "/soc/i2c@7e804000", "clock-frequency") == [facts.i2c_clock_hz[1]]
+        assert fdtget(tree, "/soc/i2c@7e804000", "clock-frequency") != fdtget(original, "/soc/i2c@7e804000",
+                                                                              "clock-frequency")
+        assert fdtget(tree, "/aliases", "spi1", "s") == spi1 and fdtget(tree, "/aliases", "i2c1", "s") == \
+            "/soc/i2c@7e804000"
+
+
+def test_a_tree_the_overlay_does_not_fit_stops_the_bake(kernel_trees, tmp_path):
+    overlay = tmp_path / "appliance-buses.dtbo"
+    subprocess.run(["dtc", "-@", "-q", "-I", "dts", "-O", "dtb", "-o", str(overlay),
+                    str(RECIPE / "files/appliance-buses.dts")], check=True)
+    pi5 = tmp_path / "bcm2712-rpi-5-b.dtb"
+    shutil.copy(kernel_trees["pi5", "arm64"] / pi5.name, pi5)
+    result = subprocess.run([str(RECIPE / "device-trees.sh"), str(overlay), "1", str(pi5)], capture_output=True,
+                            text=True)
+    assert result.returncode == 1 and "the overlay does not fit" in result.stderr
+    assert pi5.read_bytes() == (kernel_trees["pi5", "arm64"] / pi5.name).read_bytes()
+
+
+def test_the_pi5_kernel_boots_the_pi5_but_has_no_spi_for_its_header(kernel_trees):
+    """What appliance-image-pi5 claims: Debian's kernel has the Pi 5's tree, with RP1's I2C controllers but no
+    SPI controller for the header, so the image enables none."""
+    folder = kernel_trees["pi5", "arm64"]
+    source = subprocess.run(["dtc", "-q", "-I", "dtb", "-O", "dts", str(folder / "bcm2712-rpi-5-b.dtb")],
+                            capture_output=True, text=True, check=True).stdout
+    assert '"raspberrypi,rp1-gpio"' in source and '"snps,designware-i2c"' in source
+    assert "dw-apb-ssi" not in source
+    assert not SYSTEMS["appliance-image-pi5"].spi_chip_selects
+    assert "CONFIG_SPI_DESIGNWARE is not set" in SYSTEMS["appliance-image-pi5"].lacks
+
+
+@pytest.mark.parametrize(("board", "console"), [("pi3-4", "ttyS1"), ("pi5", "ttyAMA10")])
+def test_each_board_s_boot_settings(tmp_path, board, console):
+    """What raspi-firmware's kernel hook turns into cmdline.txt and config.txt on the boot partition."""
+    result = subprocess.run([str(RECIPE / "hooks/boot-config.sh"), str(tmp_path), board], capture_output=True,
+                            text=True)
+    assert result.returncode == 0, result.stderr
+    settings = dict(line.split("=", 1) for line in (tmp_path / "etc/default/raspi-firmware").read_text().splitlines()
+                    if line and not line.startswith("#"))
+    assert settings == {"ROOTPART": "LABEL=APPROOT", "CONSOLES": f'"{console},115200 tty0"', "CMA": "0"}
+    assert (tmp_path / "etc/default/raspi-extra-cmdline").read_text().split() == ["ro"]
+    assert not (tmp_path / "etc/default/raspi-firmware-custom").exists()     # the buses are in the trees
+
+
+@pytest.mark.parametrize("name", BUILTIN_PROFILES)
+def test_the_recipe_makes_the_system_of_every_builtin_profile(name):
+    system = board_profile({"profile": name}).system
+    assert system in SPI1_CHIP_SELECTS
+    assert len(SYSTEMS[system].spi_chip_selects[1]) == SPI1_CHIP_SELECTS[system]
+    assert f"pi3-4:{system}) spi1_cs={SPI1_CHIP_SELECTS[system]}" in (RECIPE / "build-image.sh").read_text()

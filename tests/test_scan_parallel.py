@@ -243,10 +243,14 @@ def test_the_self_test_passes_and_checks_the_switch_chain():
     assert not report.passed and "stuck" in report.text()
 
 
-def test_the_parallel_profile_without_its_hardware_names_the_missing_device():
+def test_the_parallel_profile_without_its_hardware_names_the_missing_device(monkeypatch):
+    """On a Pi 4B's facts (this machine's own board is unknown, so the mainline name GPIO_GCLK could not be
+    placed on it), the profile fits, and opening it names the first device node that is not there."""
     from appliance.drivers import open_board
+    from appliance.drivers.boards import HOST_BOARDS
     from appliance.errors import DeviceMissing
 
+    monkeypatch.setattr("appliance.drivers.board_check.running_host", lambda: HOST_BOARDS["pi4b"])
     with pytest.raises(DeviceMissing, match="/dev/i2c-1"):
         open_board({"profile": "parallel", "backend": "linux"})
 
@@ -272,7 +276,7 @@ def test_the_adaptive_plan_takes_fine_drives_only_near_loaded_electrodes():
     ({"measurement": {"adc_tile_rows": 3}}, "must divide the 8 channels"),
     ({"grid": {"rows": 4, "cols": 1}}, "at least 1 row and 2 columns"),
     ({"contact": {"every_frames": 0}}, "every_frames must be at least 1"),
-    ({"gpio": {"adc_convst": "GPIO4"}}, "both use GPIO4"),
+    ({"gpio": {"adc_convst": "GPIO_GCLK"}}, "both use GPIO_GCLK"),
 ])
 def test_bad_parallel_profiles_are_refused_naming_the_key(table, message):
     with pytest.raises(ConfigError, match=message):

@@ -5,6 +5,7 @@ environment on the image); here they are checked against this environment's
 prefix, which has the same ``bin/appliance`` and ``bin/python``.
 """
 
+import fnmatch
 import os
 import re
 import shutil
@@ -16,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from appliance.cli_run import SCREEN_NICE
+from appliance.drivers.profile import BUILTIN_PROFILES, board_profile
 from appliance.service.daemon import NO_DATA_FRAMES
 
 UNITS = Path(__file__).resolve().parents[1] / "systemd"
@@ -76,8 +78,7 @@ def test_the_monitor_is_watched_restarted_and_confined_to_its_devices():
     assert unit["RestartPreventExitStatus"] == ["2"]        # a refusal to start is not retried in a loop
     assert unit["User"] == ["appliance"] and unit["SupplementaryGroups"][0].split() == ["gpio", "spi", "i2c"]
     assert unit["DevicePolicy"] == ["closed"]
-    assert {d.split()[0] for d in unit["DeviceAllow"]} == {"char-gpiochip", "/dev/spidev0.0", "/dev/spidev0.1",
-                                                          "/dev/i2c-1"}
+    assert {d.split()[0] for d in unit["DeviceAllow"]} == {"char-gpiochip", "char-spidev", "/dev/i2c-1"}
     for key, value in (("ProtectSystem", "strict"), ("PrivateTmp", "yes"), ("NoNewPrivileges", "yes"),
                        ("ProtectHome", "yes"), ("StateDirectory", "appliance")):
         assert unit[key] == [value], key
@@ -129,3 +130,43 @@ def test_the_udev_rules_give_each_front_end_device_to_its_group():
     groups = {re.search(r'GROUP="(\w+)"', line).group(1): line for line in rules}
     assert set(groups) == {"gpio", "spi", "i2c"}
     assert all('MODE="0660"' in line for line in rules)
+
+
+def udev_groups(node: str) -> list[str]:
+    """The groups the rules give a device file, by its kernel name (the rules' KERNEL globs)."""
+    groups = []
+    for line in (UNITS / "90-appliance.rules").read_text().splitlines():
+        kernel, group = re.search(r'KERNEL=="([^"]+)"', line), re.search(r'GROUP="(\w+)"', line)
+        if kernel and group and fnmatch.fnmatchcase(Path(node).name, kernel.group(1)):
+            groups.append(group.group(1))
+    return groups
+
+
+def device_allowed(node: str, allowed: list[str]) -> bool:
+    """A DeviceAllow= entry names the file, or its driver's character-device group (``char-spidev``), which
+    /proc/devices lists under the name the driver's files start with."""
+    for entry in (value.split()[0] for value in allowed):
+        if entry == node or (entry.startswith("char-") and Path(node).name.startswith(entry[len("char-"):])):
+            return True
+    return False
+
+
+@pytest.mark.parametrize("name", BUILTIN_PROFILES)
+def test_every_device_a_builtin_profile_opens_is_allowed_by_the_unit_and_given_to_its_group(name):
+    profile = board_profile({"profile": name})
+    nodes = [*profile.device_nodes, "/dev/gpiochip0"]
+    assert any(node.startswith("/dev/spidev1.") for node in nodes)           # every one has a device on SPI1
+    unit = directives(UNITS / "appliance-monitor.service")
+    groups = unit["SupplementaryGroups"][0].split()
+    for node in nodes:
+        assert device_allowed(node, unit["DeviceAllow"]), f"{name}: DeviceAllow= does not allow {node}"
+        given = udev_groups(node)
+        assert len(given) == 1 and given[0] in groups, f"{name}: the udev rules give {node} to {given}"
+
+
+def test_a_device_outside_the_front_end_is_neither_allowed_nor_given():
+    allowed = directives(UNITS / "appliance-monitor.service")["DeviceAllow"]
+    for node in ("/dev/spidev2.0", "/dev/i2c-0", "/dev/mmcblk0", "/dev/mem"):
+        assert not udev_groups(node), node
+    for node in ("/dev/i2c-0", "/dev/mmcblk0", "/dev/mem"):
+        assert not device_allowed(node, allowed), node

@@ -2,7 +2,8 @@
 
 On a Pi each of these mistakes shows only as a bare errno from one device, or not at all (two users of
 one pin): a line the kernel names otherwise, a pin used twice, a pin an enabled bus has claimed, an SPI
-mode the controller refuses, a bus the system does not enable. :func:`check_profile` reports all of them
+mode the controller refuses, a bus the system does not enable or runs too slowly for the profile's timing, a
+system built for another board. :func:`check_profile` reports all of them
 at once, each naming the role, the pin and the device. It runs where the Linux board is opened and in
 ``appliance selftest --check``.
 
@@ -45,12 +46,12 @@ def check_profile(profile: BoardProfile, host: HostBoard, system: System | None 
     """
     system = system or SYSTEMS[profile.system]
     problems: list[str] = []
+    if system.boards and host.name != "generic" and host.name not in system.boards:
+        problems.append(f"{system.name} is built for {', '.join(system.boards)}, not {host.name}")
     used: dict[int, str] = {}
     for role, address in profile.spi.items():
         problems += _spi_problems(role, address, host, system, used)
-    if profile.i2c_bus not in system.i2c_buses:
-        problems.append(f"I2C{profile.i2c_bus} ([board.i2c] bus): {system.name} does not enable it "
-                        f"(it enables I2C {', '.join(map(str, system.i2c_buses)) or 'none'})")
+    problems += _i2c_problems(profile, system)
     claimed = _claimed_pins(host, system)
     names = host.names(system.kernel)
     for role, line in profile.gpio.items():
@@ -76,7 +77,7 @@ def _spi_problems(role: str, address, host: HostBoard, system: System, used: dic
     problems = []
     chip_selects = system.spi_chip_selects.get(bus)
     if chip_selects is None:
-        problems.append(f"{device}: {system.name} does not enable SPI{bus}")
+        problems.append(f"{device}: {system.name} does not enable SPI{bus}{_why(system)}")
     elif chip_select >= len(chip_selects):
         problems.append(f"{device}: {system.name} enables only {len(chip_selects)} chip select(s) on SPI{bus}")
     else:
@@ -88,6 +89,22 @@ def _spi_problems(role: str, address, host: HostBoard, system: System, used: dic
                         f"({controller.driver}) takes only modes {sorted(controller.modes)}: "
                         "the kernel would answer EINVAL")
     return problems
+
+
+def _i2c_problems(profile: BoardProfile, system: System) -> list[str]:
+    bus = profile.i2c_bus
+    clock = system.i2c_clock_hz.get(bus)
+    if clock is None:
+        return [f"I2C{bus} ([board.i2c] bus): {system.name} does not enable it (it enables I2C "
+                f"{', '.join(map(str, system.i2c_buses)) or 'none'}){_why(system)}"]
+    if clock < profile.timing.i2c_clock_hz:
+        return [f"I2C{bus} runs at {clock / 1e3:g} kHz under {system.name}, but the profile's timing needs "
+                f"{profile.timing.i2c_clock_hz / 1e3:g} kHz ([board.timing] i2c_clock_hz)"]
+    return []
+
+
+def _why(system: System) -> str:
+    return f" ({system.name} lacks buses: {system.lacks})" if system.lacks else ""
 
 
 def _claimed_pins(host: HostBoard, system: System) -> dict[int, str]:

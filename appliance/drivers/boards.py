@@ -18,6 +18,12 @@ is ``None`` and is not checked, never guessed. Sources:
   chip selects in bcm2711-rpi-4-b.dts; SPI1 pins: raspberrypi/linux arch/arm/boot/dts/overlays/
   spi1-1cs-overlay.dts and spi1-3cs-overlay.dts (19 20 21 in ALT4, chip selects 18, 17, 16); I2C1 pins:
   ``i2c1_pins`` 2 3 in bcm2710-rpi-3-b.dts;
+* I2C clock: the mainline trees of Debian's kernels (linux-image-arm64 6.1 and 7.3, linux-image-armmp-lpae
+  6.1, read with dtc) give ``i2c@7e804000`` ``clock-frequency = <100000>``, and
+  torvalds/linux drivers/i2c/busses/i2c-bcm2835.c falls back to the same standard-mode 100 kHz without it;
+* the Pi 5 under Debian: linux-image-7.3.4+deb13-arm64 (trixie-backports, the first Debian kernel with RP1's
+  drivers) ships bcm2712-rpi-5-b.dtb with RP1's I2C controllers, GPIO and Ethernet, but no SPI node, and its
+  configuration has ``# CONFIG_SPI_DESIGNWARE is not set``: no driver for RP1's SPI controllers;
 * SPI modes: torvalds/linux drivers/spi/spi-bcm2835aux.c sets ``mode_bits = SPI_CPOL | SPI_CS_HIGH |
   SPI_NO_CS``, without SPI_CPHA, so the SPI core refuses CPHA = 1 (modes 1 and 3) with EINVAL; the
   DesignWare driver RP1's SPI uses (drivers/spi/spi-dw-core.c, ``dw_spi_add_host``) and spi-bcm2835.c
@@ -77,16 +83,24 @@ class HostBoard:
 class System:
     """An operating system on the host: the kernel flavour it boots and the buses its boot configuration enables.
 
-    ``spi_chip_selects`` maps each enabled SPI bus to the GPIO of each chip select (CE0 first); ``reserved``
-    names other header pins the system takes for itself.
+    ``spi_chip_selects`` maps each enabled SPI bus to the GPIO of each chip select (CE0 first);
+    ``i2c_clock_hz`` gives the clock of each enabled I2C bus; ``reserved`` names other header pins the system
+    takes for itself. ``boards`` are the host boards the system is built for (empty: any); ``lacks`` says
+    what it cannot give a profile, and why.
     """
 
     name: str
     kernel: str
     spi_chip_selects: Mapping[int, tuple[int, ...]]
-    i2c_buses: tuple[int, ...]
+    i2c_clock_hz: Mapping[int, int]
     reserved: Mapping[int, str]
     source: str
+    boards: tuple[str, ...] = ()
+    lacks: str = ""
+
+    @property
+    def i2c_buses(self) -> tuple[int, ...]:
+        return tuple(self.i2c_clock_hz)
 
 
 _BCM283X_SPI = MappingProxyType({
@@ -117,19 +131,35 @@ HOST_BOARDS = MappingProxyType({board.name: board for board in (
 )})
 """The boards by the name ``--board`` takes; ``generic`` checks only what holds for any board."""
 
-_PI_OS_SOURCE = ("config.txt dtparam=spi=on, dtparam=i2c_arm=on and dtoverlay={overlay} (raspberrypi/linux "
-                 "arch/arm/boot/dts/overlays/{overlay}-overlay.dts)")
+I2C_DEFAULT_CLOCK_HZ = 100_000
+"""The I2C clock a bus runs at when its device tree sets none (and the one the mainline Pi trees set)."""
+_FAST_I2C = MappingProxyType({1: 400_000})
+_PI_OS_SOURCE = ("config.txt dtparam=spi=on, dtparam=i2c_arm=on, dtparam=i2c_arm_baudrate=400000 and "
+                 "dtoverlay={overlay} (raspberrypi/linux arch/arm/boot/dts/overlays/{overlay}-overlay.dts)")
+_IMAGE_SOURCE = ("image-build/files/appliance-buses.dts and appliance-spi1-{n}cs.dts, applied by "
+                 "image-build/device-trees.sh at build time to the mainline trees of Debian's kernel: SPI0 with CE0 "
+                 "and CE1, SPI1 with {n} chip select(s) on GPIO {pins}, I2C1 at 400 kHz; image-build/files/"
+                 "raspi-firmware (console ttyS1)")
+_IMAGE_CONSOLE = MappingProxyType({14: "UART1 TXD (the serial console, ttyS1)", 15: "UART1 RXD (the serial console)"})
+_PI3_PI4 = ("pi3b", "pi3b-plus", "pi4b")
 SYSTEMS = MappingProxyType({system.name: system for system in (
-    System("appliance-image", "mainline", MappingProxyType({0: (8, 7)}), (1,),
-           MappingProxyType({14: "UART1 TXD (the serial console, ttyS1)", 15: "UART1 RXD (the serial console)"}),
-           "image-build/files/appliance-spi.dts (SPI0 with CE0 and CE1, I2C1) on Debian's kernel and mainline "
-           "trees, which ignore config.txt's dtparam lines; image-build/files/raspi-firmware (console ttyS1)"),
-    System("raspberry-pi-os-spi1-1cs", "raspberrypi", MappingProxyType({0: (8, 7), 1: (18,)}), (1,),
+    System("appliance-image", "mainline", MappingProxyType({0: (8, 7), 1: (18,)}), _FAST_I2C, _IMAGE_CONSOLE,
+           _IMAGE_SOURCE.format(n=1, pins="18"), _PI3_PI4),
+    System("appliance-image-spi1-3cs", "mainline", MappingProxyType({0: (8, 7), 1: (18, 17, 16)}), _FAST_I2C,
+           _IMAGE_CONSOLE, _IMAGE_SOURCE.format(n=3, pins="18, 17 and 16"), _PI3_PI4),
+    System("appliance-image-pi5", "mainline", MappingProxyType({}), MappingProxyType({}), MappingProxyType({}),
+           "image-build/build-image.sh --board pi5: Debian trixie with linux-image-arm64 from trixie-backports and "
+           "raspi-firmware; no bus is enabled", ("pi5",),
+           "Debian's only kernel with RP1's drivers (7.3, trixie-backports) has no driver for RP1's SPI "
+           "controllers (CONFIG_SPI_DESIGNWARE is not set), and the image enables none of RP1's I2C "
+           "controllers (their pin groups were not verified)"),
+    System("raspberry-pi-os-spi1-1cs", "raspberrypi", MappingProxyType({0: (8, 7), 1: (18,)}), _FAST_I2C,
            MappingProxyType({}), _PI_OS_SOURCE.format(overlay="spi1-1cs")),
-    System("raspberry-pi-os-spi1-3cs", "raspberrypi", MappingProxyType({0: (8, 7), 1: (18, 17, 16)}), (1,),
+    System("raspberry-pi-os-spi1-3cs", "raspberrypi", MappingProxyType({0: (8, 7), 1: (18, 17, 16)}), _FAST_I2C,
            MappingProxyType({}), _PI_OS_SOURCE.format(overlay="spi1-3cs")),
 )})
-"""The systems a profile may name as ``system``; ``appliance-image`` is what image-build/ makes."""
+"""The systems a profile may name as ``system``; ``appliance-image*`` are what image-build/ makes (the variant
+by ``build-image.sh --profile``, the Pi 5's by ``--board pi5``)."""
 DEFAULT_SYSTEM = "appliance-image"
 
 

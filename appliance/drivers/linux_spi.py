@@ -35,9 +35,10 @@ class LinuxSPIDevice(SPIDevice):
         try:
             device.open(bus, chip_select)
         except FileNotFoundError as exc:
-            raise DeviceMissing(f"{self.name} does not exist: is SPI enabled (dtparam=spi=on in config.txt)? "
-                                "Buses other than SPI0 and chip selects beyond CE0/CE1 need a dtoverlay "
-                                "(such as spi1-3cs)") from exc
+            raise DeviceMissing(f"{self.name} does not exist: is SPI enabled? The appliance's image gives SPI1 "
+                                "one chip select unless built for a profile with three (build-image.sh --profile, "
+                                "image-build/README.md); Raspberry Pi OS needs dtparam=spi=on in config.txt, and "
+                                "SPI1 an overlay (such as spi1-3cs)") from exc
         except OSError as exc:
             raise self._error(exc) from exc
         try:

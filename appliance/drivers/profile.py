@@ -130,7 +130,7 @@ class Contact:
 @dataclass(frozen=True)
 class Timing:
     drive_settle_s: float
-    i2c_clock_hz: float
+    i2c_clock_hz: float                        # the I2C clock the timing is designed for: the system must give it
     call_overhead_s: float
     measure_settle_s: float | None = None
     rms_rise_tau_s: float | None = None
@@ -175,6 +175,13 @@ class BoardProfile:
     system: str = DEFAULT_SYSTEM
     boards: tuple[str, ...] = ()
     """The host boards (``drivers/boards.py``) this profile is wired for and checked against."""
+
+    @property
+    def device_nodes(self) -> tuple[str, ...]:
+        """The device files the Linux board opens for this profile: a spidev node per SPI chip select and the I2C
+        adapter (GPIO lines are found by name, on whichever ``/dev/gpiochip*`` carries them)."""
+        spi = sorted({f"/dev/spidev{address.bus}.{address.chip_select}" for address in self.spi.values()})
+        return (*spi, f"/dev/i2c-{self.i2c_bus}")
 
     @property
     def adc_address_lines(self) -> tuple[str, ...]:

@@ -1,24 +1,35 @@
 #!/usr/bin/env bash
 # mmdebstrap customize hook: the appliance in the root file system ROOT, from the wheelhouse WHEELS
-# (wheelhouse.sh): a virtual environment at /opt/appliance (where the systemd units run it from), the
+# (wheelhouse.sh) for ARCH: a virtual environment at /opt/appliance (where the systemd units run it from), the
 # monitor's and the screen's units enabled, the service account, its folders and the device rules.
 # The bed's own units only: the ward station's unit is for the station's machine, not an image for beds.
 set -euo pipefail
-root=${1:?usage: appliance.sh ROOT WHEELS}
-wheels=${2:?usage: appliance.sh ROOT WHEELS}
+usage="usage: appliance.sh ROOT WHEELS ARCH"
+root=${1:?$usage}
+wheels=${2:?$usage}
+arch=${3:?$usage}
 repo=$(cd "$(dirname "$0")/../.." && pwd)
 # A clean environment: the build machine's settings (PIP_*, PYTHON*) are not the image's.
 in_root() { chroot "$root" /usr/bin/env -i PATH=/usr/sbin:/usr/bin:/sbin:/bin HOME=/root LC_ALL=C.UTF-8 \
     DEBIAN_FRONTEND=noninteractive "$@"; }
 
-# spidev publishes no wheels: the wheelhouse holds its source, built here by the image's own compiler,
-# which leaves the image afterwards.
+# Packages published as source (spidev everywhere; on armhf every one PyPI has no armv7l wheel of) are built
+# by the image's own compiler, which leaves the image afterwards. On armhf numpy and scipy are Debian's (PyPI
+# has no armv7l wheels of them), seen from the virtual environment, and the sources build against Debian's
+# setuptools and cffi.
 build_tools="gcc libc6-dev python3-dev"
+venv_args=() pip_args=()
+if [ "$arch" = armhf ]; then
+    in_root apt-get install -y -qq --no-install-recommends python3-numpy python3-scipy python3-cffi \
+        python3-setuptools python3-setuptools-scm python3-wheel >/dev/null
+    venv_args=(--system-site-packages) pip_args=(--no-build-isolation)
+fi
 in_root apt-get install -y -qq --no-install-recommends $build_tools >/dev/null
 mkdir -p "$root/tmp/wheels"
 cp "$wheels"/* "$root/tmp/wheels/"
-in_root python3 -m venv /opt/appliance
-in_root /opt/appliance/bin/pip install -q --no-index --no-cache-dir --find-links /tmp/wheels 'appliance[hardware]'
+in_root python3 -m venv "${venv_args[@]}" /opt/appliance
+in_root /opt/appliance/bin/pip install -q --no-index --no-cache-dir "${pip_args[@]}" --find-links /tmp/wheels \
+    'appliance[hardware]'
 rm -rf "$root/tmp/wheels"
 in_root apt-get purge -y -qq --autoremove $build_tools >/dev/null
 install -m 0644 "$repo/README.md" "$root/opt/appliance/README.md"

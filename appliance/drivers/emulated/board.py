@@ -2,9 +2,10 @@
 
 It is a complete :class:`~appliance.drivers.bus.Board`: the same front end and
 scan engine that run on a Raspberry Pi run here, and every transfer is logged
-(``board.log``) and charged to the simulated clock at the profile's bus timing,
-so the time a scan takes is the profile's timing model. It stands on a Pi 4B
-(:data:`HOST`) under the kernel of the profile's system, whose facts it enforces.
+(``board.log``) and charged to the simulated clock: SPI at the profile's clocks, I2C at
+the clock the system (the profile's, or ``system=``) runs the bus at, so the time a scan
+takes is the profile's timing model on that system. It stands on a Pi 4B (:data:`HOST`)
+under the kernel of the system, whose facts it enforces.
 
 Faults for tests and demonstrations: ``board.faults.fail_next(target, count,
 errno)`` for transfer errors, ``board.faults.missing`` for device files absent
@@ -19,7 +20,7 @@ import errno
 
 import numpy as np
 
-from appliance.drivers.boards import HOST_BOARDS, SYSTEMS
+from appliance.drivers.boards import HOST_BOARDS, I2C_DEFAULT_CLOCK_HZ, SYSTEMS, System
 from appliance.drivers.bus import Board, LineRequest, os_error_to_bus_error
 from appliance.drivers.emulated.ad5933 import EmulatedAD5933
 from appliance.drivers.emulated.ad8251 import EmulatedAD8251
@@ -55,14 +56,17 @@ class EmulatedBoard(Board):
         return super().__new__(cls)
 
     def __init__(self, profile: BoardProfile, sensor: SensorModel, *, seed: int = 0,
-                 temperature_c: float = 24.0):
+                 temperature_c: float = 24.0, system: System | None = None):
         super().__init__()
         self.profile, self.sensor = profile, sensor
+        self.system = system or SYSTEMS[profile.system]
         self.clock = SimulatedClock()
         self.log: list[Transaction] = []
         self.faults = FaultPlan()
-        self.timing = BusTiming(profile.timing.i2c_clock_hz, profile.timing.call_overhead_s)
-        self.bank = GPIOBank(self.clock, HOST.names(SYSTEMS[profile.system].kernel), self.log)
+        # The I2C bus runs at the clock the system's device tree gives it, whatever the profile hoped for.
+        i2c_clock_hz = self.system.i2c_clock_hz.get(profile.i2c_bus, I2C_DEFAULT_CLOCK_HZ)
+        self.timing = BusTiming(i2c_clock_hz, profile.timing.call_overhead_s)
+        self.bank = GPIOBank(self.clock, HOST.names(self.system.kernel), self.log)
         self.i2c_bus = EmulatedI2CBus(profile.i2c_bus, self.clock, self.timing, self.log, self.faults)
         self.spi_chips: dict[tuple[int, int], object] = {}
         self.temperature_c = temperature_c
