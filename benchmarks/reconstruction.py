@@ -383,8 +383,8 @@ Jacobian, keeping lambda.
 def frame_section(row) -> str:
     if row is None:
         return "Not run: pyEIT is not installed (`pip install -e '.[bench]'`)."
-    return f"""On {FRAME_RACE_LAYOUT}'s 1 % and 0.1 % noise frames, {FRAME_RACE_ROUNDS} rounds: "ours" is what the monitor
-calls for a one-step image, `ReconstructionModel.reconstruct(frame, reference, iterate="never")`, with every
+    return f"""On {FRAME_RACE_LAYOUT}'s 1 % and 0.1 % noise frames, {FRAME_RACE_ROUNDS} rounds: "ours" is what the
+monitor calls for a one-step image, `ReconstructionModel.reconstruct(frame, reference, iterate="never")`, with every
 check it makes (missing readings, the reference's fit to the model and its correlation, non-finite readings);
 "bare" is the product of the same matrix with the frame's change alone; pyEIT's is its GREIT `solve` (n 32).
 Each call is timed alone, the three interleaved frame by frame; medians.
