@@ -540,6 +540,27 @@ def _sample_grid(values, xg, yg, mask, points):
 # --------------------------------------------------------------------------------------------
 
 
+def pyeit_solver(sheet, electrodes_mm, readings, reference, target_elements, algorithm="greit", seed=0):
+    """pyEIT's ``algorithm`` set up as :func:`run_pyeit` sets it up, as a function of one frame: what a
+    caller times beside its own per-frame path, frame by frame.
+
+    Returns ``frame -> solver.solve(frame, reference)`` with :data:`SETTINGS`' normalisation, called as
+    :func:`run_pyeit` times it (nothing wrapped around the call).
+    """
+    readings = np.asarray(readings, dtype=int)
+    reference = np.asarray(reference, dtype=float).ravel()
+    model = build_mesh(sheet, np.asarray(electrodes_mm, dtype=float).reshape(-1, 2), target_elements, seed=seed)
+    settings = SETTINGS[algorithm]
+    with _quiet_pyeit():
+        solver = _SOLVERS[algorithm](model.mesh, build_protocol(readings))
+        solver.setup(**settings["setup"])
+
+    def solve(frame):
+        return solver.solve(frame, reference, normalize=settings["normalize"])
+
+    return solve
+
+
 def run_pyeit(sheet, electrodes_mm, readings, reference, frames, pixel_centres_mm, target_elements,
               algorithms=("jac", "bp", "greit"), frame_repeats=1000, seed=0):
     """Reconstruct our frames with pyEIT 1.2.4's JAC, BP and GREIT, timed, on our pixels.

@@ -181,3 +181,28 @@ def test_contact_capacitance_benchmark_compares_the_detectors(monkeypatch):
     assert len(rows) == 1
     rms_change, in_phase_change = float(rows[0][3]), float(rows[0][5])
     assert rms_change > 20 * in_phase_change, body
+
+
+def test_calibration_cost_counts_the_mechanics_factorisations_and_replays_them_exactly():
+    """Every Newton step of the mat mechanics is one counted factorisation, named where it is made; the
+    kept-factor replay finds the same deflections (to Newton's own tolerance) with fewer factorisations."""
+    from appliance.sim import mechanics
+    from appliance.sim.bed import BED_MAT_PARAMETERS
+
+    bench = load("calibration_cost")
+    rows, cols = np.mgrid[0:40, 0:20]
+    fields = [np.where((rows - r) ** 2 + (cols - c) ** 2 < 30, kpa, 0.0) for r, c, kpa in
+              ((12, 8, 6.0), (14, 9, 8.0), (26, 11, 5.0))]
+    landed, start = [], None
+    with bench.Counted() as counted:
+        for field in fields:
+            landed.append(mechanics.solve_deflection(BED_MAT_PARAMETERS, field, 10.0, start_mm=start)[0])
+            start = landed[-1]
+    assert set(counted.calls) <= {"mechanics.py:solve_deflection", "mechanics.py:_bordered_system"}
+    assert counted.calls["mechanics.py:solve_deflection"] >= 3 * len(fields)    # several Newton steps a field
+    kept, start = bench.KeptFactor(), None
+    for field, deflection in zip(fields, landed):
+        replayed = bench.newton_with(BED_MAT_PARAMETERS, field, 10.0, start, kept)
+        assert np.abs(replayed - deflection).max() < 1e-9
+        start = deflection
+    assert 1 <= kept.factorisations < counted.calls["mechanics.py:solve_deflection"]

@@ -110,6 +110,19 @@ def test_disc_images_peak_at_the_conductive_target():
         assert_peak(result["images"], pixels, centre, 0.25 * RADIUS)
 
 
+def test_the_per_frame_solver_is_pyeits_greit_on_its_32_by_32_grid():
+    """What the reconstruction benchmark times frame by frame: pyEIT's GREIT (n 32) against the reference,
+    nothing for the reference itself, the same image from the same setup."""
+    electrodes, readings = rim_electrodes(), adjacent_protocol()
+    reference, frame = simulate(("disc", RADIUS), electrodes, readings, np.array([72.0, 35.0]), 0.12 * RADIUS)
+    solve = pyeit_peer.pyeit_solver(("disc", RADIUS), electrodes, readings, reference, 500)
+    image = np.real(solve(frame))
+    assert image.shape == (32 * 32,) and np.isfinite(image).all() and np.abs(image).max() > 0
+    assert np.abs(np.real(solve(reference))).max() == 0
+    again = pyeit_peer.pyeit_solver(("disc", RADIUS), electrodes, readings, reference, 500)
+    assert np.array_equal(np.real(again(frame)), image)
+
+
 def test_grid_protocol_round_trips_and_is_reciprocal_in_pyeit():
     electrodes, readings = grid_electrodes(), grid_protocol()
     assert readings.shape == (448, 4)

@@ -172,6 +172,31 @@ def test_a_reference_from_another_layout_is_refused(product):
         product.reconstruct(reference * 1.01, reference)
 
 
+def test_every_frame_checks_its_reference_though_the_last_fit_is_kept(product, truth):
+    """The reference's fit is remembered between frames; a different reference (or the same array changed
+    in place, or flattened, or holding a NaN the frame does not) is fitted and checked anew, and the
+    correlation is Pearson's."""
+    r = product.reconstructor
+    reference = truth[1].copy()
+    frame = load_frame(truth, [(50, 50)])
+    assert r.check_reference(reference) == pytest.approx(np.corrcoef(reference, r.linear.reference)[0, 1],
+                                                         abs=1e-12)
+    model_reference = r.linear.reference
+    assert r.scale(reference) == pytest.approx(reference @ model_reference / (model_reference @ model_reference),
+                                               rel=1e-12)
+    first = product.reconstruct(frame, reference, iterate="never")[0]
+    assert np.allclose(product.reconstruct(frame, reference, iterate="never")[0], first, equal_nan=True)
+    reference[:] = np.random.default_rng(3).permutation(reference)       # mis-wired: the same values elsewhere
+    with pytest.raises(ReconstructionError, match="correlate .* with this layout's model"):
+        product.reconstruct(frame, reference, iterate="never")
+    with pytest.raises(ReconstructionError, match="correlate .* with this layout's model"):
+        r.check_reference(np.full_like(reference, 1e-3))
+    with pytest.raises(ReconstructionError, match="correlate nan"):
+        r.check_reference(np.where(np.arange(reference.size) == 5, np.nan, truth[1]))
+    with pytest.raises(ReconstructionError, match="fitted scale"):
+        r.scale(-truth[1])
+
+
 def test_bad_options_are_refused():
     with pytest.raises(ConfigError, match="unknown algorithm 'sart'"):
         ReconstructionOptions("sart")

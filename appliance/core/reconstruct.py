@@ -247,16 +247,16 @@ class Reconstructor:
         return bool(self.usable.all())
 
     @cached_property
-    def _model_reference(self) -> tuple[np.ndarray, float]:
+    def _model_reference(self) -> tuple[np.ndarray, float, np.ndarray]:
+        """The model's usable reference readings, their square sum, and their deviations from their mean
+        scaled to unit length (so a frame's correlation with them is one dot product)."""
         m = self.linear.reference if self._all_usable else self.linear.reference[self.usable]
-        return m, float(m @ m)
+        centred = m - m.mean()
+        return m, float(m @ m), centred / np.sqrt(centred @ centred)
 
     def scale(self, reference: np.ndarray) -> float:
         """Measured over modelled reference readings (least squares over the usable readings)."""
-        m, mm = self._model_reference
-        v = np.asarray(reference, dtype=np.float64)
-        v = v if self._all_usable else v[self.usable]
-        s = float(v @ m) / mm
+        s = self._reference_fit(reference)[1]
         if not np.isfinite(s) or s <= 0:
             raise ReconstructionError(
                 f"the reference readings do not match this layout's model (fitted scale {s:.3g}); is the "
@@ -269,15 +269,30 @@ class Reconstructor:
         Real references correlate above 0.99 with their layout's model (0.995 for the
         KTC2023 tank); a frame from another layout or a mis-wired mat does not.
         """
-        m, _ = self._model_reference
-        v = np.asarray(reference, dtype=np.float64)
-        v = v if self._all_usable else v[self.usable]
-        correlation = float(np.corrcoef(v, m)[0, 1])
+        correlation = self._reference_fit(reference)[0]
         if not correlation >= minimum:
             raise ReconstructionError(
                 f"the reference readings correlate {correlation:.2f} with this layout's model (at least "
                 f"{minimum} expected): is the frame from another layout or protocol, or is the mat mis-wired?")
         return correlation
+
+    def _reference_fit(self, reference: np.ndarray) -> tuple[float, float]:
+        """(Pearson's correlation, least-squares scale) of ``reference`` against the model's reference over
+        the usable readings (NaN correlation for a flat or non-finite one). The last reference's are kept:
+        a monitor images every frame against the same reference, and comparing its bytes costs a tenth of
+        fitting it again."""
+        v = np.asarray(reference, dtype=np.float64)
+        key = v.tobytes()
+        last = self.__dict__.get("_last_reference_fit")
+        if last is not None and last[0] == key:
+            return last[1]
+        m, mm, unit = self._model_reference
+        v = v if self._all_usable else v[self.usable]
+        centred = v - v.mean()
+        spread = float(centred @ centred)
+        fit = (float(centred @ unit) / np.sqrt(spread) if spread > 0 else float("nan"), float(v @ m) / mm)
+        self.__dict__["_last_reference_fit"] = (key, fit)       # frozen fields; a cache beside them, as cached_property
+        return fit
 
 
 def build_reconstructor(linear: LinearModel, options: ReconstructionOptions | None = None,
