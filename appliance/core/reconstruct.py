@@ -186,7 +186,7 @@ class NormalForm:
         snr_out = np.sqrt(np.sum(areas * image**2)) / np.sqrt(np.sum(areas * np.diag(covariance)))
         return float(snr_in / snr_out)
 
-    def without(self, jacobian: np.ndarray, drop: np.ndarray) -> "NormalForm":
+    def without(self, jacobian: np.ndarray, drop: np.ndarray) -> NormalForm:
         """The same with the readings ``drop`` (bool) removed: their part taken out of N, and the
         prior scaled to the new N as :func:`appliance.core.regularisation.prior_matrix` scales it."""
         drop = np.asarray(drop, dtype=bool) & (self.weights > 0)

@@ -23,10 +23,11 @@ from __future__ import annotations
 
 import dataclasses
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from types import MappingProxyType
-from typing import Any, Mapping
+from typing import Any
 
 from appliance.core.toml_files import read_toml
 from appliance.drivers.boards import DEFAULT_SYSTEM, HOST_BOARDS, SYSTEMS

@@ -144,7 +144,7 @@ class EmulatedAD5933(I2CChipEmulator):
         return bytes(self._register(first + offset) for offset in range(n))
 
     def _power_on(self) -> None:
-        self.registers = {register: 0 for register in (*RESERVED_BITS, *READ_ONLY)}
+        self.registers = dict.fromkeys((*RESERVED_BITS, *READ_ONLY), 0)
         self.registers[CONTROL_HB] = 0xA0
         self.pointer: int | None = None
         self.mode = POWER_DOWN

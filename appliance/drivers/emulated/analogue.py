@@ -94,7 +94,7 @@ class ChainErrors:
         return self.scale * (1 + np.reshape(errors, np.shape(pga_gain)))
 
     @classmethod
-    def drawn(cls, rng: np.random.Generator, gains=(1, 2, 4, 8)) -> "ChainErrors":
+    def drawn(cls, rng: np.random.Generator, gains=(1, 2, 4, 8)) -> ChainErrors:
         return cls(scale=1.0 + rng.uniform(-0.003, 0.003),
                    gain_error={float(g): rng.uniform(-3e-4, 3e-4) for g in gains})
 

@@ -72,7 +72,7 @@ class ParallelErrors:
     adc_noise_lsb: float = 0.5                      # AD7606 transition noise
 
     @classmethod
-    def drawn(cls, rng: np.random.Generator, n_channels: int) -> "ParallelErrors":
+    def drawn(cls, rng: np.random.Generator, n_channels: int) -> ParallelErrors:
         return cls(scale=1.0 + rng.uniform(-0.002, 0.002),
                    channel_gain=rng.uniform(-0.002, 0.002, n_channels),
                    offset_v=rng.uniform(-0.5e-3, 0.5e-3, n_channels),
