@@ -164,7 +164,7 @@ def _show(pressure_map, n_readings: int) -> None:
     from appliance.core.pressure import KPA_PER_MMHG
 
     m = pressure_map
-    t = int(round(m.time_s))
+    t = round(m.time_s)
     regions = "; ".join(f"{r.peak_mmhg:.0f} mmHg over {r.area_cm2:.0f} cm2 at ({r.x_mm:.0f}, {r.y_mm:.0f}) mm"
                         for r in m.regions[:3])
     print(f"{t // 3600}:{t % 3600 // 60:02d}:{t % 60:02d}  peak {m.peak_kpa:.1f} kPa ({m.peak_kpa / KPA_PER_MMHG:.0f} "

@@ -142,7 +142,9 @@ def _run(args) -> int:
                     pending.remove(item)
                     daemon.acknowledge(item[1], "simulated-nurse")
 
-            say = (lambda text: print(text, file=sys.stderr, flush=True))
+            def say(text):
+                print(text, file=sys.stderr, flush=True)
+
             daemon = assemble(config, say=say, on_event=record, on_map=nurse, live=False)
             started = time.perf_counter()
             try:

@@ -262,7 +262,8 @@ class AlertPipeline:
         named = []
         for region in tracked:
             inside = [s for s in located
-                      if region.mask[min(int(s.y_mm // h), self.grid.rows - 1), min(int(s.x_mm // w), self.grid.cols - 1)]]
+                      if region.mask[min(int(s.y_mm // h), self.grid.rows - 1),
+                                     min(int(s.x_mm // w), self.grid.cols - 1)]]
             site = max(inside, key=lambda s: s.peak_kpa).site if inside else None
             named.append(dataclasses.replace(region, zone=site))
         return named

@@ -316,4 +316,4 @@ def release(client: mqtt.Client) -> None:
     which then warn of unclosed sockets."""
     client.disconnect()
     client.loop_stop()
-    client._reset_sockets(sockpair_only=True)     # noqa: SLF001  (paho has no public call for it)
+    client._reset_sockets(sockpair_only=True)     # private: paho has no public call for it

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
+from itertools import pairwise
 
 import numpy as np
 
@@ -184,7 +185,7 @@ def graded_axis(length: float, edges: list[float], spec: MeshSpec) -> np.ndarray
     marks[-1] = length
     inner = np.asarray(edges, dtype=float)
     points = [marks[:1]]
-    for a, b in zip(marks[:-1], marks[1:]):
+    for a, b in pairwise(marks):
         t = np.linspace(a, b, 257)
         if inner.size:
             dist = np.min(np.abs(t[:, None] - inner[None, :]), axis=1)
@@ -267,7 +268,7 @@ def _rim_angles(layout: Layout, spec: MeshSpec) -> np.ndarray:
     marks = np.concatenate([marks, [first + 2 * np.pi]])
     angles = []
     electrode_arc = True
-    for a, b in zip(marks[:-1], marks[1:]):
+    for a, b in pairwise(marks):
         arc_mm = (b - a) * radius
         if electrode_arc:
             n = max(1, math.ceil(arc_mm / spec.electrode_h_mm - 1e-9))

@@ -362,9 +362,11 @@ class ScanEngine:
             if n + 1 < len(runnable) and self.plan_drive_range[d] >= 0:
                 then = tuple(int(e) for e in protocol.drives[runnable[n + 1][0]])
             try:
+                # with_retries calls the action before the loop moves on, so it sees this drive's values.
                 result = with_retries(
-                    lambda: take_step(fe, drive, self.channels[idx], self.signs[idx], int(self.plan_drive_range[d]),
-                                      then=then, conversions=self.conversions),
+                    lambda: take_step(fe, drive, self.channels[idx], self.signs[idx],  # noqa: B023
+                                      int(self.plan_drive_range[d]), then=then,  # noqa: B023
+                                      conversions=self.conversions),
                     attempts=self.retries, what=f"drive {drive[0]}-{drive[1]}",
                     on_retry=lambda *_: fe.forget_routing())
             except TransferFailed as exc:

@@ -30,6 +30,7 @@ notifiers, closes the store and exits 0.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import sqlite3
 import threading
@@ -125,10 +126,8 @@ class MonitorDaemon:
         """A progress callback for a long command: records the share done for screens and keeps the systemd
         watchdog fed, since the loop is busy but alive."""
         def report(share: float, note: str = "") -> None:
-            try:
-                self.store.set_progress(command_id, share, note)
-            except sqlite3.OperationalError:
-                pass                    # only a progress bar: a full disk shows as the storage alarm
+            with contextlib.suppress(sqlite3.OperationalError):   # only a progress bar: a full disk
+                self.store.set_progress(command_id, share, note)    # shows as the storage alarm
             self.systemd.ping()
         return report
 
@@ -400,8 +399,9 @@ class MonitorDaemon:
             g = self.grid
             snapshot["map"] = {"mmhg": map_mmhg(pressure_map.pressure_kpa), "pixel_mm": list(g.pixel_mm),
                                "peak_kpa": pressure_map.peak_kpa, "usable_readings": pressure_map.usable_readings}
-            snapshot["regions"] = [{"id": r.id, "zone": r.zone, "words": r.zone and site_words(r.zone), "peak_mmhg": r.peak_kpa / KPA_PER_MMHG,
-                                    "area_cm2": r.area_cm2, "x_mm": r.x_mm, "y_mm": r.y_mm, "since_s": r.first_seen_s,
+            snapshot["regions"] = [{"id": r.id, "zone": r.zone, "words": r.zone and site_words(r.zone),
+                                    "peak_mmhg": r.peak_kpa / KPA_PER_MMHG, "area_cm2": r.area_cm2,
+                                    "x_mm": r.x_mm, "y_mm": r.y_mm, "since_s": r.first_seen_s,
                                     "dose": alerts.site_doses.get(r.zone) if r.zone else None}
                                    for r in self.pipeline.tracked]
         return snapshot

@@ -54,9 +54,9 @@ IMAGE_SIDE_PX = 320                 # a saved map is enlarged to about this many
 EMPTY_MAT_MMHG = 10.0
 """A new empty-mat reference is refused when the frame, imaged against the present reference, peaks at or above
 this: the empty 4x4 virtual mat imaged to at most 2 mmHg against a fresh reference of its own (two noise seeds),
-and a 40 mm square of 1 kPa (7.5 mmHg) on it to 12 mmHg. Fixed, not the alert threshold: a light patient whose load stays below the
-threshold would otherwise become the zero every later map is measured from, and the monitor would read that
-patient as an empty mat. It is half the lowest threshold a ward may set (20 mmHg)."""
+and a 40 mm square of 1 kPa (7.5 mmHg) on it to 12 mmHg. Fixed, not the alert threshold: a light patient whose
+load stays below the threshold would otherwise become the zero every later map is measured from, and the monitor
+would read that patient as an empty mat. It is half the lowest threshold a ward may set (20 mmHg)."""
 MAX_PAUSE_S = 30 * 60.0
 """The longest a series may hold monitoring up, on the monitor's clock: nobody watches the patient meanwhile
 (the next map's dose counts the pause as its pressure held)."""

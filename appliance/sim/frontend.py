@@ -106,7 +106,7 @@ class VirtualFrontEnd:
     def _seed_noise(self, t: float) -> None:
         """Noise drawn from the frame's scene time (and how many frames came before it at that instant),
         so a monitor restarted mid-scene reads the very frames an uninterrupted one would have."""
-        ms = int(round(t * 1000))
+        ms = round(t * 1000)
         repeat = self._noise_key[1] + 1 if self._noise_key[0] == ms else 0
         self._noise_key = (ms, repeat)
         self.chain.rng = np.random.default_rng([self.seed, ms, repeat])
