@@ -32,7 +32,7 @@ class AD8251:
         """The outputs the driver needs: A0 and A1 low, /WR high (no latch on request)."""
         return LineRequest(outputs={a0: 0, a1: 0, wr: 1}, inputs={})
 
-    def set_gain(self, gain: int) -> None:
+    def set_gain(self, gain: float) -> None:
         """Latch ``gain``: A1/A0 with /WR high, then /WR low (the latching edge), then /WR high."""
         if gain not in self.GAINS:
             raise ValueError(f"AD8251 gain {gain!r} is not one of {self.GAINS}")

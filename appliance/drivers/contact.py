@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
 from appliance.drivers.bus import with_retries
 from appliance.drivers.frontend import OVER_RANGE, FrontEnd
+from appliance.drivers.frontend_parallel import ParallelFrontEnd
 
 
 @dataclass(frozen=True)
@@ -51,10 +53,11 @@ def contact_pairs(n_electrodes: int) -> tuple[tuple[int, int], ...]:
     return tuple((e, e % n_electrodes + 1) for e in range(1, n_electrodes + 1))
 
 
-def check_contacts(front_end: FrontEnd, n_electrodes: int, *, retries: int = 3) -> ContactReport:
+def check_contacts(front_end: FrontEnd | ParallelFrontEnd, n_electrodes: int, *, retries: int = 3) -> ContactReport:
     """Measure every neighbouring pair at the contact-test current; the excitation is off afterwards."""
     if getattr(front_end, "parallel", False):
         return check_contacts_parallel(front_end, retries=retries)
+    front_end = cast(FrontEnd, front_end)
     pairs = contact_pairs(n_electrodes)
     impedance = np.empty(len(pairs))
     front_end.start_excitation()

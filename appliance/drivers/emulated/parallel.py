@@ -201,9 +201,10 @@ class ParallelChain:
 
     def adc_inputs(self, t: float) -> np.ndarray:
         """The eight inputs of every AD7606 at ``t``, shape (n_adcs, 8); inputs with no channel read 0 V."""
-        if self._cache[0] != t:
+        cached_t, out = self._cache
+        if cached_t != t or out is None:
             out = np.zeros((self.cmap.n_adcs, CHANNELS_PER_ADC))
             index = self.cmap.adc_index
             out[index[:, 0], index[:, 1]] = self.outputs_v(t)
             self._cache = (t, out)
-        return self._cache[1]
+        return out
