@@ -25,7 +25,7 @@ class AD8251:
             raise ValueError(f"AD8251: GPIO line {missing[0]} was not requested (lines: {', '.join(gpio.names)})")
         self.gpio = gpio
         self.a0, self.a1, self.wr = a0, a1, wr
-        self._gain = 1
+        self._gain: float = 1
 
     @staticmethod
     def line_request(a0: str, a1: str, wr: str) -> LineRequest:
@@ -43,6 +43,6 @@ class AD8251:
         self._gain = gain
 
     @property
-    def gain(self) -> int:
+    def gain(self) -> float:
         """The gain last latched by this driver (1, the chip's power-up gain, before any)."""
         return self._gain
