@@ -115,7 +115,8 @@ class ModelSetup:
     def _images(self) -> dict:
         return {
             "layout": layout_to_toml(self.layout),
-            "protocol": hashlib.sha256(np.ascontiguousarray(self.protocol.readings, dtype=np.int64)).hexdigest(),
+            "protocol": hashlib.sha256(np.ascontiguousarray(self.protocol.readings, dtype=np.int64).tobytes())
+                               .hexdigest(),
             "options": dataclasses.asdict(self.options),
             "density": self.density, "pixels": self.pixels, "contact": self.contact_impedance_ohm_m2,
             "fitted": None if self.fitted_contact_ohm_m2 is None else [float(z) for z in self.fitted_contact_ohm_m2],
@@ -392,6 +393,7 @@ def save_model(model: ReconstructionModel, path: Path) -> None:
         arrays["matrix"] = r.matrix
     else:
         form = r.normal_form
+        assert form is not None                 # a reconstructor without a matrix has its normal form
         arrays.update(normal=form.normal, prior=form.prior, weights=form.weights)
         if form.left is not None:
             arrays["left"] = form.left
