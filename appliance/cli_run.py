@@ -99,6 +99,7 @@ def _run(args) -> int:
     import signal
 
     from appliance.service.assemble import assemble
+    from appliance.service.daemon import MonitorDaemon
 
     if args.screen:
         listen_address(args.screen, "--screen")
@@ -111,6 +112,7 @@ def _run(args) -> int:
     where = (f"a virtual bed ({config.layout}, scenario {config.scenario}); no hardware"
              if config.source == "virtual" else f"the front end board ({config.layout})")
     say(f"appliance: monitoring {where}; bed {config.bed_id}")
+    daemon: MonitorDaemon
     try:
         daemon = assemble(config, say=say, on_event=lambda e: print(f"  {_event_line(e)}", flush=True),
                           on_map=lambda m: _show(m, len(daemon.model.setup.protocol)))

@@ -126,7 +126,8 @@ def _run(args) -> int:
         if config.source != "virtual":
             raise ConfigError("sim run needs the virtual bed: the configuration's source is a board")
         frames = int(args.hours * 3600 / args.interval) + 1
-        counts, pending = Counter(), []
+        counts: Counter[tuple[str, str]] = Counter()
+        pending: list[tuple[float, int]] = []
         args.out.parent.mkdir(parents=True, exist_ok=True)
         with args.out.open("w", encoding="utf-8") as out:
             def record(event) -> None:

@@ -308,7 +308,9 @@ class MonitorDaemon:
 
     def _admit(self, now: float, args: dict, user: str, _id: int) -> tuple[list[Event], str]:
         """A new patient: the last one's episode closes, and doses and the turn clock start afresh."""
-        episode = Episode(patient_id=args.get("patient_id"), admitted_s=now, admitted_by=user, name=args.get("name"),
+        # The command's arguments come unchecked: Episode refuses any that is not what it says.
+        episode = Episode(patient_id=args.get("patient_id"),  # type: ignore[arg-type]
+                          admitted_s=now, admitted_by=user, name=args.get("name"),
                           braden=args.get("braden"), bed_exit_alert=bool(args.get("bed_exit_alert", False)),
                           **({"bed_exit_after_s": args["bed_exit_after_s"]} if "bed_exit_after_s" in args else {}))
         return self.pipeline.admit(now, episode), f"admitted {episode.patient_id}"
@@ -378,7 +380,7 @@ class MonitorDaemon:
             "turn": {"last_turn_s": turns.last_turn_s, "due_in_s": turns.due_in_s(now), "bed_empty": turns.bed_empty,
                      "interval_s": turns.interval_s, "turning_since_s": turns.turning_since},
             "posture": self.pipeline.posture,
-            "posture_words": POSTURE_WORDS.get(self.pipeline.posture),
+            "posture_words": POSTURE_WORDS.get(self.pipeline.posture or ""),
             "posture_sure": self.pipeline.posture_sure,
             "patient": None if self.pipeline.episode is None else
             {k: getattr(self.pipeline.episode, k) for k in ("patient_id", "name", "braden", "bed_exit_alert")},

@@ -42,9 +42,10 @@ from appliance.drivers.recording import series_paths
 from appliance.drivers.scan import UNUSABLE
 from appliance.errors import ConfigError
 from appliance.files import write_atomic
-from appliance.service.board_source import BoardSource
+from appliance.service.board_source import BoardFrame, BoardSource
 from appliance.service.monitor import Monitor, reference_state
 from appliance.service.virtual_bed import VirtualBedSource
+from appliance.sim.frontend import VirtualFrame
 from appliance.sim.loads import empty_mat
 
 ENGINEERING_DIR = "engineering"
@@ -331,7 +332,7 @@ class EngineeringTasks:
                 "stopped_early": len(written) < count,
                 **readings_summary(np.array([f.volts for f in frames]), flags, self.protocol, frames)}
 
-    def _frame_check(self, report: Report) -> tuple[object, list[dict]]:
+    def _frame_check(self, report: Report) -> tuple[BoardFrame | VirtualFrame, list[dict]]:
         frame = self.daemon.source.acquire()
         report(1.0, "one frame taken")
         return frame, electrode_states(self.protocol, frame.flags)

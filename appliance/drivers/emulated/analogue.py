@@ -57,7 +57,8 @@ class SensorModel(Protocol):
     """The mat as the chain sees it: transfer impedances between electrodes at a time, and the electrodes'
     contacts (``contact``: R parallel C, or None for the forward model's resistive contacts alone)."""
 
-    n_electrodes: int
+    @property
+    def n_electrodes(self) -> int: ...
 
     def transfer_ohm(self, now_s: float) -> np.ndarray:
         """Volts at electrode m per amp into electrode l (and out through ground), shape (n, n)."""
