@@ -12,7 +12,7 @@ prompt to the operator. So the same procedure runs on both.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -123,9 +123,10 @@ def calibration_loads(layout, positions: int = 2, pressures_kpa=CALIBRATION_PRES
     edge = 0.1 if layout.is_grid else 0.3          # a round sheet keeps its loads near the middle
     loads = []
     for side in (round(f * spacing, 1) for f in SIDES_PER_SPACING):
-        xs = np.linspace(side / 2 + edge * width, width - side / 2 - edge * width, positions) if positions > 1 else []
+        xs = np.linspace(side / 2 + edge * width, width - side / 2 - edge * width, positions) if positions > 1 \
+            else np.empty(0)
         ys = np.linspace(side / 2 + edge * height, height - side / 2 - edge * height, positions) if positions > 1 \
-            else []
+            else np.empty(0)
         places = {(float(x), float(y)) for y in ys for x in xs} | {(width / 2, height / 2)}
         for x, y in sorted(places, key=lambda p: (p[1], p[0])):
             loads += [Load(x, y, side, float(p)) for p in pressures_kpa]
@@ -168,7 +169,8 @@ def _mean_frame(acquire, averages: int) -> tuple[np.ndarray, float | None]:
     return volts, (float(np.mean(temperatures)) if temperatures else None)
 
 
-def pressure_calibration(acquire: Callable, place: Callable, model: ReconstructionModel, loads: list[Load], *,
+def pressure_calibration(acquire: Callable, place: Callable, model: ReconstructionModel,
+                         loads: Sequence[Load | MapLoad], *,
                          averages: int = 1, iterate: str | None = None,
                          progress: Callable | None = None) -> PressureCalibration:
     """Place each load in turn, image it against the empty mat, and fit curve and flat field to what it gave.
@@ -208,17 +210,20 @@ def pressure_calibration(acquire: Callable, place: Callable, model: Reconstructi
         curve = fit_pressure_curve(sizes, np.array([truth[inside] for truth in truths]))
         return PressureCalibration(setup.layout.name, layout_fingerprint(setup.layout), setup.options.algorithm,
                                    grid.shape, curve, reference_temperature,
-                                   notes={**notes, "kind": "maps", "maps": [load.name for load in loads]})
-    main = [k for k, load in enumerate(loads) if load.zone is None]
+                                   notes={**notes, "kind": "maps",
+                                          "maps": [load.name for load in loads if isinstance(load, MapLoad)]})
+    weights = [load for load in loads if isinstance(load, Load)]      # all of them: maps were returned above
+    main = [k for k, load in enumerate(weights) if load.zone is None]
     if not main:
         raise ConfigError("a pressure calibration needs at least one load for the main curve")
-    curve, flat = fit_with_flat_field(*([items[k] for k in main] for items in (loads, images, truths)), grid)
-    foot = [k for k, load in enumerate(loads) if load.zone == FOOT_END]
-    zones = ()
+    curve, flat = fit_with_flat_field([weights[k] for k in main], [images[k] for k in main],
+                                      [truths[k] for k in main], grid)
+    foot = [k for k, load in enumerate(weights) if load.zone == FOOT_END]
+    zones: tuple[ZoneCurve, ...] = ()
     if foot:
         peaks = [np.nanmax(np.where(truths[k] > 0, -images[k], np.nan)) for k in foot]
         zones = (ZoneCurve(FOOT_END, foot_end_mask(setup.layout, grid),
-                           fit_pressure_curve(np.array(peaks), np.array([loads[k].pressure_kpa for k in foot]))),)
+                           fit_pressure_curve(np.array(peaks), np.array([weights[k].pressure_kpa for k in foot]))),)
     return PressureCalibration(setup.layout.name, layout_fingerprint(setup.layout), setup.options.algorithm,
                                grid.shape, curve, reference_temperature, flat_field=flat,
                                notes={**notes, "kind": "weights"}, zones=zones)

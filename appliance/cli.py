@@ -196,7 +196,8 @@ def _layouts(args) -> int:
     for name in BUILTIN_NAMES:
         layout = get_layout(name)
         w, h = layout.sheet.size_mm
-        kind = f"{layout.grid_shape[0]} x {layout.grid_shape[1]} grid" if layout.is_grid else "around the edge"
+        shape = layout.grid_shape
+        kind = f"{shape[0]} x {shape[1]} grid" if shape is not None else "around the edge"
         print(f"{name:12s} {w:g} x {h:g} mm, {layout.n_electrodes} electrodes {kind}")
     print("grid-RxC     R x C grid over a 900 x 1900 mm bed mat (grid-RxC@HxW for another size)")
     return 0

@@ -99,6 +99,7 @@ def _run(args) -> int:
     import signal
 
     from appliance.service.assemble import assemble
+    from appliance.service.daemon import MonitorDaemon
 
     if args.screen:
         listen_address(args.screen, "--screen")
@@ -111,6 +112,7 @@ def _run(args) -> int:
     where = (f"a virtual bed ({config.layout}, scenario {config.scenario}); no hardware"
              if config.source == "virtual" else f"the front end board ({config.layout})")
     say(f"appliance: monitoring {where}; bed {config.bed_id}")
+    daemon: MonitorDaemon
     try:
         daemon = assemble(config, say=say, on_event=lambda e: print(f"  {_event_line(e)}", flush=True),
                           on_map=lambda m: _show(m, len(daemon.model.setup.protocol)))
@@ -164,7 +166,7 @@ def _show(pressure_map, n_readings: int) -> None:
     from appliance.core.pressure import KPA_PER_MMHG
 
     m = pressure_map
-    t = int(round(m.time_s))
+    t = round(m.time_s)
     regions = "; ".join(f"{r.peak_mmhg:.0f} mmHg over {r.area_cm2:.0f} cm2 at ({r.x_mm:.0f}, {r.y_mm:.0f}) mm"
                         for r in m.regions[:3])
     print(f"{t // 3600}:{t % 3600 // 60:02d}:{t % 60:02d}  peak {m.peak_kpa:.1f} kPa ({m.peak_kpa / KPA_PER_MMHG:.0f} "

@@ -126,7 +126,8 @@ def _run(args) -> int:
         if config.source != "virtual":
             raise ConfigError("sim run needs the virtual bed: the configuration's source is a board")
         frames = int(args.hours * 3600 / args.interval) + 1
-        counts, pending = Counter(), []
+        counts: Counter[tuple[str, str]] = Counter()
+        pending: list[tuple[float, int]] = []
         args.out.parent.mkdir(parents=True, exist_ok=True)
         with args.out.open("w", encoding="utf-8") as out:
             def record(event) -> None:
@@ -142,7 +143,9 @@ def _run(args) -> int:
                     pending.remove(item)
                     daemon.acknowledge(item[1], "simulated-nurse")
 
-            say = (lambda text: print(text, file=sys.stderr, flush=True))
+            def say(text):
+                print(text, file=sys.stderr, flush=True)
+
             daemon = assemble(config, say=say, on_event=record, on_map=nurse, live=False)
             started = time.perf_counter()
             try:

@@ -10,6 +10,7 @@ up the admin. Put it behind a TLS proxy as a bed's screen is.
 
 from __future__ import annotations
 
+import contextlib
 import signal
 from pathlib import Path
 
@@ -39,8 +40,8 @@ def add_parsers(sub) -> None:
 
     p = sub.add_parser("ward-broker", help="write the ward broker's password file, ACL and Mosquitto settings: each "
                                            "bed may publish only as itself")
-    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="the folder for the files (made if missing; an earlier "
-                                                          "run's passwords in it are kept)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="the folder for the files (made if missing; an earlier run's passwords in it are kept)")
     p.add_argument("--bed", action="append", default=[], metavar="ID", help="a bed's id, its user name; repeatable")
     p.add_argument("--beds-file", type=Path, metavar="FILE", help="more bed ids, one a line ('#' starts a comment)")
     p.add_argument("--station", action="append", default=[], metavar="USER",
@@ -81,10 +82,8 @@ def _ward(args) -> int:
         b = config.broker
         print(f"ward station: beds under {b.topic_prefix}/ on {b.host}:{b.port}{' (TLS)' if b.ca_file else ''}; "
               f"the screen on http://{host}:{port}/ (accounts in {data_dir})", flush=True)
-        try:
+        with contextlib.suppress(KeyboardInterrupt):
             serve(app, host, port, threads=args.threads, ident="appliance-ward", behind_proxy=args.behind_proxy)
-        except KeyboardInterrupt:
-            pass
     return 0
 
 

@@ -239,7 +239,8 @@ class LoopExt4:
         try:
             if os.path.ismount(self.mountpoint):
                 for _ in range(50):                   # a dying process may hold a file a moment longer
-                    if subprocess.run(["umount", str(self.mountpoint)], capture_output=True).returncode == 0:
+                    umount = subprocess.run(["umount", str(self.mountpoint)], capture_output=True, check=False)
+                    if umount.returncode == 0:
                         break
                     time.sleep(0.1)
                 else:
@@ -252,7 +253,8 @@ class LoopExt4:
     def recover(self) -> int:
         """Boot after the cut: e2fsck -fy on the device, then mount; returns e2fsck's exit status."""
         self.unmount()
-        status = subprocess.run(["e2fsck", "-fy", str(self.image)], capture_output=True, text=True).returncode
+        status = subprocess.run(["e2fsck", "-fy", str(self.image)], capture_output=True, text=True,
+                                check=False).returncode
         self.mount()
         return status
 

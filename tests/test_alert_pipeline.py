@@ -108,7 +108,8 @@ def test_a_gap_between_maps_counts_as_the_new_pressure_held_up_to_twelve_hours(b
     grid = model.reconstructor.grid
     kpa = 60 * KPA_PER_MMHG
     sacrum = SimpleNamespace(site="sacrum", along_mm=850.0, across_mm=450.0, peak_kpa=kpa)
-    pipeline = AlertPipeline(grid, AlertSettings(), classify=lambda view: PostureEstimate.certain("supine"), locate=lambda view, p: [sacrum])
+    pipeline = AlertPipeline(grid, AlertSettings(), classify=lambda view: PostureEstimate.certain("supine"),
+                             locate=lambda view, p: [sacrum])
     loaded = np.zeros(grid.shape)
     pipeline.update(PressureMap(0.0, loaded, [], None, 0))
     pipeline.update(PressureMap(gap_h * 3600, loaded, [], None, 0))

@@ -455,7 +455,7 @@ def test_bad_input_exits_2_with_one_line_naming_it(capsys, t, deadline, args, na
     assert code == 2, f"exit status {code}; stderr: {err[-500:]}"
     assert "Traceback" not in err
     assert lines and (lines[-1].startswith("appliance: error: ")
-                      or lines[-1].startswith("appliance") and ": error: " in lines[-1]), lines
+                      or (lines[-1].startswith("appliance") and ": error: " in lines[-1])), lines
     assert _names(lines[-1], named, argv), lines[-1]
 
 

@@ -130,13 +130,17 @@ def test_bed_benchmark_spots_sites_tilts_and_nights():
     fine = bed.on_pixels(coarse, grid, (30, 64))
     assert fine.shape == (30, 64) and fine.max() == coarse.max() and fine[0, 0] == 0.0
 
-    supine = np.zeros((30, 64)); supine[14:16, 20:40] = 40.0
-    right = np.zeros((30, 64)); right[8:10, 20:40] = 40.0
-    left = np.zeros((30, 64)); left[20:22, 20:40] = 40.0
+    supine = np.zeros((30, 64))
+    supine[14:16, 20:40] = 40.0
+    right = np.zeros((30, 64))
+    right[8:10, 20:40] = 40.0
+    left = np.zeros((30, 64))
+    left[20:22, 20:40] = 40.0
     maps = {(4, 1): (supine, supine), (4, 4): (right, right), (4, 6): (right, left)}     # 6 read to the wrong side
     assert bed.tilts_told_apart(maps) == (1, 2)
 
-    loaded = np.zeros((30, 64)); loaded[14:16, 30:32] = 80.0
+    loaded = np.zeros((30, 64))
+    loaded[14:16, 30:32] = 80.0
     maps = {(s, 1): (loaded, np.zeros_like(loaded)) for s in bed.HELD_OUT}
     alarms = bed.night_alarms([(1, 8.0)], maps, bed.HELD_OUT[0], 0, pixel_grid(get_layout("grid-16x32")))
     assert alarms and alarms[0][0] < 8 * 3600, "80 mmHg for 8 h alarms"

@@ -109,7 +109,8 @@ def appliance(tmp_path_factory, bed_monitoring, model_cache, ward_station):
         port = {ward_station[0]}
         """))
     port = free_port()
-    logs = [open(folder / name, "w") for name in ("monitor.log", "screen.log")]
+    # Open while the processes run; closed in the finally below.
+    logs = [open(folder / name, "w") for name in ("monitor.log", "screen.log")]  # noqa: SIM115
     monitor = subprocess.Popen([sys.executable, "-m", "appliance", "run", "--config", str(folder / "monitor.toml")],
                                stdout=logs[0], stderr=subprocess.STDOUT)
     screen = subprocess.Popen([sys.executable, "-m", "webui", "--data-dir", str(folder / "data"), "--port", str(port),

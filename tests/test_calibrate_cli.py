@@ -90,7 +90,8 @@ def test_reconstruct_pressure_maps_a_known_load_in_kpa(capsys, calibrated, tmp_p
     assert load.pixel_pressure(pixel_grid(LAYOUT)).flat[np.argmax(kpa)] > 0       # the peak lies under the load
     assert kpa.max() == pytest.approx(7.5, rel=0.25)
     report = err[err.index("peak"):].splitlines()
-    assert report[0] == f"peak {kpa.max():.1f} kPa ({kpa.max() / 0.133322:.0f} mmHg); 1 region(s) at or above 32 mmHg (4.27 kPa)"
+    assert report[0] == (f"peak {kpa.max():.1f} kPa ({kpa.max() / 0.133322:.0f} mmHg); "
+                         "1 region(s) at or above 32 mmHg (4.27 kPa)")
     assert report[1].startswith(f"  peak {kpa.max():.1f} kPa")
     x, y = (float(v) for v in re.search(r"centred at \((\S+), (\S+)\) mm$", report[1]).groups())
     assert np.hypot(x - first.x_mm, y - first.y_mm) < 6.25                        # within a pixel

@@ -11,7 +11,6 @@ import threading
 import time
 import urllib.request
 
-import numpy as np
 import pytest
 
 from appliance.cli import main

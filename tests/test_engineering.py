@@ -163,7 +163,8 @@ def test_an_uploaded_calibration_is_saved_listed_and_downloadable(app, tmp_path,
     content = (tmp_path / "made.json").read_bytes()
     engineer = client_as(app, "engineer")
     csrf = token(engineer, "/engineering")
-    answer = engineer.post("/engineering/upload", data={"file": (io.BytesIO(content), "bench.json"), "csrf_token": csrf})
+    answer = engineer.post("/engineering/upload",
+                           data={"file": (io.BytesIO(content), "bench.json"), "csrf_token": csrf})
     assert answer.status_code == 303
     assert (tmp_path / "engineering" / "bench.json").read_bytes() == content
     assert [f["name"] for f in engineer.get("/api/engineering/files").get_json()] == ["bench.json"]

@@ -2,6 +2,7 @@
 convergence, symmetry, agreement between the two models, hard cases and bad input."""
 
 import math
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -109,8 +110,8 @@ def test_mesh_convergence_of_electrode_voltages():
     reference = homogeneous(8)
     errors = [np.abs(v - reference).max() / np.abs(reference).max() for v in readings]
     order = np.polyfit(np.log(1 / np.array(densities)), np.log(errors), 1)[0]
-    print(f"grid-4x4 reading errors {['%.2e' % e for e in errors]}, observed order {order:.2f}")
-    assert all(b < a for a, b in zip(errors, errors[1:]))
+    print(f"grid-4x4 reading errors {[f'{e:.2e}' for e in errors]}, observed order {order:.2f}")
+    assert all(b < a for a, b in pairwise(errors))
     assert order > 1.5
     assert errors[1] < 1e-2, "the default mesh is within 1 % of the converged readings"
 

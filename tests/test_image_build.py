@@ -55,7 +55,7 @@ def root(tmp_path_factory):
     out = tmp_path_factory.mktemp("image")
     start = time.monotonic()
     result = subprocess.run([str(RECIPE / "build-image.sh"), "--arch", host_architecture(), "--rootfs-only",
-                             "--out", str(out)], capture_output=True, text=True)
+                             "--out", str(out)], capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-5000:]
     print(f"\nthe {host_architecture()} root file system was built in {time.monotonic() - start:.0f} s",
           file=sys.stderr)
@@ -64,7 +64,7 @@ def root(tmp_path_factory):
 
 
 def in_root(root: Path, *command: str) -> subprocess.CompletedProcess:
-    return subprocess.run(["chroot", str(root), *command], capture_output=True, text=True)
+    return subprocess.run(["chroot", str(root), *command], capture_output=True, text=True, check=False)
 
 
 def table(path: Path) -> dict[str, list[str]]:
@@ -88,7 +88,8 @@ def test_the_bed_units_are_installed_and_enabled_and_the_ward_unit_is_not(root):
     for unit in UNITS[:2]:
         assert (root / "usr/lib/systemd/system" / unit).read_text() == (REPO / "systemd" / unit).read_text()
     for unit in UNITS:
-        result = subprocess.run(["systemctl", f"--root={root}", "is-enabled", unit], capture_output=True, text=True)
+        result = subprocess.run(["systemctl", f"--root={root}", "is-enabled", unit], capture_output=True, text=True,
+                                check=False)
         assert result.stdout.strip() == "enabled", (unit, result.stdout, result.stderr)
         assert (root / "etc/systemd/system/multi-user.target.wants" / unit).is_symlink(), unit
     for unit in UNITS[:2] + ("nginx.service",):
@@ -97,13 +98,13 @@ def test_the_bed_units_are_installed_and_enabled_and_the_ward_unit_is_not(root):
     assert not list(root.glob("**/appliance-ward.service"))
     for unit in ("systemd-networkd.service", "systemd-resolved.service", "systemd-timesyncd.service"):
         assert subprocess.run(["systemctl", f"--root={root}", "is-enabled", unit], capture_output=True,
-                              text=True).stdout.strip() == "enabled", unit
+                              text=True, check=False).stdout.strip() == "enabled", unit
 
 
 def test_the_units_verify_against_the_image_s_own_files(root):
     """systemd's checks with the image as the root: every ExecStart, user and drop-in as a bed has them."""
     result = subprocess.run(["systemd-analyze", "verify", "--man=no", f"--root={root}", *UNITS],
-                            capture_output=True, text=True)
+                            capture_output=True, text=True, check=False)
     assert result.returncode == 0 and result.stdout + result.stderr == "", result.stdout + result.stderr
 
 
@@ -152,7 +153,7 @@ def test_first_boot_provisioning_runs_inside_and_nginx_accepts_its_certificate(r
               f"chroot --userspec=appliance:appliance {root} /opt/appliance/bin/appliance run "
               f"--config /etc/appliance/monitor.toml --check-config")
     result = subprocess.run(["unshare", "--mount", "--propagation", "private", "sh", "-c", script],
-                            capture_output=True, text=True)
+                            capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
     assert "created the screen's admin account 'sister'" in result.stderr
     assert "test is successful" in result.stderr
@@ -180,14 +181,14 @@ def kernel_trees(tmp_path_factory):
     for board, arch in PI_BUILDS:
         folder = tmp_path_factory.mktemp(f"trees-{board}-{arch}")
         result = subprocess.run([str(RECIPE / "kernel-device-trees.sh"), board, arch, str(folder)],
-                                capture_output=True, text=True)
+                                capture_output=True, text=True, check=False)
         assert result.returncode == 0, result.stderr[-3000:]
         folders[board, arch] = folder
     return folders
 
 
 def fdtget(tree: Path, node: str, prop: str, kind: str = "u") -> list:
-    result = subprocess.run(["fdtget", "-t", kind, str(tree), node, prop], capture_output=True, text=True)
+    result = subprocess.run(["fdtget", "-t", kind, str(tree), node, prop], capture_output=True, text=True, check=False)
     assert result.returncode == 0, f"{tree.name}: {node} {prop}: {result.stderr}"
     return [int(v) for v in result.stdout.split()] if kind == "u" else result.stdout.strip()
 
@@ -211,7 +212,7 @@ def test_the_pi3_4_trees_get_the_buses_the_image_s_system_claims(kernel_trees, t
         trees.append(tmp_path / tree.name)
         shutil.copy(tree, trees[-1])
     result = subprocess.run([str(RECIPE / "device-trees.sh"), str(overlay), str(SPI1_CHIP_SELECTS[system]),
-                             *map(str, trees)], capture_output=True, text=True)
+                             *map(str, trees)], capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stderr
     for tree, original in zip(trees, stock):
         controller = fdtget(tree, "/soc/gpio@7e200000", "phandle")
@@ -239,7 +240,7 @@ def test_a_tree_the_overlay_does_not_fit_stops_the_bake(kernel_trees, tmp_path):
     pi5 = tmp_path / "bcm2712-rpi-5-b.dtb"
     shutil.copy(kernel_trees["pi5", "arm64"] / pi5.name, pi5)
     result = subprocess.run([str(RECIPE / "device-trees.sh"), str(overlay), "1", str(pi5)], capture_output=True,
-                            text=True)
+                            text=True, check=False)
     assert result.returncode == 1 and "the overlay does not fit" in result.stderr
     assert pi5.read_bytes() == (kernel_trees["pi5", "arm64"] / pi5.name).read_bytes()
 
@@ -260,7 +261,7 @@ def test_the_pi5_kernel_boots_the_pi5_but_has_no_spi_for_its_header(kernel_trees
 def test_each_board_s_boot_settings(tmp_path, board, console):
     """What raspi-firmware's kernel hook turns into cmdline.txt and config.txt on the boot partition."""
     result = subprocess.run([str(RECIPE / "hooks/boot-config.sh"), str(tmp_path), board], capture_output=True,
-                            text=True)
+                            text=True, check=False)
     assert result.returncode == 0, result.stderr
     settings = dict(line.split("=", 1) for line in (tmp_path / "etc/default/raspi-firmware").read_text().splitlines()
                     if line and not line.startswith("#"))

@@ -1,5 +1,6 @@
 """KTC2023 segmentation score: perfect and empty predictions, label versions, shifts, bad input."""
 
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -100,7 +101,7 @@ def test_shifting_an_object_lowers_the_score(label):
     truth = disc(128, 100, 25, label)
     scores = [challenge_score(truth, disc(128, 100 + shift, 25, label)) for shift in (0, 10, 30, 60)]
     assert scores[0] == pytest.approx(1.0, abs=1e-12)
-    assert all(a > b + 1e-3 for a, b in zip(scores, scores[1:])), scores
+    assert all(a > b + 1e-3 for a, b in pairwise(scores)), scores
     assert scores[-1] < 0.55  # 60 px off (more than a diameter) is no better than predicting nothing
 
 

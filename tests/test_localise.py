@@ -38,7 +38,8 @@ def test_fitted_positions_beat_image_centroids_at_one_percent_noise(setting):
         fitted.append(error)
         scaled.append(error / np.hypot(region.sd_x_mm, region.sd_y_mm))
         assert -0.8 < region.change < -0.2 and 7 < region.radius_mm < 16
-    print(f"fitted centre error median {np.median(fitted):.2f} mm; error over predicted sd median {np.median(scaled):.2f}")
+    print(f"fitted centre error median {np.median(fitted):.2f} mm; "
+          f"error over predicted sd median {np.median(scaled):.2f}")
     assert np.median(fitted) < 0.6
     assert 0.3 < np.median(scaled) < 3.0, "the reported uncertainty is of the right size"
 

@@ -1,4 +1,5 @@
-"""Scenarios that play pressure map files (and PmatData at a given sensel size) in order, on time, through the monitor."""
+"""Scenarios that play pressure map files (and PmatData at a given sensel size) in order, on time, through the
+monitor."""
 
 import json
 import os

@@ -136,7 +136,8 @@ def test_an_engineer_changes_the_bed_and_is_told_the_layout_waits_for_a_restart(
     answer = post(client, "/settings/bed", bed_id="ward3-bed12", layout="grid-4x4")
     assert answer.status_code == 303
     page = client.get("/settings").get_data(as_text=True).replace("&gt;", ">")
-    assert f"layout {config_from_mapping({}).layout} -> grid-4x4" in page and "applies when the monitor restarts" in page
+    assert f"layout {config_from_mapping({}).layout} -> grid-4x4" in page
+    assert "applies when the monitor restarts" in page
     [command] = commands(tmp_path)
     assert command["args"] == {"monitor": {"bed_id": "ward3-bed12", "layout": "grid-4x4"}}
     assert settings.read_settings(tmp_path / "settings.toml")["monitor"] == command["args"]["monitor"]
@@ -300,7 +301,7 @@ def test_the_monitor_applies_a_change_at_its_next_frame_and_carries_doses_and_al
     assert s.threshold_kpa == pytest.approx(40 * KPA_PER_MMHG) and s.alarm_dose == 0.05
     assert daemon.config.alerts == s and daemon.pipeline.turns.interval_s == 1800.0
     after = daemon.pipeline.state()
-    assert after["dose"]["cells"]["dose"] == before["dose"]["cells"]["dose"]                       # carried over, not reset
+    assert after["dose"]["cells"]["dose"] == before["dose"]["cells"]["dose"]       # carried over, not reset
     assert after["dose"]["cells"]["relieved_s"] == before["dose"]["cells"]["relieved_s"]
     assert (after["dose"]["cells"]["curve"], after["dose"]["cells"]["recovery"]) == ("linder-ganz", "decay")
     assert after["dose"]["cells"]["relief_kpa"] == pytest.approx(40 * KPA_PER_MMHG)
@@ -380,7 +381,8 @@ def test_a_restart_resumes_the_doses_under_settings_changed_while_the_monitor_wa
     after = restarted.pipeline.state()
     restarted.close()
     assert restarted.resumed_from_s == before["last_time_s"]                  # resumed, not started afresh
-    assert after["dose"]["cells"]["dose"] == before["dose"]["cells"]["dose"] and np.max(after["dose"]["cells"]["dose"]) > 0
+    assert after["dose"]["cells"]["dose"] == before["dose"]["cells"]["dose"]
+    assert np.max(after["dose"]["cells"]["dose"]) > 0
     assert (after["dose"]["cells"]["curve"], after["dose"]["cells"]["recovery"]) == ("linder-ganz", "decay")
     assert after["alarms"] == before["alarms"]
 
@@ -419,7 +421,8 @@ def test_a_command_queued_directly_outside_the_ward_policy_is_refused_by_the_mon
     with pytest.raises(ConfigError, match="threshold_mmhg 50 is outside the ward policy 28-40 mmHg"):
         settings.apply_settings(daemon, 0.0, {"alerts": {"threshold_mmhg": 50}})
     assert daemon.pipeline is pipeline
-    assert settings.apply_settings(daemon, 0.0, {"alerts": {"threshold_mmhg": 36}})[1] == "applied threshold_mmhg 32 -> 36"
+    applied = settings.apply_settings(daemon, 0.0, {"alerts": {"threshold_mmhg": 36}})[1]
+    assert applied == "applied threshold_mmhg 32 -> 36"
     daemon.close()
 
 

@@ -48,7 +48,7 @@ def test_a_restless_patient_whose_sites_stay_loaded_is_never_turned():
     clock = TurnClock()
     shaky = [(m, "supine", {**LOADED, "sacrum": 5.0 + (m % 3) * 0.4}) for m in range(8 * 60)]
     assert kinds(run(clock, shaky)) == ["lay-down"]
-    assert clock.reminder(8 * 60 * MIN) == ("overdue", 1 + int((8 * 60 - 120 - 30) // 30))
+    assert clock.reminder(8 * 60 * MIN) == ("overdue", 1 + (8 * 60 - 120 - 30) // 30)
 
 
 def test_offloading_most_sites_at_risk_in_the_same_posture_is_a_turn_but_a_brief_lift_is_not():
@@ -93,7 +93,8 @@ def test_coming_back_to_bed_on_the_other_side_after_a_meal_is_a_turn():
 
 def test_a_short_absence_changes_nothing_and_a_long_one_empties_the_bed():
     clock = TurnClock()
-    short = run(clock, lying("supine", 30) + [(30 + m, "out-of-bed", {}) for m in range(5)] + lying("supine", 5, start=35))
+    short = run(clock, lying("supine", 30) + [(30 + m, "out-of-bed", {}) for m in range(5)]
+                + lying("supine", 5, start=35))
     assert kinds(short) == ["lay-down"] and clock.last_turn_s == 0.0
     long = run(clock, [(40 + m, "out-of-bed", {}) for m in range(30)] + lying("supine", 5, start=70))
     assert kinds(long) == ["bed-empty", "lay-down"]

@@ -304,7 +304,7 @@ def test_the_accounts_database_and_the_session_key_are_made_owner_only(tmp_path)
         os.umask(old)
     files = sorted(p.name for p in tmp_path.glob("webui.*"))
     assert {"webui.db", "webui.key"} <= set(files)
-    assert {name: mode(tmp_path / name) for name in files} == {name: 0o600 for name in files}
+    assert {name: mode(tmp_path / name) for name in files} == dict.fromkeys(files, 0o600)
 
 
 def test_files_left_readable_by_an_older_version_are_narrowed_when_opened(tmp_path):

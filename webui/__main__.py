@@ -3,10 +3,11 @@
 Served by waitress, a production WSGI server in pure Python (no compiler on the
 appliance, the same on arm64 and x86). Each open live view holds one of its
 threads for its event stream, so ``--threads`` bounds how many screens can watch
-at once, less a few kept for page loads (``webui.server.stream_limit``); streams end after
-``webui.streams.STREAM_MAX_S`` and browsers reconnect at once, so a vanished client frees its thread. The appliance's image puts the server behind
-TLS. Session cookies are Secure, so browsers keep them only over HTTPS or on
-localhost; ``--plain-http`` drops that for a trusted test network.
+at once, less a few kept for page loads (``webui.server.stream_limit``); streams end
+after ``webui.streams.STREAM_MAX_S`` and browsers reconnect at once, so a vanished
+client frees its thread. The appliance's image puts the server behind TLS. Session
+cookies are Secure, so browsers keep them only over HTTPS or on localhost;
+``--plain-http`` drops that for a trusted test network.
 """
 
 from __future__ import annotations

@@ -50,7 +50,11 @@ def create():
 @requires("admin")
 def set_role(name: str):
     role = request.form.get("role", "")
-    return _change(lambda: users().set_role(name, role, by=g.user.name) or f"{name} is now {role}")
+
+    def change():
+        users().set_role(name, role, by=g.user.name)
+        return f"{name} is now {role}"
+    return _change(change)
 
 
 @bp.route("/accounts/<name>/password", methods=["POST"])
@@ -69,7 +73,10 @@ def reset_password(name: str):
 @bp.route("/accounts/<name>/remove", methods=["POST"])
 @requires("admin")
 def remove(name: str):
-    return _change(lambda: users().remove(name, by=g.user.name) or f"account {name} removed")
+    def change():
+        users().remove(name, by=g.user.name)
+        return f"account {name} removed"
+    return _change(change)
 
 
 @bp.route("/account/password", methods=["GET", "POST"])

@@ -30,7 +30,7 @@ def clock(time_s: float, now_s: float | None = None) -> str:
     """A monitor time as a person reads it: wall-clock times as dates, simulated ones as h:mm:ss."""
     if time_s > 1e9:
         return datetime.fromtimestamp(time_s).strftime("%Y-%m-%d %H:%M:%S")
-    t = int(round(time_s))
+    t = round(time_s)
     return f"{t // 3600}:{t % 3600 // 60:02d}:{t % 60:02d}"
 
 

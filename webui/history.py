@@ -175,7 +175,7 @@ def alarm_records(events: list[dict]) -> list[AlarmRecord]:
                                  "priority": e["priority"], "highest_priority": e["priority"],
                                  "message": e.get("message") or "", "raised_s": e["time_s"]}
             continue
-        record = records.get(alarm_id)
+        record = records.get(alarm_id) if alarm_id is not None else None
         if record is None:
             continue
         if e["kind"] == "acknowledged" and record.get("acknowledged_s") is None:

@@ -47,7 +47,7 @@ class LoginLimiter:
         self._lock = threading.Lock()
 
     def _keys(self, name: str | None, address: str | None, *, checking: bool) -> list[tuple]:
-        keys = [("addr", address)]
+        keys: list[tuple] = [("addr", address)]
         if name is not None:
             keys.append(("pair", name, address))
             if not (checking and is_loopback(address)):

@@ -10,6 +10,8 @@ run here too, so the nurse hears the reason at once.
 
 from __future__ import annotations
 
+from typing import Any
+
 from flask import Blueprint, current_app, flash, g, redirect, render_template, request, url_for
 
 from appliance.alerts.episodes import DEFAULT_BED_EXIT_AFTER_S, Episode
@@ -48,6 +50,7 @@ def _queue(kind: str, args: dict, what: str, message: str):
 @bp.route("/patient/admit", methods=["POST"])
 def admit():
     form = request.form
+    braden: int | str | None        # a score, or what was typed for Episode to refuse by name
     try:
         braden = int(form["braden"]) if form.get("braden", "").strip() else None
     except ValueError:
@@ -56,9 +59,10 @@ def admit():
         after_min = float(form.get("bed_exit_after_min") or DEFAULT_BED_EXIT_AFTER_S / 60)
     except ValueError:
         after_min = float("nan")
-    args = {"patient_id": form.get("patient_id", "").strip(), "name": form.get("name", "").strip() or None,
-            "braden": braden, "bed_exit_alert": form.get("bed_exit_alert") == "on",
-            "bed_exit_after_s": after_min * 60}
+    args: dict[str, Any] = {"patient_id": form.get("patient_id", "").strip(),
+                            "name": form.get("name", "").strip() or None,
+                            "braden": braden, "bed_exit_alert": form.get("bed_exit_alert") == "on",
+                            "bed_exit_after_s": after_min * 60}
     try:
         Episode(admitted_s=0.0, admitted_by=g.user.name, **args)
     except ConfigError as exc:

@@ -14,6 +14,7 @@ import functools
 import secrets
 
 from flask import abort, current_app, g, redirect, request, session, url_for
+from werkzeug.wrappers import Response
 
 from webui.users import User
 
@@ -28,7 +29,7 @@ def csrf_token() -> str:
     return session["csrf"]
 
 
-def guard() -> object | None:
+def guard() -> Response | None:
     """``before_request``: CSRF on state changes, then a login for all but the public pages."""
     if request.method in STATE_CHANGING:
         sent = request.form.get("csrf_token") or request.headers.get("X-CSRF-Token") or ""

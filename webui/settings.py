@@ -72,7 +72,7 @@ def current() -> dict:
     with store() as s:
         running = s.load_state(monitor_settings.STATE)
     defaults = monitor_settings.settings_values(config_from_mapping({}))
-    values = {}
+    values: dict[str, dict] = {}
     for section, table in defaults.items():
         values[section] = {}
         for key, default in table.items():
@@ -191,8 +191,8 @@ def _submitted_policy(old: dict) -> dict[str, tuple[float, float]]:
 
 def _describe_spans(changed) -> str:
     """``threshold_mmhg 20-60 -> 28-40 mmHg``."""
-    return ", ".join(f"{key} {span_text(*old)} -> {span_text(*new, SAFE_RANGES[key].unit)}"
-                     for key, old, new in changed)
+    return ", ".join(f"{key} {span_text(low, high)} -> {span_text(new_low, new_high, SAFE_RANGES[key].unit)}"
+                     for key, (low, high), (new_low, new_high) in changed)
 
 
 @bp.route("/settings/file")
@@ -244,7 +244,8 @@ def _load(sent) -> tuple[list, int | None]:
     state = current()
     if state["file_error"]:
         raise SettingsRefused(f"{state['file_error']}: an engineer must fix or remove it first", 409)
-    changed, tables = [], {}
+    changed: list[tuple] = []
+    tables: dict[str, dict] = {}
     for section, table in loaded.items():
         for key, value in table.items():
             old = state["settings"][section][key]["value"]

@@ -50,7 +50,8 @@ def event_stream(name: str, make: Callable[[], dict], key_of: Callable[[], Hasha
     ``name`` keys the app's one SharedEvents for this stream; ``make`` and
     ``key_of`` run in the app's context.
     """
-    app = current_app._get_current_object()
+    # The app itself, not the request-bound proxy that stands for it (werkzeug's documented way).
+    app = current_app._get_current_object()     # type: ignore[attr-defined]
     slots = _slots(app)
     if not slots.acquire(blocking=False):
         return Response(f"all {app.config.get('MAX_STREAMS', MAX_STREAMS)} live streams are open: "

@@ -17,6 +17,7 @@ fixed by the bed (the mat is fitted with its head end at the bed's head board).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TypeGuard
 
 import numpy as np
 
@@ -59,7 +60,7 @@ def posture_group(posture: str) -> str:
     return "supine" if posture in ("supine", "inclined") else "prone/other"
 
 
-def in_bed(posture: str | None) -> bool:
+def in_bed(posture: str | None) -> TypeGuard[str]:
     """Lying, or sitting up in bed with the head of the bed raised (which counts as lying on the back)."""
     return posture in LYING or posture == "inclined"
 

@@ -80,7 +80,8 @@ def fit_body_frame(view: BodyView, *, side_lying: bool = False) -> BodyFrame:
     pitch_along, pitch_across = view.pitch_mm
     straight = binary_opening(contact, np.ones((2, 2), dtype=bool))
     straight[rows[0] + int(TRUNK_END * (rows[-1] - rows[0])) + 1:] = False
-    angle, level = _principal_axis(*np.nonzero(straight), view.pitch_mm)
+    along_cells, across_cells = np.nonzero(straight)
+    angle, level = _principal_axis(along_cells, across_cells, view.pitch_mm)
     r, c = np.nonzero(contact)
     on_axis = BodyFrame(0.0, level, angle, 1.0)
     s = on_axis.body_fractions((r + 0.5) * pitch_along, (c + 0.5) * pitch_across)[0]

@@ -124,7 +124,7 @@ def reswick_rogers_mmhg(hours: np.ndarray | float) -> np.ndarray:
     *J Basic Appl Sci* 2012;8:720-728. Data cover about 1-12 h.
     """
     t = np.asarray(hours, dtype=float)
-    return sum(a * np.exp(-k * t) for a, k in RESWICK_ROGERS_TERMS)
+    return np.sum([a * np.exp(-k * t) for a, k in RESWICK_ROGERS_TERMS], axis=0)
 
 
 def reswick_rogers(*, floor_kpa: float = HIGH_PRESSURE_KPA, min_s: float = MIN_TOLERABLE_S) -> TabulatedCurve:
@@ -170,7 +170,7 @@ def custom_curve(points: Sequence[Sequence[float]], *, name: str = "custom", flo
     """
     if len(points) < 2:
         raise CurveInvalid(f"tolerance curve {name!r} needs at least 2 (minutes, mmHg) points, got {len(points)}")
-    parsed = []
+    parsed: list[tuple[float, float]] = []
     for i, point in enumerate(points, start=1):
         try:
             minutes, mmhg = (float(v) for v in point)

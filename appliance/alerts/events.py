@@ -47,17 +47,18 @@ class Event:
 
 
 def _turn_message(event: TurnEvent) -> str:
-    posture = POSTURE_WORDS.get(event.posture, event.posture or "")
+    posture = POSTURE_WORDS.get(event.posture or "", event.posture or "")
     if event.kind == "lay-down":
         return f"lay down ({posture}): the turn clock starts"
     if event.kind == "repositioned":
         if event.how == "posture":
-            return f"repositioned: {POSTURE_WORDS.get(event.previous, event.previous)} to {posture}"
+            previous = POSTURE_WORDS.get(event.previous or "", event.previous)
+            return f"repositioned: {previous} to {posture}"
         return f"repositioned: {event.how}"
     if event.kind == "recorded":
         return f"turn recorded by {event.user}"
     if event.kind == "still-loaded":
-        return f"{site_words(event.site)} still loaded after the turn"
+        return f"{site_words(event.site or '')} still loaded after the turn"
     if event.kind == "bed-empty":
         return "the bed is empty"
     return event.kind

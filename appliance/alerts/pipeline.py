@@ -41,7 +41,7 @@ import numpy as np
 from appliance.alerts.alarms import AlarmCondition, AlarmEngine, AlarmEvent, Escalation
 from appliance.alerts.anatomy import (SITES, SMALL_MAT_SITE, UNIDENTIFIED_SITE, BodyView, body_view, in_bed,
                                      is_bed, posture_group, site_words)
-from appliance.alerts.dose import MAX_DT_S, RELIEF_S, SiteDose, custom_curve, tolerance_curve
+from appliance.alerts.dose import MAX_DT_S, RELIEF_S, SiteDose, ToleranceCurve, custom_curve, tolerance_curve
 from appliance.alerts.episodes import Episode
 from appliance.alerts.events import Event, as_event
 from appliance.alerts.posture import PostureEstimate
@@ -136,10 +136,11 @@ class AlertPipeline:
     """
 
     def __init__(self, grid: PixelGrid, settings: AlertSettings = AlertSettings(), *,
-                 classify: Callable[[BodyView], str] | None = None,
+                 classify: Callable[[BodyView], PostureEstimate] | None = None,
                  locate: Callable[[BodyView, str], list] | None = None):
         self.grid, self.settings = grid, settings
         self.bed = is_bed(grid)
+        self.curve: ToleranceCurve
         if settings.curve_points:
             self.curve = custom_curve(settings.curve_points, name=settings.curve, floor_kpa=settings.threshold_kpa)
         else:
@@ -191,7 +192,7 @@ class AlertPipeline:
         self.tracked = self._named_regions(pressure_map, located)
         doses = self.dose.doses()
         alarmed = frozenset(key.split(":", 1)[1] for key in self.clinical if key.startswith("pressure:"))
-        turn_events = self.turns.update(now, posture, peaks, alarmed) if self.bed else []
+        turn_events = self.turns.update(now, posture, peaks, alarmed) if self.bed and posture is not None else []
         active = {}
         for site, dose in doses.items():
             if dose >= self.settings.alarm_dose:
@@ -222,6 +223,7 @@ class AlertPipeline:
             x, y = self.grid.centres_mm[int(np.argmax(kpa))]
             return None, [LocatedSite(SMALL_MAT_SITE, float(x), float(y), float(kpa.max()))]
         view = body_view(kpa, self.grid)
+        assert self._classify is not None and self._locate is not None     # a bed has both
         posture = self._sure_posture(self._classify(view))
         if posture == "out-of-bed":
             if kpa.max() < self.settings.threshold_kpa:
@@ -262,7 +264,8 @@ class AlertPipeline:
         named = []
         for region in tracked:
             inside = [s for s in located
-                      if region.mask[min(int(s.y_mm // h), self.grid.rows - 1), min(int(s.x_mm // w), self.grid.cols - 1)]]
+                      if region.mask[min(int(s.y_mm // h), self.grid.rows - 1),
+                                     min(int(s.x_mm // w), self.grid.cols - 1)]]
             site = max(inside, key=lambda s: s.peak_kpa).site if inside else None
             named.append(dataclasses.replace(region, zone=site))
         return named
@@ -299,7 +302,9 @@ class AlertPipeline:
         if owed is None:
             return {}
         level, number = owed
-        late = max(0.0, -self.turns.due_in_s(now_s)) / 60
+        due_in_s = self.turns.due_in_s(now_s)
+        assert due_in_s is not None             # a turn is owed only once the clock runs
+        late = max(0.0, -due_in_s) / 60
         if level == "due":
             condition = AlarmCondition("turn:due", "clinical", "medium", False, "repositioning is due")
         else:

@@ -310,7 +310,9 @@ def recording_fields(pmat_dir=None, popu_dir=None, subjects=(), popu_variations=
     and the fields' pitch (mm)."""
     from appliance.sim.recordings import pmat_scene, popu_scene
 
-    fields, names, pitch = [], [], None
+    fields: list[np.ndarray] = []
+    names: list[str] = []
+    pitch: float | None = None
 
     def take(scene, name):
         nonlocal pitch
@@ -327,6 +329,8 @@ def recording_fields(pmat_dir=None, popu_dir=None, subjects=(), popu_variations=
         for family, name in POPU_POSE_NAMES.items():
             for k in range(1, 8):
                 take(popu_scene(popu_dir, f"{family}{k}", variation, scale_to_weight=True), name)
+    if pitch is None:
+        raise ModelInputInvalid("no recordings chosen: name PmatData subjects or PoPu variations")
     return np.stack(fields), names, pitch
 
 

@@ -14,9 +14,9 @@ These constants were chosen by leave-one-subject-out cross-validation over the e
 locator's label of a loaded labelled spot being its pixel's (benchmarks/site_labels.py): 0.78 of all loaded
 spots and 0.77 of the hand-named ones right (the hand-set landmarks before it: 0.67 and 0.52); k from 5 to 17
 and the across weight from 1 to 3 all gave 0.77-0.78, a relative-pressure feature and pooling 60 with 90
-degrees did not help. tests/test_sites.py recomputes it. Only the training subjects (``TRAINING_SUBJECTS``) are fitted: S4, S6 and S11 are held out
-for validating the product and must never be read here. Prone, sitting on the edge and out of bed have no
-labels: :mod:`appliance.alerts.sites` keeps rules for them.
+degrees did not help. tests/test_sites.py recomputes it. Only the training subjects (``TRAINING_SUBJECTS``)
+are fitted: S4, S6 and S11 are held out for validating the product and must never be read here. Prone,
+sitting on the edge and out of bed have no labels: :mod:`appliance.alerts.sites` keeps rules for them.
 
 Rebuild the shipped table (``site_table.json``) with
 ``python -m appliance.alerts.site_table --fit tests/data/site_labels --pmat PMATDATA_DIR``.

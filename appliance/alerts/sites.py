@@ -66,7 +66,8 @@ class _Landmark:
 
 def _pair(site, s, u, sd_s=0.05, sd_u=0.04):
     """Both sides' landmarks, the prone patient's left at -u."""
-    return [_Landmark(site and f"{site}-left", s, -u, sd_s, sd_u), _Landmark(site and f"{site}-right", s, u, sd_s, sd_u)]
+    return [_Landmark(site and f"{site}-left", s, -u, sd_s, sd_u),
+            _Landmark(site and f"{site}-right", s, u, sd_s, sd_u)]
 
 
 _PRONE = (_Landmark("face", 0.07, 0.0, 0.05, 0.06), _Landmark("chest", 0.25, 0.0, 0.06, 0.07),

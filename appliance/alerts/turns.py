@@ -147,7 +147,7 @@ class TurnClock:
         if posture == self.posture:
             self.candidate = self.candidate_since = None
             return []
-        if posture != self.candidate:
+        if posture != self.candidate or self.candidate_since is None:
             self.candidate, self.candidate_since = posture, now_s
         if now_s - self.candidate_since < self.settle_s:
             return []

@@ -92,7 +92,7 @@ class WardLink:
         self._stopping = threading.Event()
         self._ready = False                      # connected and subscribed to the confirmations
         self._connection = 0                     # grows with each connection: everything is resent on a new one
-        self._down_since = time.monotonic()      # not yet connected counts as down from the start
+        self._down_since: float | None = time.monotonic()  # not yet connected counts as down from the start
         self._sends: dict[int, tuple[int, float, float]] = {}   # seq -> (connection, last sent, wait before next)
         self._queued_steady: dict[int, float] = {}               # seq -> when it was queued, monotonic
         self._in_flight: dict[int, int] = {}                     # mid -> seq, awaiting PUBACK
@@ -316,4 +316,4 @@ def release(client: mqtt.Client) -> None:
     which then warn of unclosed sockets."""
     client.disconnect()
     client.loop_stop()
-    client._reset_sockets(sockpair_only=True)     # noqa: SLF001  (paho has no public call for it)
+    client._reset_sockets(sockpair_only=True)     # private: paho has no public call for it

@@ -60,7 +60,7 @@ class Assembler:
         data = np.bincount(self.slot, weights=sigma[self.element] * self.value, minlength=self.nnz)
         return sp.csr_matrix((data + self.fixed, self.indices, self.indptr), shape=(self.n, self.n))
 
-    def permuted(self, order: np.ndarray) -> "Assembler":
+    def permuted(self, order: np.ndarray) -> Assembler:
         """The assembler of P K P^T: unknown ``order[i]`` becomes unknown i."""
         position = np.empty_like(order)
         position[order] = np.arange(len(order))

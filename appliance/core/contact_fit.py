@@ -238,7 +238,7 @@ def fit_contacts(model: ForwardModel, mesh: Mesh, protocol: Protocol, reference,
     state = problem.evaluate(theta)
     misfit_nominal = state.misfit if start_ohm_m2 is None else problem.evaluate(nominal).misfit
     iterations = 0
-    for iterations in range(1, MAX_ITERATIONS + 1):
+    for iterations in range(1, MAX_ITERATIONS + 1):     # noqa: B007  (the count is reported after the loop)
         reduced, gradient = problem.linearise(state)
         normal = reduced.T @ reduced + problem.precision
         step = sla.solve(normal, gradient, assume_a="pos")

@@ -60,12 +60,14 @@ def load_frame(path: Path, n_electrodes: int) -> Frame:
         A row names an electrode the layout does not have.
     """
     path = Path(path)
-    electrodes, volts, lines = [], [], []
+    rows: list[list[int]] = []
+    volts: list[float] = []
+    lines: list[int] = []
     for line, row in read_rows(path, FRAME_HEADER, "frame file"):
         if len(row) != 5:
             raise DataFileInvalid(f"frame file {path}, line {line}: expected 5 values, got {len(row)}")
         try:
-            electrodes.append([int(cell) for cell in row[:4]])
+            rows.append([int(cell) for cell in row[:4]])
         except ValueError:
             raise DataFileInvalid(f"frame file {path}, line {line}: electrode numbers must be integers, got "
                                   f"{','.join(row[:4])}") from None
@@ -79,7 +81,7 @@ def load_frame(path: Path, n_electrodes: int) -> Frame:
         lines.append(line)
     if not volts:
         raise DataFileInvalid(f"frame file {path}: no readings")
-    electrodes = np.array(electrodes)
+    electrodes = np.array(rows)
     validate_readings(electrodes, n_electrodes, lambda i: f"frame file {path}, line {lines[i]}")
     return Frame(Protocol(electrodes, n_electrodes, path.stem), np.array(volts))
 

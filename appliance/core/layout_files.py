@@ -32,13 +32,14 @@ def layout_from_mapping(data: dict) -> Layout:
     name = _field(data, "name", str, "the layout")
     sheet_data = _field(data, "sheet", dict, "the layout")
     shape = _field(sheet_data, "shape", str, "[sheet]")
+    sheet: RectSheet | DiscSheet
     if shape == "rectangle":
         sheet = RectSheet(_number(sheet_data, "width_mm", "[sheet]"), _number(sheet_data, "height_mm", "[sheet]"))
     elif shape == "disc":
         sheet = DiscSheet(_number(sheet_data, "radius_mm", "[sheet]"))
     else:
         raise LayoutInvalid(f"[sheet] shape must be 'rectangle' or 'disc', got {shape!r}")
-    electrodes = []
+    electrodes: list[RectElectrode | SectorElectrode] = []
     for i, item in enumerate(_field(data, "electrodes", list, "the layout"), start=1):
         where = f"[[electrodes]] entry {i}"
         if not isinstance(item, dict):

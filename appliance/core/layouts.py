@@ -20,6 +20,7 @@ import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -102,20 +103,29 @@ class SectorElectrode:
     width_deg: float
     depth_mm: float
 
-    def area_mm2_on(self, sheet: DiscSheet) -> float:
-        r = sheet.radius_mm
+    def area_mm2_on(self, sheet: RectSheet | DiscSheet) -> float:
+        r = disc_of(sheet).radius_mm
         return math.radians(self.width_deg) / 2 * (r**2 - (r - self.depth_mm) ** 2)
 
-    def centroid_mm(self, sheet: DiscSheet) -> tuple[float, float]:
+    def centroid_mm(self, sheet: RectSheet | DiscSheet) -> tuple[float, float]:
+        sheet = disc_of(sheet)
         r_mid = sheet.radius_mm - self.depth_mm / 2
         phi = math.radians(self.angle_deg)
         return sheet.radius_mm + r_mid * math.sin(phi), sheet.radius_mm - r_mid * math.cos(phi)
 
-    def contains(self, sheet: DiscSheet, points: np.ndarray) -> np.ndarray:
+    def contains(self, sheet: RectSheet | DiscSheet, points: np.ndarray) -> np.ndarray:
         """Mask of ``points`` (n, 2) lying on the sector (edges included)."""
+        sheet = disc_of(sheet)
         r, phi = polar_clockwise(sheet, points)
         offset = (phi - self.angle_deg + 180.0) % 360.0 - 180.0
         return (r >= sheet.radius_mm - self.depth_mm - 1e-6) & (np.abs(offset) <= self.width_deg / 2 + 1e-7)
+
+
+def disc_of(sheet: RectSheet | DiscSheet) -> DiscSheet:
+    """``sheet`` as the disc a rim sector lies on (a layout pairs sectors with a disc only)."""
+    if not isinstance(sheet, DiscSheet):
+        raise LayoutInvalid("a sector electrode lies on the rim of a disc sheet, not on a rectangle")
+    return sheet
 
 
 def polar_clockwise(sheet: DiscSheet, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -153,6 +163,20 @@ class Layout:
         if isinstance(electrode, SectorElectrode):
             return electrode.area_mm2_on(self.sheet)
         return electrode.area_mm2
+
+    @property
+    def rectangles(self) -> tuple[RectElectrode, ...]:
+        """The electrodes of a rectangular sheet, which are all rectangles."""
+        if not all(isinstance(e, RectElectrode) for e in self.electrodes):
+            raise LayoutInvalid(f"layout {self.name!r} has sector electrodes, not rectangles")
+        return cast(tuple[RectElectrode, ...], self.electrodes)
+
+    @property
+    def sectors(self) -> tuple[SectorElectrode, ...]:
+        """The electrodes of a disc sheet, which are all rim sectors."""
+        if not all(isinstance(e, SectorElectrode) for e in self.electrodes):
+            raise LayoutInvalid(f"layout {self.name!r} has rectangular electrodes, not rim sectors")
+        return cast(tuple[SectorElectrode, ...], self.electrodes)
 
     def centroids_mm(self) -> np.ndarray:
         """Electrode centroids, shape (n_electrodes, 2), mm."""
@@ -228,11 +252,13 @@ def _check_disjoint(layout: Layout) -> None:
     es = layout.electrodes
     for i, a in enumerate(es):
         for b in es[i + 1:]:
-            if isinstance(a, RectElectrode):
+            if isinstance(a, RectElectrode) and isinstance(b, RectElectrode):
                 ax0, ay0, ax1, ay1 = a.bounds_mm
                 bx0, by0, bx1, by1 = b.bounds_mm
                 apart = ax1 < bx0 - _EPS_MM or bx1 < ax0 - _EPS_MM or ay1 < by0 - _EPS_MM or by1 < ay0 - _EPS_MM
             else:
+                # _validate_electrode gave a disc sectors only and a rectangle rectangles only.
+                assert isinstance(a, SectorElectrode) and isinstance(b, SectorElectrode)
                 gap = abs((a.angle_deg - b.angle_deg + 180.0) % 360.0 - 180.0)
                 apart = gap > (a.width_deg + b.width_deg) / 2 + 1e-9
             if not apart:
@@ -242,6 +268,7 @@ def _check_disjoint(layout: Layout) -> None:
 
 
 def _check_grid_numbering(layout: Layout) -> None:
+    assert layout.grid_shape is not None        # called for grid layouts only
     rows, cols = layout.grid_shape
     if rows < 1 or cols < 1 or rows * cols != layout.n_electrodes:
         raise LayoutInvalid(

@@ -98,7 +98,7 @@ def localise(model: ForwardModel, r: Reconstructor, frame: np.ndarray, reference
         return []
     grid = r.grid
     centres = grid.centres_mm
-    area = np.prod(grid.pixel_mm)
+    area = float(np.prod(grid.pixel_mm))
     start = []
     for mask in masks:
         flat = mask.ravel()

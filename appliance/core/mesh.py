@@ -20,10 +20,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
+from itertools import pairwise
 
 import numpy as np
 
-from appliance.core.layouts import DiscSheet, Layout, SectorElectrode
+from appliance.core.layouts import DiscSheet, Layout, SectorElectrode, disc_of
 from appliance.errors import LayoutInvalid
 
 
@@ -134,7 +135,7 @@ def _narrowest_electrode_mm(layout: Layout) -> float:
     sizes = []
     for e in layout.electrodes:
         if isinstance(e, SectorElectrode):
-            sizes.append(math.radians(e.width_deg) * layout.sheet.radius_mm)
+            sizes.append(math.radians(e.width_deg) * disc_of(layout.sheet).radius_mm)
         else:
             sizes.append(min(e.width_mm, e.height_mm))
     return min(sizes)
@@ -157,13 +158,13 @@ def _check_faces_resolved(layout: Layout, mesh: Mesh) -> None:
 
 def _rect_mesh(layout: Layout, spec: MeshSpec) -> tuple[np.ndarray, np.ndarray]:
     width, height = layout.sheet.size_mm
-    xs = graded_axis(width, [v for e in layout.electrodes for v in e.bounds_mm[0::2]], spec)
-    ys = graded_axis(height, [v for e in layout.electrodes for v in e.bounds_mm[1::2]], spec)
+    xs = graded_axis(width, [v for e in layout.rectangles for v in e.bounds_mm[0::2]], spec)
+    ys = graded_axis(height, [v for e in layout.rectangles for v in e.bounds_mm[1::2]], spec)
     nx, ny = len(xs), len(ys)
     gx, gy = np.meshgrid(xs, ys)
     nodes = np.column_stack([gx.ravel(), gy.ravel()])
-    i, j = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1))
-    i, j = i.ravel(), j.ravel()
+    i_grid, j_grid = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1))
+    i, j = i_grid.ravel(), j_grid.ravel()
     n00 = j * nx + i
     n10, n01, n11 = n00 + 1, n00 + nx, n00 + nx + 1
     even = (i + j) % 2 == 0
@@ -184,7 +185,7 @@ def graded_axis(length: float, edges: list[float], spec: MeshSpec) -> np.ndarray
     marks[-1] = length
     inner = np.asarray(edges, dtype=float)
     points = [marks[:1]]
-    for a, b in zip(marks[:-1], marks[1:]):
+    for a, b in pairwise(marks):
         t = np.linspace(a, b, 257)
         if inner.size:
             dist = np.min(np.abs(t[:, None] - inner[None, :]), axis=1)
@@ -209,11 +210,10 @@ def graded_axis(length: float, edges: list[float], spec: MeshSpec) -> np.ndarray
 # Discs: concentric rings, rim rings aligned with the electrode sectors
 
 def _disc_mesh(layout: Layout, spec: MeshSpec) -> tuple[np.ndarray, np.ndarray]:
-    sheet = layout.sheet
-    radius = sheet.radius_mm
+    radius = disc_of(layout.sheet).radius_mm
     n_el = layout.n_electrodes
     rim_angles = _rim_angles(layout, spec)
-    depth = max(e.depth_mm for e in layout.electrodes)
+    depth = max(e.depth_mm for e in layout.sectors)
     band_steps = max(1, math.ceil(depth / spec.electrode_h_mm - 1e-9))
     radii = list(radius - depth * np.arange(band_steps + 1) / band_steps)
     step = spec.electrode_h_mm
@@ -223,7 +223,7 @@ def _disc_mesh(layout: Layout, spec: MeshSpec) -> tuple[np.ndarray, np.ndarray]:
         if nxt < 0.5 * step:
             break
         radii.append(nxt)
-    offset = math.radians(layout.electrodes[0].angle_deg)
+    offset = math.radians(layout.sectors[0].angle_deg)
     rings = []
     for r in radii:
         if r >= radius - depth - 1e-9:
@@ -232,14 +232,14 @@ def _disc_mesh(layout: Layout, spec: MeshSpec) -> tuple[np.ndarray, np.ndarray]:
             count = n_el * max(1, round(2 * math.pi * r / _local_h(radius - r, spec) / n_el))
             angles = offset + 2 * np.pi * np.arange(count) / count
         rings.append((r, np.asarray(angles)))
-    nodes = [np.array([[radius, radius]])]
+    ring_nodes = [np.array([[radius, radius]])]
     starts = []
     count = 1
     for r, angles in rings:
         starts.append(count)
-        nodes.append(np.column_stack([radius + r * np.sin(angles), radius - r * np.cos(angles)]))
+        ring_nodes.append(np.column_stack([radius + r * np.sin(angles), radius - r * np.cos(angles)]))
         count += len(angles)
-    nodes = np.vstack(nodes)
+    nodes = np.vstack(ring_nodes)
     triangles = []
     for k in range(len(rings) - 1):
         triangles.append(_zip_rings(rings[k + 1][1], starts[k + 1], rings[k][1], starts[k]))
@@ -256,18 +256,18 @@ def _local_h(dist_from_rim: float, spec: MeshSpec) -> float:
 
 def _rim_angles(layout: Layout, spec: MeshSpec) -> np.ndarray:
     """Angles (radians, clockwise from top) of the rim nodes, electrode edges included."""
-    radius = layout.sheet.radius_mm
+    radius = disc_of(layout.sheet).radius_mm
     edges = sorted(((e.angle_deg - e.width_deg / 2) % 360.0, (e.angle_deg + e.width_deg / 2) % 360.0)
-                   for e in layout.electrodes)
-    marks = []
+                   for e in layout.sectors)
+    edge_deg = []
     for start, end in edges:
-        marks += [start, end if end > start else end + 360.0]
-    marks = np.radians(np.array(marks))
+        edge_deg += [start, end if end > start else end + 360.0]
+    marks = np.radians(np.array(edge_deg))
     first = marks[0]
     marks = np.concatenate([marks, [first + 2 * np.pi]])
     angles = []
     electrode_arc = True
-    for a, b in zip(marks[:-1], marks[1:]):
+    for a, b in pairwise(marks):
         arc_mm = (b - a) * radius
         if electrode_arc:
             n = max(1, math.ceil(arc_mm / spec.electrode_h_mm - 1e-9))

@@ -115,7 +115,8 @@ class ModelSetup:
     def _images(self) -> dict:
         return {
             "layout": layout_to_toml(self.layout),
-            "protocol": hashlib.sha256(np.ascontiguousarray(self.protocol.readings, dtype=np.int64)).hexdigest(),
+            "protocol": hashlib.sha256(np.ascontiguousarray(self.protocol.readings, dtype=np.int64).tobytes())
+                               .hexdigest(),
             "options": dataclasses.asdict(self.options),
             "density": self.density, "pixels": self.pixels, "contact": self.contact_impedance_ohm_m2,
             "fitted": None if self.fitted_contact_ohm_m2 is None else [float(z) for z in self.fitted_contact_ohm_m2],
@@ -133,7 +134,7 @@ class ModelSetup:
         return self.contact_fit
 
     @property
-    def nominal(self) -> "ModelSetup":
+    def nominal(self) -> ModelSetup:
         """The setup without fitted contacts."""
         return dataclasses.replace(self, fitted_contact_ohm_m2=None)
 
@@ -197,7 +198,7 @@ class ReconstructionModel:
                             self.setup.contact_impedance_ohm_m2, self.setup.options.noise, prior,
                             start_ohm_m2=self.setup.fitted_contact_ohm_m2)
 
-    def for_reference(self, reference: np.ndarray, progress=None) -> "ReconstructionModel":
+    def for_reference(self, reference: np.ndarray, progress=None) -> ReconstructionModel:
         """The model to image frames against ``reference`` with, its ``contact_fit`` the fit made to it.
 
         The setup's ``contact_fit`` decides: ``off`` returns this model as it is; ``track``
@@ -228,7 +229,7 @@ class ReconstructionModel:
             self._fits = {**dict(list(self._fits.items())[-(FITS_KEPT - 1):]), digest: model}
         return self._fits[digest]
 
-    def _linearised_at(self, contacts: np.ndarray, tolerance: np.ndarray, progress) -> "ReconstructionModel":
+    def _linearised_at(self, contacts: np.ndarray, tolerance: np.ndarray, progress) -> ReconstructionModel:
         """A model linearised within ``tolerance`` (log, per electrode) of ``contacts``: this one, one
         already fitted here or in the cache, or a new one."""
         def close(other: np.ndarray) -> bool:
@@ -392,6 +393,7 @@ def save_model(model: ReconstructionModel, path: Path) -> None:
         arrays["matrix"] = r.matrix
     else:
         form = r.normal_form
+        assert form is not None                 # a reconstructor without a matrix has its normal form
         arrays.update(normal=form.normal, prior=form.prior, weights=form.weights)
         if form.left is not None:
             arrays["left"] = form.left

@@ -31,7 +31,7 @@ import scipy.sparse.linalg as spla
 
 from appliance.core.assembly import build_assembler, offset_potentials, offset_variables
 from appliance.core.forward import ForwardModel, with_fill_reducing_order
-from appliance.core.layouts import DiscSheet, Layout, RectElectrode
+from appliance.core.layouts import DiscSheet, Layout, RectElectrode, disc_of
 from appliance.errors import LayoutInvalid
 
 ELECTRODE_CONDUCTANCE = 1e4
@@ -160,11 +160,13 @@ def build_network_model(grid: NetworkGrid, electrode_conductance: float = ELECTR
 
     # A unit current spread evenly over the n nodes of electrode l: 1/n on each
     # offset, and all of it on the master, whose potential every node carries.
-    rows, cols, weights = [], [], []
+    rows: list[np.ndarray] = []
+    cols: list[np.ndarray] = []
+    weights: list[np.ndarray] = []
     for l, nodes in enumerate(contact_nodes):
         rows += [nodes[:-1], nodes[-1:]]
         cols += [np.full(len(nodes), l)]
-        weights += [np.full(len(nodes) - 1, 1.0 / len(nodes)), [1.0]]
+        weights += [np.full(len(nodes) - 1, 1.0 / len(nodes)), np.ones(1)]
     spread = sp.csc_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
                            shape=(n_nodes, grid.n_electrodes))
     node_map = offset_potentials(master, n_nodes, keep)
@@ -242,7 +244,7 @@ def network_for_layout(layout: Layout, refinement: int = 1) -> NetworkGrid:
     cols, rows = round(width / cell), round(height / cell)
     on_grid = np.isclose(cols * cell, width) and np.isclose(rows * cell, height)
     electrodes = []
-    for e in layout.electrodes:
+    for e in layout.rectangles:
         x0, y0, x1, y1 = (v / cell for v in e.bounds_mm)
         on_grid &= all(np.isclose(v, round(v)) for v in (x0, y0, x1, y1))
         electrodes.append(tuple(r * cols + c for r in range(round(y0), round(y1)) for c in range(round(x0), round(x1))))
@@ -253,7 +255,7 @@ def network_for_layout(layout: Layout, refinement: int = 1) -> NetworkGrid:
 
 
 def _disc_network(layout: Layout, refinement: int) -> NetworkGrid:
-    diameter = 2 * layout.sheet.radius_mm
+    diameter = 2 * disc_of(layout.sheet).radius_mm
     n = 17 * refinement
     cell = diameter / n
     centres = (np.argwhere(np.ones((n, n), dtype=bool))[:, ::-1] + 0.5) * cell
@@ -263,6 +265,6 @@ def _disc_network(layout: Layout, refinement: int) -> NetworkGrid:
     for e in layout.electrodes:
         inside = np.flatnonzero(e.contains(layout.sheet, kept))
         if inside.size == 0:
-            inside = [int(np.argmin(np.linalg.norm(kept - e.centroid_mm(layout.sheet), axis=1)))]
+            inside = np.array([np.argmin(np.linalg.norm(kept - e.centroid_mm(layout.sheet), axis=1))])
         electrodes.append(tuple(int(i) for i in inside))
     return NetworkGrid(mask, cell, tuple(electrodes))

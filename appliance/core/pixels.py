@@ -95,8 +95,11 @@ def pixel_grid(layout: Layout, rows: int | None = None, cols: int | None = None)
         pixel = min(min(width, height) / DEFAULT_PIXELS_ACROSS, MAX_PIXEL_MM)
         rows, cols = (math.ceil(height / pixel - 1e-9), math.ceil(width / pixel - 1e-9))
     elif rows is None or cols is None:
-        rows = rows if rows is not None else max(1, round(cols * height / width))
-        cols = cols if cols is not None else max(1, round(rows * width / height))
+        if rows is None:
+            assert cols is not None
+            rows = max(1, round(cols * height / width))
+        else:
+            cols = max(1, round(rows * width / height))
     if rows < 1 or cols < 1:
         raise ConfigError(f"a pixel grid needs at least one row and column, got {rows} x {cols}")
     w, h = width / cols, height / rows
@@ -148,8 +151,8 @@ def _element_samples(model: ForwardModel, samples: int) -> tuple[np.ndarray, np.
         lam = np.column_stack([b[:, 0], b[:, 1], 1 - b[:, 0] - b[:, 1]])
     else:
         t = (np.arange(k) + 0.5) / k
-        u, v = np.meshgrid(t, t)
-        u, v = u.ravel(), v.ravel()
+        u_grid, v_grid = np.meshgrid(t, t)
+        u, v = u_grid.ravel(), v_grid.ravel()
         lam = np.column_stack([(1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v])   # TL, TR, BR, BL
     points = np.einsum("sm,emd->esd", lam, corners)
     return np.full(len(lam), 1.0 / len(lam)), points

@@ -199,9 +199,10 @@ def load_pressure_calibration(path: Path) -> PressureCalibration:
                                 PressureCurve(np.array(z["curve"]["change"], dtype=float),
                                               np.array(z["curve"]["pressure_kpa"], dtype=float)))
                       for z in data.get("zones", []))
+        rows, cols = (int(v) for v in data["pixels"])
         calibration = PressureCalibration(
             str(data["layout"]), str(data["layout_sha256"]), str(data["algorithm"]),
-            tuple(int(v) for v in data["pixels"]), PressureCurve(change, pressure),
+            (rows, cols), PressureCurve(change, pressure),
             float(data["reference_temperature_c"]), float(data["temperature_coefficient_per_c"]),
             None if flat is None else np.array(flat, dtype=float), dict(data.get("notes", {})), zones)
     except (KeyError, TypeError, ValueError) as exc:

@@ -186,7 +186,7 @@ class NormalForm:
         snr_out = np.sqrt(np.sum(areas * image**2)) / np.sqrt(np.sum(areas * np.diag(covariance)))
         return float(snr_in / snr_out)
 
-    def without(self, jacobian: np.ndarray, drop: np.ndarray) -> "NormalForm":
+    def without(self, jacobian: np.ndarray, drop: np.ndarray) -> NormalForm:
         """The same with the readings ``drop`` (bool) removed: their part taken out of N, and the
         prior scaled to the new N as :func:`appliance.core.regularisation.prior_matrix` scales it."""
         drop = np.asarray(drop, dtype=bool) & (self.weights > 0)
@@ -238,8 +238,11 @@ class Reconstructor:
         if not np.isfinite(delta).all():
             raise ReconstructionError("frame or reference has a missing or non-finite reading that the "
                                       "reconstructor still uses; drop it with without_readings first")
-        image = self.matrix @ delta if self.matrix is not None else \
-            self.normal_form.apply(self.linear.jacobian, delta)
+        if self.matrix is not None:
+            image = self.matrix @ delta
+        else:
+            assert self.normal_form is not None         # one of the two is always built
+            image = self.normal_form.apply(self.linear.jacobian, delta)
         return image / self.scale(reference)
 
     @cached_property
@@ -385,7 +388,7 @@ def without_readings(r: Reconstructor, drop: np.ndarray) -> Reconstructor:
 
 def readings_using(protocol: Protocol, electrodes) -> np.ndarray:
     """Mask of the readings that drive or measure on any of ``electrodes`` (1-based numbers)."""
-    return np.isin(protocol.readings, np.asarray(list(electrodes))).any(axis=1)
+    return np.asarray(np.isin(protocol.readings, np.asarray(list(electrodes))).any(axis=1))
 
 
 def _builder(options, linear, j, weights, usable, sensitivity):

@@ -57,9 +57,9 @@ class NoiseModel:
 
 def laplacian(grid: PixelGrid) -> sp.csr_matrix:
     """The graph Laplacian of the imaged pixels, 4-neighbour, shape (n_inside, n_inside)."""
-    index = np.full(grid.rows * grid.cols, -1)
-    index[grid.inside_index] = np.arange(grid.n_inside)
-    index = index.reshape(grid.rows, grid.cols)
+    flat = np.full(grid.rows * grid.cols, -1)
+    flat[grid.inside_index] = np.arange(grid.n_inside)
+    index = flat.reshape(grid.rows, grid.cols)
     pairs = []
     for a, b in ((index[:, :-1], index[:, 1:]), (index[:-1, :], index[1:, :])):
         ok = (a >= 0) & (b >= 0)

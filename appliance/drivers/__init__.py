@@ -12,10 +12,14 @@ from __future__ import annotations
 import logging
 import warnings
 from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING
 
 from appliance.drivers.bus import Board
 from appliance.drivers.profile import BoardProfile, board_profile
 from appliance.errors import BackendUnavailable, ConfigError, DeviceMissing
+
+if TYPE_CHECKING:
+    from appliance.drivers.emulated.analogue import SensorModel
 
 log = logging.getLogger(__name__)
 
@@ -26,7 +30,7 @@ class EmulationFallbackWarning(UserWarning):
     """``backend = "auto"`` found no front end hardware and is running on the emulated board."""
 
 
-def open_board(board: Mapping | None, *, sensor: Callable[[], object] | None = None,
+def open_board(board: Mapping | None, *, sensor: Callable[[], SensorModel] | None = None,
                seed: int = 0) -> tuple[Board, BoardProfile]:
     """The board a ``[board]`` table asks for, with its profile.
 

@@ -245,6 +245,7 @@ class AD5933:
         every point; the I2C transfers come on top.
         """
         self._require_configured()
+        assert self._start_code is not None     # configured
         start_hz = self._start_code * (self.mclk_hz / 4) / 2**27
         return self._settling_cycles / start_hz + DFT_SAMPLES / (self.mclk_hz / 16)
 

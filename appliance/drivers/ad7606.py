@@ -78,7 +78,7 @@ class AD7606Array:
     def line_request(*, convst: str, busy: str, reset: str, range_line: str,
                      address_lines: Iterable[str]) -> LineRequest:
         """CONVST, RESET and the address low, RANGE high (+/-10 V: nothing can clip at start), BUSY's falling edge."""
-        outputs = {convst: 0, reset: 0, range_line: 1, **{name: 0 for name in address_lines}}
+        outputs = {convst: 0, reset: 0, range_line: 1, **dict.fromkeys(address_lines, 0)}
         return LineRequest(outputs=outputs, inputs={busy: FALLING})
 
     @property

@@ -25,14 +25,14 @@ class AD8251:
             raise ValueError(f"AD8251: GPIO line {missing[0]} was not requested (lines: {', '.join(gpio.names)})")
         self.gpio = gpio
         self.a0, self.a1, self.wr = a0, a1, wr
-        self._gain = 1
+        self._gain: float = 1
 
     @staticmethod
     def line_request(a0: str, a1: str, wr: str) -> LineRequest:
         """The outputs the driver needs: A0 and A1 low, /WR high (no latch on request)."""
         return LineRequest(outputs={a0: 0, a1: 0, wr: 1}, inputs={})
 
-    def set_gain(self, gain: int) -> None:
+    def set_gain(self, gain: float) -> None:
         """Latch ``gain``: A1/A0 with /WR high, then /WR low (the latching edge), then /WR high."""
         if gain not in self.GAINS:
             raise ValueError(f"AD8251 gain {gain!r} is not one of {self.GAINS}")
@@ -43,6 +43,6 @@ class AD8251:
         self._gain = gain
 
     @property
-    def gain(self) -> int:
+    def gain(self) -> float:
         """The gain last latched by this driver (1, the chip's power-up gain, before any)."""
         return self._gain

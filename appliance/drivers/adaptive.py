@@ -43,7 +43,7 @@ class AdaptivePlan:
 
     def drives_for(self, loaded: Iterable[int]) -> np.ndarray:
         """Indices (into ``protocol.drives``) of the drives to take this frame, in protocol order."""
-        loaded = np.array(sorted(set(int(e) for e in loaded)), dtype=np.int64)
+        loaded = np.array(sorted({int(e) for e in loaded}), dtype=np.int64)
         bad = loaded[(loaded < 1) | (loaded > self.rows * self.cols)]
         if bad.size:
             raise ConfigError(f"loaded electrode {bad[0]} is not on the {self.rows} x {self.cols} grid")

@@ -48,15 +48,15 @@ class ADG725:
         for mux, channel in (("A", a), ("B", b)):
             if channel is not None:
                 _check_channel("ADG725", f"mux {mux} ", channel, 16)
-        change_a = a is not None and a != self._a
-        change_b = b is not None and b != self._b
-        if change_a and change_b and a == b:
-            self._send(a)
+        new_a = a if a is not None and a != self._a else None
+        new_b = b if b is not None and b != self._b else None
+        if new_a is not None and new_a == new_b:
+            self._send(new_a)
         else:
-            if change_a:
-                self._send(KEEP_B | a)
-            if change_b:
-                self._send(KEEP_A | b)
+            if new_a is not None:
+                self._send(KEEP_B | new_a)
+            if new_b is not None:
+                self._send(KEEP_A | new_b)
         self._a = self._a if a is None else a
         self._b = self._b if b is None else b
 

@@ -69,6 +69,8 @@ class ADS1115:
 
     def __init__(self, i2c: I2CBus, clock: Clock, *, address: int = 0x48, ready: GPIOLines | None = None,
                  ready_line: str | None = None):
+        if (ready is None) != (ready_line is None):
+            raise ValueError("ADS1115: ready and ready_line wire the ALERT/RDY pin together: give both or neither")
         self.i2c, self.clock, self.address = i2c, clock, address
         self.ready, self.ready_line = ready, ready_line
         if ready is not None:
@@ -98,7 +100,7 @@ class ADS1115:
         ALERT/RDY's queued edges are drained first: any of them is older than this conversion.
         """
         word = config_word(input_name, full_scale_v, data_rate_sps, ready_pin=self.ready is not None)
-        if self.ready is not None:
+        if self.ready is not None and self.ready_line is not None:
             self.ready.drain_edges(self.ready_line)
         self.write_register(CONFIG, OS_START | word)
         return self.clock.monotonic() + longest_conversion_s(data_rate_sps)
@@ -106,7 +108,7 @@ class ADS1115:
     def read_code(self, data_rate_sps: int) -> int:
         """Wait for the conversion started last, then its signed 16-bit code."""
         conversion_s = longest_conversion_s(data_rate_sps)
-        if self.ready is not None:
+        if self.ready is not None and self.ready_line is not None:
             timeout_s = conversion_s + READY_MARGIN_S
             if not self.ready.wait_edge(self.ready_line, timeout_s):
                 raise ChipNotResponding(f"{self!r}: ALERT/RDY on {self.ready_line} did not signal the end of a "

@@ -24,8 +24,9 @@ from appliance.drivers.boards import HEADER_GPIOS, HOST_BOARDS, SYSTEMS, HostBoa
 from appliance.drivers.profile import MULTIPLEXERS, BoardProfile
 from appliance.errors import BoardMismatch
 
-CHIP_BY_SPI_ROLE = {"dds": AD9833, "adc": AD7606Array, "drive_switches": ADG1414Chain,
-                    **dict.fromkeys(MULTIPLEXERS["adg725"], ADG725), **dict.fromkeys(MULTIPLEXERS["adg731"], ADG731)}
+CHIP_BY_SPI_ROLE: dict[str, type[AD9833 | AD7606Array | ADG1414Chain | ADG725 | ADG731]] = {
+    "dds": AD9833, "adc": AD7606Array, "drive_switches": ADG1414Chain,
+    **dict.fromkeys(MULTIPLEXERS["adg725"], ADG725), **dict.fromkeys(MULTIPLEXERS["adg731"], ADG731)}
 """The chip driver behind each SPI role, whose ``SPI_MODE`` is the mode the device is opened in."""
 DEVICE_TREE_COMPATIBLE = Path("/proc/device-tree/compatible")
 

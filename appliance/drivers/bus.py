@@ -250,7 +250,7 @@ class Board(ABC):
             if getattr(device, "key", None) == key:
                 return device
         device = self._open_i2c(bus)
-        device.key = key
+        device.key = key            # type: ignore[attr-defined]  # a tag for the lookup above, on any adapter
         return self._track(device)
 
     def gpio(self, request: LineRequest, *, consumer: str) -> GPIOLines:

@@ -38,7 +38,7 @@ class ChannelMap:
     tile_rows: int = 4
 
     @classmethod
-    def of_profile(cls, profile) -> "ChannelMap":
+    def of_profile(cls, profile) -> ChannelMap:
         return cls(profile.grid.rows, profile.grid.cols, tile_rows=profile.measurement.adc_tile_rows)
 
     @property

@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
 from appliance.drivers.bus import with_retries
 from appliance.drivers.frontend import OVER_RANGE, FrontEnd
+from appliance.drivers.frontend_parallel import ParallelFrontEnd
 
 
 @dataclass(frozen=True)
@@ -51,10 +53,11 @@ def contact_pairs(n_electrodes: int) -> tuple[tuple[int, int], ...]:
     return tuple((e, e % n_electrodes + 1) for e in range(1, n_electrodes + 1))
 
 
-def check_contacts(front_end: FrontEnd, n_electrodes: int, *, retries: int = 3) -> ContactReport:
+def check_contacts(front_end: FrontEnd | ParallelFrontEnd, n_electrodes: int, *, retries: int = 3) -> ContactReport:
     """Measure every neighbouring pair at the contact-test current; the excitation is off afterwards."""
     if getattr(front_end, "parallel", False):
         return check_contacts_parallel(front_end, retries=retries)
+    front_end = cast(FrontEnd, front_end)
     pairs = contact_pairs(n_electrodes)
     impedance = np.empty(len(pairs))
     front_end.start_excitation()
@@ -62,7 +65,8 @@ def check_contacts(front_end: FrontEnd, n_electrodes: int, *, retries: int = 3) 
         front_end.contact_current()
         current = front_end.drive_current_a()
         for k, pair in enumerate(pairs):
-            measured = with_retries(lambda: front_end.measure(pair, pair), attempts=retries,
+            # with_retries calls the action before the loop moves on, so it sees this pair.
+            measured = with_retries(lambda: front_end.measure(pair, pair), attempts=retries,  # noqa: B023
                                     what=f"contact check of electrodes {pair[0]}-{pair[1]}",
                                     on_retry=lambda *_: front_end.forget_routing())
             impedance[k] = math.inf if measured.saturated else abs(measured.sample.volts) / current
@@ -110,12 +114,14 @@ def check_contacts_parallel(front_end, *, retries: int = 3) -> ContactReport:
             wanted = [(a, b)] + ([(a - 1, a)] if col > 0 else []) + ([(b, b + 1)] if col + 2 < grid.cols else [])
             channels = [cmap.channel_of(p, q)[0] for p, q in wanted]
             then = pairs[k + 1] if k + 1 < len(pairs) else None
-            sample = with_retries(lambda: front_end.step((a, b), channels, 0, then=then), attempts=retries,
+            # with_retries calls the action before the loop moves on, so it sees this pair's values.
+            sample = with_retries(lambda: front_end.step((a, b), channels, 0, then=then),  # noqa: B023
+                                  attempts=retries,
                                   what=f"contact check of electrodes {a}-{b}",
                                   on_retry=lambda *_: front_end.forget_routing())
             ohm = np.where(sample.fraction > OVER_RANGE, math.inf, np.abs(sample.volts) / current)
             impedance[k] = ohm[0]
-            for (p, q), z in zip(wanted[1:], ohm[1:]):
+            for (_, q), z in zip(wanted[1:], ohm[1:]):
                 single[a if q == a else b] = float(z)
     finally:
         front_end.stop_excitation()

@@ -17,6 +17,7 @@ import numpy as np
 
 from appliance.drivers.adg7xx import ADG725, ADG731
 from appliance.drivers.bus import Board, LineRequest
+from appliance.drivers.mcp9808 import MCP9808
 from appliance.drivers.profile import BoardProfile
 from appliance.errors import ApplianceError, ChipError, ConfigError
 
@@ -143,8 +144,8 @@ class Multiplexers:
 
     @staticmethod
     def _changed(new: tuple[int, int], old: tuple[int, int] | None) -> tuple[int | None, int | None]:
-        old = old or (None, None)
-        return tuple(None if n == o else n - 1 for n, o in zip(new, old))
+        before: tuple[int | None, int | None] = old or (None, None)
+        return (None if new[0] == before[0] else new[0] - 1, None if new[1] == before[1] else new[1] - 1)
 
     def off(self) -> None:
         for part in ([self.drive, self.measure] if self.kind == "adg725" else self.parts):
@@ -164,6 +165,7 @@ class FrontEnd(ABC):
     profile: BoardProfile
     ranges: tuple[Range, ...]          # least sensitive first
     mux: Multiplexers
+    thermometer: MCP9808
 
     def __init__(self, board: Board, profile: BoardProfile):
         self.board, self.profile, self.clock = board, profile, board.clock

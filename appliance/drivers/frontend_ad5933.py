@@ -32,6 +32,7 @@ CONTACT_RANGE_VPP = 0.2
 def ad5933_ranges(profile: BoardProfile) -> tuple[Range, ...]:
     """AD8251 gain x AD5933 receive PGA; full scale is the DFT magnitude that still means an unclipped ADC."""
     m = profile.measurement
+    assert m.dft_counts_per_volt is not None and m.vin_gain is not None    # the chain's: board_profile checked
     counts_per_input_v = m.dft_counts_per_volt * m.vin_gain * m.inamp_gain * math.sqrt(2)
     return range_ladder(((AD5933.CODE_LIMIT / (counts_per_input_v * gain * pga), gain, pga)
                          for gain in AD8251.GAINS for pga in AD5933.PGA_GAINS),
@@ -48,17 +49,20 @@ class AD5933FrontEnd(FrontEnd):
                                             inputs={}), consumer="AD8251 gain")
         self.pga = AD8251(gain_lines, a0=gpio["gain_a0"], a1=gpio["gain_a1"], wr=gpio["gain_wr"])
         self.ranges = ad5933_ranges(profile)
-        self.output_range_vpp = profile.excitation.output_range_vpp
+        assert profile.excitation.output_range_vpp is not None      # the chain's: board_profile checked
+        self.output_range_vpp: float = profile.excitation.output_range_vpp
         self.system_phase: float | None = None
         self.pga.set_gain(self.ranges[0].gain)
 
     def _counts_per_volt(self, r: Range) -> float:
         m = self.profile.measurement
+        assert m.dft_counts_per_volt is not None and m.vin_gain is not None
         return m.dft_counts_per_volt * m.vin_gain * m.inamp_gain * math.sqrt(2) * r.gain * int(r.second_stage)
 
     # -- excitation ----------------------------------------------------------------------
     def start_excitation(self, current_a: float | None = None) -> None:
         vpp = self.profile.excitation.output_range_vpp
+        assert vpp is not None and self.profile.measurement.settling_cycles is not None
         if current_a is not None:
             fitting = [v for v in ACTUAL_VPP if self._current_of(v) <= current_a * 1.0001]
             if not fitting:
@@ -74,6 +78,7 @@ class AD5933FrontEnd(FrontEnd):
             self._measure_system_phase()
 
     def _current_of(self, vpp: float) -> float:
+        assert self.profile.excitation.transconductance_a_per_v is not None
         return ACTUAL_VPP[vpp] / (2 * math.sqrt(2)) * self.profile.excitation.transconductance_a_per_v
 
     def _measure_system_phase(self) -> None:
@@ -125,6 +130,7 @@ class AD5933FrontEnd(FrontEnd):
 
     def settle_s(self, drive_changed, measure_changed, previous, target, *, ranging=False) -> float:
         t = self.profile.timing
+        assert t.measure_settle_s is not None
         return t.drive_settle_s if drive_changed else t.measure_settle_s if measure_changed else 0.0
 
     def sample(self) -> Sample:
@@ -147,6 +153,7 @@ class AD5933FrontEnd(FrontEnd):
                                  ("MCP9808 thermometer", "thermometer", self._check_thermometer)])
 
     def _check_converter(self) -> str:
+        assert self.profile.measurement.settling_cycles is not None
         self.impedance.configure(self.profile.excitation.frequency_hz,
                                  settling_cycles=self.profile.measurement.settling_cycles,
                                  output_range_vpp=self.output_range_vpp, pga_gain=1)

@@ -45,6 +45,7 @@ ZERO_FRAMES = 8
 def parallel_ranges(profile: BoardProfile) -> tuple[Range, ...]:
     """The AD7606's two ranges behind the fixed gain, least sensitive first (input-referred volts rms)."""
     m = profile.measurement
+    assert m.lowpass_gain is not None           # the chain's: board_profile checked it is set
     gain = m.inamp_gain * DEMODULATOR_GAIN * m.lowpass_gain
     return tuple(Range(i, gain, fs, fs / gain, f"x{gain:.1f}, ADC +/-{fs:g} V") for i, fs in enumerate(FULL_SCALES_V))
 
@@ -92,6 +93,7 @@ class ParallelFrontEnd:
         spi = board.spi(adc.bus, adc.chip_select, mode=AD7606Array.SPI_MODE,
                         max_speed_hz=min(adc.max_speed_hz, AD7606Array.MAX_SPEED_HZ), consumer="AD7606 converters")
         self.adc_device = spi.name
+        assert profile.measurement.adc_oversampling is not None
         self.adcs = AD7606Array(lines, self.clock, ChipSelectDecoder(spi, lines, profile.adc_address_lines),
                                 n_chips=self.cmap.n_adcs, oversampling=profile.measurement.adc_oversampling, **names)
         self.ranges = parallel_ranges(profile)
@@ -106,7 +108,9 @@ class ParallelFrontEnd:
     # -- excitation ----------------------------------------------------------------------
     def start_excitation(self, current_a: float | None = None) -> None:
         """Sine on at the profile's frequency and ``current_a`` (default: the profile's), source enabled."""
-        self._set_current(self.profile.excitation.current_a if current_a is None else current_a)
+        current_a = self.profile.excitation.current_a if current_a is None else current_a
+        assert current_a is not None
+        self._set_current(current_a)
         self.dds.start(self.profile.excitation.frequency_hz)
         self.enable_source(True)
         self.routed_at = self.clock.monotonic()
@@ -116,6 +120,7 @@ class ParallelFrontEnd:
         self.digipot.set_wiper(wiper)
 
     def contact_current(self) -> None:
+        assert self.profile.contact.test_current_a is not None
         self._set_current(self.profile.contact.test_current_a)
         self.routed_at = self.clock.monotonic()
 
@@ -132,6 +137,7 @@ class ParallelFrontEnd:
     # -- channels and steps ----------------------------------------------------------------
     def check_electrodes(self, n_electrodes: int) -> None:
         g = self.profile.grid
+        assert g is not None                        # a parallel profile has its grid
         if n_electrodes != g.rows * g.cols:
             raise ConfigError(f"the layout has {n_electrodes} electrodes but the parallel front end is built for a "
                               f"{g.rows} x {g.cols} grid ({g.rows * g.cols}); set [board.grid] to the mat's")

@@ -30,6 +30,7 @@ SMALL_STEP_FLOOR = 0.05     # settle to accuracy relative to at least this fract
 def rms_ranges(profile: BoardProfile) -> tuple[Range, ...]:
     """AD8251 gain x ADS1115 full scale; the RMS converter's range caps the output."""
     m = profile.measurement
+    assert m.rms_limit_v is not None        # the chain's fields: board_profile checked they are set
     return range_ladder(((min(m.rms_limit_v, adc_fs) / (m.inamp_gain * gain), gain, adc_fs)
                          for gain in AD8251.GAINS for adc_fs in ADC_FULL_SCALES_V),
                         lambda gain, adc_fs: f"x{m.inamp_gain * gain:g}, ADC +/-{adc_fs:g} V")
@@ -38,6 +39,7 @@ def rms_ranges(profile: BoardProfile) -> tuple[Range, ...]:
 def digipot_setting(profile: BoardProfile, current_a: float) -> tuple[int, float]:
     """The MCP4017 wiper nearest ``current_a`` and the current it actually gives (at least one step)."""
     full = profile.excitation.full_scale_current_a
+    assert full is not None
     if not 0 < current_a <= full:
         raise ValueError(f"drive current {current_a * 1e3:g} mA is outside 0..{full * 1e3:g} mA")
     top = MCP4017.POSITIONS - 1
@@ -68,7 +70,9 @@ class RMSFrontEnd(FrontEnd):
 
     # -- excitation ----------------------------------------------------------------------
     def start_excitation(self, current_a: float | None = None) -> None:
-        self._set_current(self.profile.excitation.current_a if current_a is None else current_a)
+        current_a = self.profile.excitation.current_a if current_a is None else current_a
+        assert current_a is not None
+        self._set_current(current_a)
         self.dds.start(self.profile.excitation.frequency_hz)
         self.enable_source(True)
 
@@ -77,6 +81,7 @@ class RMSFrontEnd(FrontEnd):
         self.digipot.set_wiper(wiper)
 
     def contact_current(self) -> None:
+        assert self.profile.contact.test_current_a is not None
         self._set_current(self.profile.contact.test_current_a)
 
     def stop_excitation(self) -> None:
@@ -101,6 +106,8 @@ class RMSFrontEnd(FrontEnd):
         level before it climbs to the next; the wait covers the worse of the two starts.
         """
         t = self.profile.timing
+        assert t.measure_settle_s is not None and t.settle_accuracy is not None
+        assert t.rms_rise_tau_s is not None and t.rms_fall_tau_s is not None
         wait = t.drive_settle_s if drive_changed else t.measure_settle_s if measure_changed else 0.0
         if previous is None or target is None or (measure_changed and self.mux.passed_unknown_pair):
             accuracy = RANGING_ACCURACY if ranging else t.settle_accuracy
@@ -129,6 +136,7 @@ class RMSFrontEnd(FrontEnd):
 
     def sample(self) -> Sample:
         r = self.ranges[self.range_index]
+        assert self.profile.measurement.adc_data_rate_sps is not None
         out_v, code = self.adc.read_volts("AIN0", r.second_stage, self.profile.measurement.adc_data_rate_sps)
         in_phase = self.inputs.get_values([self.profile.gpio["phase_sign"]])[self.profile.gpio["phase_sign"]]
         magnitude = out_v / (self.profile.measurement.inamp_gain * r.gain)

@@ -24,7 +24,7 @@ from appliance.errors import BackendUnavailable, BusError, DeviceMissing
 try:
     import gpiod
 except ImportError:
-    gpiod = None
+    gpiod = None    # type: ignore[assignment]  # absent off Linux; _require_gpiod says so before any use
 
 MIN_VERSION = (2, 1)
 
@@ -52,7 +52,12 @@ def gpiochip_paths(directory: str = "/dev") -> list[str]:
     """The GPIO chip devices in ``directory`` in chip-number order (gpiochip2 before gpiochip10)."""
     _require_gpiod()
     paths = [path for path in glob.glob(os.path.join(directory, "gpiochip*")) if gpiod.is_gpiochip_device(path)]
-    return sorted(paths, key=lambda path: (int(re.search(r"\d*$", path)[0] or -1), path))
+    return sorted(paths, key=lambda path: (_chip_number(path), path))
+
+
+def _chip_number(path: str) -> int:
+    number = re.search(r"\d+$", path)
+    return int(number[0]) if number else -1
 
 
 def _locate(names: Sequence[str], chip_paths: Iterable[str] | None) -> dict[str, tuple[str, int]]:
@@ -104,7 +109,7 @@ class LinuxGPIOLines(GPIOLines):
         self._where = _locate(self.names, None if chip_path is None else [chip_path])
         self._line_at = {where: name for name, where in self._where.items()}
         self._pending = dict.fromkeys(self._edges, 0)
-        self._requests: dict[str, object] = {}
+        self._requests: dict[str, gpiod.LineRequest] = {}
         self._released = False
         try:
             for path, lines in self._by_chip(self.names).items():

@@ -19,7 +19,7 @@ from appliance.errors import BackendUnavailable, BusError, DeviceMissing
 try:
     from smbus2 import SMBus, i2c_msg
 except ImportError:
-    SMBus = i2c_msg = None
+    SMBus = i2c_msg = None      # type: ignore[misc, assignment]  # absent off Linux; checked before use
 
 SMBUS_BLOCK_MAX = 32
 """The most bytes one SMBus I2C-block call carries; longer blocks go as plain I2C transactions."""
@@ -34,7 +34,7 @@ class LinuxI2CBus(I2CBus):
         self.number = bus
         self.name = f"/dev/i2c-{bus}"
         try:
-            self._smbus = SMBus(bus)
+            self._smbus: SMBus | None = SMBus(bus)
         except FileNotFoundError as exc:
             raise DeviceMissing(f"{self.name} does not exist: is I2C enabled "
                                 "(dtparam=i2c_arm=on in config.txt, or raspi-config)?") from exc

@@ -23,10 +23,11 @@ from __future__ import annotations
 
 import dataclasses
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from types import MappingProxyType
-from typing import Any, Mapping
+from typing import Any
 
 from appliance.core.toml_files import read_toml
 from appliance.drivers.boards import DEFAULT_SYSTEM, HOST_BOARDS, SYSTEMS
@@ -186,7 +187,7 @@ class BoardProfile:
     @property
     def adc_address_lines(self) -> tuple[str, ...]:
         """The header lines of the ADC chip-select decoder's address, least significant first."""
-        lines = []
+        lines: list[str] = []
         while f"{ADC_ADDRESS_LINE}{len(lines)}" in self.gpio:
             lines.append(self.gpio[f"{ADC_ADDRESS_LINE}{len(lines)}"])
         return tuple(lines)
@@ -343,6 +344,7 @@ def _check_parallel(profile: BoardProfile, where: str) -> None:
                           f"OS[2:0] settings), got {m.adc_oversampling}")
     if m.channels_per_adc != 8:
         raise ConfigError(f"[board.measurement] channels_per_adc must be 8 (the AD7606), got {m.channels_per_adc}")
+    assert m.adc_tile_rows is not None      # a field of the chain: board_profile checked it is set
     if not 1 <= m.adc_tile_rows <= m.channels_per_adc or m.channels_per_adc % m.adc_tile_rows:
         raise ConfigError(f"[board.measurement] adc_tile_rows = {m.adc_tile_rows} must divide the "
                           f"{m.channels_per_adc} channels of an ADC")

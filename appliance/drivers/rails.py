@@ -92,8 +92,9 @@ def check_supplies(name: str, multiplexer: str, chain: str, supply, compliance_v
     if problems:
         raise AnalogueMismatch(f"profile {name}:\n" + "\n".join(f"  {p}" for p in problems))
     parts = [(RATINGS[multiplexer], supply.multiplexers)]
-    if AMPLIFIER_PART[chain]:
-        parts.append((RATINGS[AMPLIFIER_PART[chain]], supply.amplifiers))
+    amplifier = AMPLIFIER_PART[chain]
+    if amplifier:
+        parts.append((RATINGS[amplifier], supply.amplifiers))
     for rating, rails in parts:
         span = rails[1] - rails[0]
         low, high = rating.span_v

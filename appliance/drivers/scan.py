@@ -37,6 +37,7 @@ import enum
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
@@ -45,6 +46,7 @@ from appliance.drivers.adaptive import AdaptivePlan
 from appliance.drivers.bus import with_retries
 from appliance.drivers.contact import ContactReport, check_contacts
 from appliance.drivers.frontend import FrontEnd, Measured
+from appliance.drivers.frontend_parallel import ParallelFrontEnd
 from appliance.drivers.steps import stuck_converters, take_step
 from appliance.errors import ApplianceError, ChipError, ConfigError, ScanError, TransferFailed
 
@@ -73,7 +75,7 @@ UNUSABLE = Flag.SATURATED | Flag.OPEN_ELECTRODE | Flag.BUS_ERROR | Flag.STUCK | 
 
 def flag_names(flags: int) -> str:
     """``"SATURATED|LOW_SIGNAL"`` for a flag word, ``""`` for a clean reading."""
-    return "|".join(f.name for f in Flag if flags & f)
+    return "|".join(f.name for f in Flag if flags & f and f.name)
 
 
 @dataclass(frozen=True)
@@ -158,8 +160,8 @@ class ScanEngine:
     frame to the next. ``fine_radius`` (electrode spacings) is how near a loaded electrode an adaptive frame
     takes the fine drives."""
 
-    def __init__(self, front_end: FrontEnd, protocol: Protocol, *, order: str = "optimised", retries: int = 3,
-                 conversions: int = 1, contact_check: bool = True,
+    def __init__(self, front_end: FrontEnd | ParallelFrontEnd, protocol: Protocol, *, order: str = "optimised",
+                 retries: int = 3, conversions: int = 1, contact_check: bool = True,
                  progress: Callable[[int, int], None] | None = None, fine_radius: float = 2.0):
         if order not in ("optimised", "protocol"):
             raise ValueError(f"order must be 'optimised' or 'protocol', got {order!r}")
@@ -173,7 +175,7 @@ class ScanEngine:
         self.plan_fraction: np.ndarray | None = None
         self.parallel = getattr(front_end, "parallel", False)
         if self.parallel:
-            self.channels, self.signs = front_end.cmap.channels_of_protocol(protocol.readings)
+            self.channels, self.signs = self._stepping.cmap.channels_of_protocol(protocol.readings)
             self.by_drive = [np.flatnonzero(protocol.drive_index == d) for d in range(len(protocol.drives))]
             self.plan_drive_range = np.full(len(protocol.drives), -1, dtype=np.int64)
         grid = front_end.profile.grid
@@ -203,9 +205,20 @@ class ScanEngine:
         drive_rank = self.protocol.drive_index
         return np.lexsort((np.arange(n), level, drive_rank))
 
+    @property
+    def _stepping(self) -> ParallelFrontEnd:
+        """The front end as a chain that reads every pair of a drive at once (``parallel``)."""
+        return cast(ParallelFrontEnd, self.front_end)
+
+    @property
+    def _serial(self) -> FrontEnd:
+        """The front end as a chain that takes one reading at a time (not ``parallel``)."""
+        return cast(FrontEnd, self.front_end)
+
     def _planned_output(self) -> np.ndarray:
         """The RMS output level each reading is expected at (fraction x range full scale)."""
-        fe = self.front_end
+        fe = self._serial
+        assert self.plan_range is not None and self.plan_fraction is not None     # called once planned
         scale = np.array([fe.output_scale(r) for r in range(len(fe.ranges))])
         return np.nan_to_num(self.plan_fraction) * scale[np.clip(self.plan_range, 0, None)]
 
@@ -290,7 +303,7 @@ class ScanEngine:
 
     def _zero(self, conditions) -> None:
         """The parallel channels' offsets, with the source off; the last ones are kept if it fails."""
-        fe = self.front_end
+        fe = self._stepping
         try:
             with_retries(fe.measure_zero, attempts=self.retries, what="zero of the measuring channels",
                          on_retry=lambda *_: fe.forget_routing())
@@ -335,14 +348,16 @@ class ScanEngine:
             tally.flags[i] |= Flag.SIGN_UNCERTAIN
 
     def _measure(self, i: int, drive, measure) -> Measured:
-        planned = self.plan_range is not None and self.plan_range[i] >= 0
-        return self.front_end.measure(drive, measure, range_index=int(self.plan_range[i]) if planned else None,
-                                      expected_fraction=float(self.plan_fraction[i]) if planned else None,
-                                      conversions=self.conversions)
+        range_index: int | None = None
+        expected_fraction: float | None = None
+        if self.plan_range is not None and self.plan_fraction is not None and self.plan_range[i] >= 0:
+            range_index, expected_fraction = int(self.plan_range[i]), float(self.plan_fraction[i])
+        return self._serial.measure(drive, measure, range_index=range_index, expected_fraction=expected_fraction,
+                                    conversions=self.conversions)
 
     def _steps(self, drives, tally: _Tally, conditions, start: float, blocked) -> None:
         """A parallel front end's readings: one step per drive, in protocol order."""
-        fe, protocol = self.front_end, self.protocol
+        fe, protocol = self._stepping, self.protocol
         blocked_electrodes = np.array(sorted(blocked), dtype=np.int64)
         runnable = []
         for d in (range(len(protocol.drives)) if drives is None else drives):
@@ -357,14 +372,18 @@ class ScanEngine:
         floor = fe.profile.measurement.sign_floor_v
         done, total = 0, sum(len(idx) for _, idx in runnable)
         for n, (d, idx) in enumerate(runnable):
-            drive = tuple(int(e) for e in protocol.drives[d])
-            then = None
+            source, sink = protocol.drives[d]
+            drive = (int(source), int(sink))
+            then: tuple[int, int] | None = None
             if n + 1 < len(runnable) and self.plan_drive_range[d] >= 0:
-                then = tuple(int(e) for e in protocol.drives[runnable[n + 1][0]])
+                source, sink = protocol.drives[runnable[n + 1][0]]
+                then = (int(source), int(sink))
             try:
+                # with_retries calls the action before the loop moves on, so it sees this drive's values.
                 result = with_retries(
-                    lambda: take_step(fe, drive, self.channels[idx], self.signs[idx], int(self.plan_drive_range[d]),
-                                      then=then, conversions=self.conversions),
+                    lambda: take_step(fe, drive, self.channels[idx], self.signs[idx],  # noqa: B023
+                                      int(self.plan_drive_range[d]), then=then,  # noqa: B023
+                                      conversions=self.conversions),
                     attempts=self.retries, what=f"drive {drive[0]}-{drive[1]}",
                     on_retry=lambda *_: fe.forget_routing())
             except TransferFailed as exc:
@@ -390,7 +409,7 @@ class ScanEngine:
         for adc, code in sorted(stuck.items()):
             mine = np.array([c is not None and c[0] == adc for c in tally.codes])
             tally.flags[mine] |= Flag.STUCK
-            conditions.append(TechnicalCondition(self.front_end.converter_name(adc),
+            conditions.append(TechnicalCondition(self._stepping.converter_name(adc),
                                                  f"returned code {code} for every reading it converted: stuck"))
 
     def _hold(self, drives, tally: _Tally) -> None:
@@ -399,6 +418,7 @@ class ScanEngine:
             return
         held = ~np.isin(self.protocol.drive_index, drives)
         last = self.last
+        assert last is not None                 # drives are chosen only once a full frame was taken
         tally.volts[held], tally.fraction[held] = last.measured_volts[held], last.fraction[held]
         tally.ranges[held], tally.flags[held] = last.range_index[held], last.flags[held] | Flag.HELD
 
@@ -454,6 +474,7 @@ class ScanEngine:
         if self.plan_range is None:
             self.plan_range = np.full(len(self.protocol), -1, dtype=np.int64)
             self.plan_fraction = np.full(len(self.protocol), np.nan)
+        assert self.plan_fraction is not None
         self.plan_range[fresh] = tally.ranges[fresh]
         self.plan_fraction[fresh] = tally.fraction[fresh]
 

@@ -67,7 +67,7 @@ def _checker(results: list):
 
 
 def _signal_path(fe: FrontEnd) -> list[ChipCheck]:
-    results = []
+    results: list[ChipCheck] = []
     check = _checker(results)
     pair = (1, 2)
     state: dict = {}
@@ -125,7 +125,7 @@ def _signal_path(fe: FrontEnd) -> list[ChipCheck]:
 def _signal_path_parallel(fe) -> list[ChipCheck]:
     """The parallel chain on electrodes 1-2: every converter quiet with the source off, then the pair's own
     channel at the contact current, at both ranges."""
-    results = []
+    results: list[ChipCheck] = []
     check = _checker(results)
     pair = (1, 2)
     channel = fe.cmap.channel_of(*pair)[0]

@@ -18,6 +18,7 @@ import math
 from appliance.drivers.boards import HOST_BOARDS, SYSTEMS
 from appliance.drivers.profile import BoardProfile
 from appliance.drivers.rails import AMPLIFIER_PART, RATINGS, multiplexer_peak_v
+from appliance.errors import ConfigError
 
 HEADER_PIN = {2: 3, 3: 5, 4: 7, 14: 8, 15: 10, 17: 11, 18: 12, 27: 13, 22: 15, 23: 16, 24: 18, 10: 19, 9: 21,
               25: 22, 11: 23, 8: 24, 7: 26, 0: 27, 1: 28, 5: 29, 6: 31, 12: 32, 13: 33, 19: 35, 16: 36, 26: 37,
@@ -67,6 +68,8 @@ def wiring_rows(profile: BoardProfile) -> list[tuple]:
     rows = []
     for bus in sorted({address.bus for address in profile.spi.values()}):
         controller = host.spi[bus]
+        if controller.data_pins is None:
+            raise ConfigError(f"the {host.model}'s SPI{bus} pins are not known: the wiring table cannot list them")
         roles = [role for role, address in profile.spi.items() if address.bus == bus]
         used = {signal for role in roles for signal in SPI_CHIPS[role][1]}
         for signal, bcm in zip(DATA_SIGNALS, controller.data_pins):
@@ -76,11 +79,15 @@ def wiring_rows(profile: BoardProfile) -> list[tuple]:
             address = profile.spi[role]
             rows.append(row(SPI_CHIPS[role][0], "/SYNC or /CS", f"SPI{bus} CE{address.chip_select}",
                             system.spi_chip_selects[bus][address.chip_select]))
-    sda, scl = host.i2c_pins[profile.i2c_bus]
+    i2c_pins = host.i2c_pins.get(profile.i2c_bus)
+    if i2c_pins is None:
+        raise ConfigError(f"the {host.model}'s I2C{profile.i2c_bus} pins are not known: the wiring table cannot "
+                          "list them")
+    sda, scl = i2c_pins
     rows.append(row(f"I2C{profile.i2c_bus} bus", "SDA", f"I2C{profile.i2c_bus}", sda))
     rows.append(row(f"I2C{profile.i2c_bus} bus", "SCL", f"I2C{profile.i2c_bus}", scl))
-    for role, address in profile.i2c.items():
-        rows.append((I2C_CHIPS.get(role, role), f"address 0x{address:02X}", f"I2C{profile.i2c_bus}", "", "",
+    for role, i2c_address in profile.i2c.items():
+        rows.append((I2C_CHIPS.get(role, role), f"address 0x{i2c_address:02X}", f"I2C{profile.i2c_bus}", "", "",
                      *("" for _ in boards)))
     for role, line in profile.gpio.items():
         bcm = _bcm_of(line, host, system)
@@ -107,6 +114,7 @@ def supply_rows(profile: BoardProfile) -> list[tuple[str, str, str]]:
                  f"VDD - VSS {RATINGS[amplifier].span_v[0]:g} to {RATINGS[amplifier].span_v[1]:g} V"
                  if amplifier else "as the in-amps' data sheet"))
     compliance = profile.excitation.compliance_v
+    assert compliance is not None           # board_profile sets it, from the rails if the profile does not
     rows.append(("current source", _rails(s.current_source),
                  f"compliance {compliance:.2f} V rms ({compliance * math.sqrt(2):.2f} V peak), "
                  f"{s.source_headroom_v:g} V short of its rails"))

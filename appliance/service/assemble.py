@@ -45,6 +45,7 @@ def _assemble(config: MonitorConfig, lock, *, say, on_event, on_map, live: bool)
     from appliance.store import Store
 
     data_dir = config.data_dir
+    assert data_dir is not None                 # assemble() sets it
     config = settings.load_overlaid(config, data_dir)   # the screen's settings
     layout = get_layout(config.layout)
     setup = default_setup(layout)
@@ -119,7 +120,7 @@ def _notifiers(config: MonitorConfig, data_dir: Path, closers: list) -> list:
     from appliance.alerts.wardlink import WardLink
     from appliance.store.outbox import Outbox
 
-    notifiers = []
+    notifiers: list[WardLink | WebhookNotifier] = []
     if config.mqtt is not None:
         m, c = config.mqtt, config.confirmation
         outbox = Outbox(data_dir / OUTBOX_FILE)

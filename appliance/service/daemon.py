@@ -30,6 +30,7 @@ notifiers, closes the store and exits 0.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import sqlite3
 import threading
@@ -125,10 +126,8 @@ class MonitorDaemon:
         """A progress callback for a long command: records the share done for screens and keeps the systemd
         watchdog fed, since the loop is busy but alive."""
         def report(share: float, note: str = "") -> None:
-            try:
-                self.store.set_progress(command_id, share, note)
-            except sqlite3.OperationalError:
-                pass                    # only a progress bar: a full disk shows as the storage alarm
+            with contextlib.suppress(sqlite3.OperationalError):   # only a progress bar: a full disk
+                self.store.set_progress(command_id, share, note)    # shows as the storage alarm
             self.systemd.ping()
         return report
 
@@ -309,7 +308,9 @@ class MonitorDaemon:
 
     def _admit(self, now: float, args: dict, user: str, _id: int) -> tuple[list[Event], str]:
         """A new patient: the last one's episode closes, and doses and the turn clock start afresh."""
-        episode = Episode(patient_id=args.get("patient_id"), admitted_s=now, admitted_by=user, name=args.get("name"),
+        # The command's arguments come unchecked: Episode refuses any that is not what it says.
+        episode = Episode(patient_id=args.get("patient_id"),  # type: ignore[arg-type]
+                          admitted_s=now, admitted_by=user, name=args.get("name"),
                           braden=args.get("braden"), bed_exit_alert=bool(args.get("bed_exit_alert", False)),
                           **({"bed_exit_after_s": args["bed_exit_after_s"]} if "bed_exit_after_s" in args else {}))
         return self.pipeline.admit(now, episode), f"admitted {episode.patient_id}"
@@ -379,7 +380,7 @@ class MonitorDaemon:
             "turn": {"last_turn_s": turns.last_turn_s, "due_in_s": turns.due_in_s(now), "bed_empty": turns.bed_empty,
                      "interval_s": turns.interval_s, "turning_since_s": turns.turning_since},
             "posture": self.pipeline.posture,
-            "posture_words": POSTURE_WORDS.get(self.pipeline.posture),
+            "posture_words": POSTURE_WORDS.get(self.pipeline.posture or ""),
             "posture_sure": self.pipeline.posture_sure,
             "patient": None if self.pipeline.episode is None else
             {k: getattr(self.pipeline.episode, k) for k in ("patient_id", "name", "braden", "bed_exit_alert")},
@@ -400,8 +401,9 @@ class MonitorDaemon:
             g = self.grid
             snapshot["map"] = {"mmhg": map_mmhg(pressure_map.pressure_kpa), "pixel_mm": list(g.pixel_mm),
                                "peak_kpa": pressure_map.peak_kpa, "usable_readings": pressure_map.usable_readings}
-            snapshot["regions"] = [{"id": r.id, "zone": r.zone, "words": r.zone and site_words(r.zone), "peak_mmhg": r.peak_kpa / KPA_PER_MMHG,
-                                    "area_cm2": r.area_cm2, "x_mm": r.x_mm, "y_mm": r.y_mm, "since_s": r.first_seen_s,
+            snapshot["regions"] = [{"id": r.id, "zone": r.zone, "words": r.zone and site_words(r.zone),
+                                    "peak_mmhg": r.peak_kpa / KPA_PER_MMHG, "area_cm2": r.area_cm2,
+                                    "x_mm": r.x_mm, "y_mm": r.y_mm, "since_s": r.first_seen_s,
                                     "dose": alerts.site_doses.get(r.zone) if r.zone else None}
                                    for r in self.pipeline.tracked]
         return snapshot

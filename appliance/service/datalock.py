@@ -22,7 +22,8 @@ class DataDirLock:
     """The held lock on ``folder``; ``release`` (or the process's end) gives it up."""
 
     def __init__(self, folder: Path, fd: int):
-        self.folder, self._fd = folder, fd
+        self.folder = folder
+        self._fd: int | None = fd
 
     def release(self) -> None:
         if self._fd is not None:

@@ -42,9 +42,10 @@ from appliance.drivers.recording import series_paths
 from appliance.drivers.scan import UNUSABLE
 from appliance.errors import ConfigError
 from appliance.files import write_atomic
-from appliance.service.board_source import BoardSource
+from appliance.service.board_source import BoardFrame, BoardSource
 from appliance.service.monitor import Monitor, reference_state
 from appliance.service.virtual_bed import VirtualBedSource
+from appliance.sim.frontend import VirtualFrame
 from appliance.sim.loads import empty_mat
 
 ENGINEERING_DIR = "engineering"
@@ -54,9 +55,9 @@ IMAGE_SIDE_PX = 320                 # a saved map is enlarged to about this many
 EMPTY_MAT_MMHG = 10.0
 """A new empty-mat reference is refused when the frame, imaged against the present reference, peaks at or above
 this: the empty 4x4 virtual mat imaged to at most 2 mmHg against a fresh reference of its own (two noise seeds),
-and a 40 mm square of 1 kPa (7.5 mmHg) on it to 12 mmHg. Fixed, not the alert threshold: a light patient whose load stays below the
-threshold would otherwise become the zero every later map is measured from, and the monitor would read that
-patient as an empty mat. It is half the lowest threshold a ward may set (20 mmHg)."""
+and a 40 mm square of 1 kPa (7.5 mmHg) on it to 12 mmHg. Fixed, not the alert threshold: a light patient whose
+load stays below the threshold would otherwise become the zero every later map is measured from, and the monitor
+would read that patient as an empty mat. It is half the lowest threshold a ward may set (20 mmHg)."""
 MAX_PAUSE_S = 30 * 60.0
 """The longest a series may hold monitoring up, on the monitor's clock: nobody watches the patient meanwhile
 (the next map's dose counts the pause as its pressure held)."""
@@ -331,7 +332,7 @@ class EngineeringTasks:
                 "stopped_early": len(written) < count,
                 **readings_summary(np.array([f.volts for f in frames]), flags, self.protocol, frames)}
 
-    def _frame_check(self, report: Report) -> tuple[object, list[dict]]:
+    def _frame_check(self, report: Report) -> tuple[BoardFrame | VirtualFrame, list[dict]]:
         frame = self.daemon.source.acquire()
         report(1.0, "one frame taken")
         return frame, electrode_states(self.protocol, frame.flags)

@@ -133,9 +133,11 @@ class VirtualBedSource:
                     return calibration, False
             except DataFileInvalid:
                 pass                    # the virtual mat's own file, damaged: made again
-        calibration = shipped_calibration(model.setup.layout.name)
-        made = calibration is None or not self.fits(calibration, model)
-        if made:
+        shipped = shipped_calibration(model.setup.layout.name)
+        made = shipped is None or not self.fits(shipped, model)
+        if shipped is not None and not made:
+            calibration = shipped
+        else:
             calibration = self.stamped(pressure_calibration(self.acquire, self.place, model,
                                                             calibration_loads(model.setup.layout),
                                                             progress=progress), model)

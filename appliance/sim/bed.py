@@ -128,7 +128,7 @@ class VirtualBed:
         """Transfer impedances at ``now_s`` (ohm), re-solved only if the scene or temperature changed."""
         t = min(max(now_s, 0.0), self.scene.duration_s)
         temperature = self.temperature(now_s)
-        if self._transfer is not None and self._last[1] == temperature and \
+        if self._transfer is not None and self._last is not None and self._last[1] == temperature and \
                 not self.scene.changes(min(self._last[0], t), max(self._last[0], t)):
             self.reuses += 1
             return self._transfer

@@ -29,6 +29,8 @@ Drives that need more than the source's compliance are flagged COMPLIANCE.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from appliance.core.protocols import Protocol
@@ -37,6 +39,9 @@ from appliance.drivers.emulated.electrode_interface import ElectrodeContact, det
 from appliance.drivers.frontend import OVER_RANGE
 from appliance.drivers.profile import BoardProfile
 from appliance.drivers.scan import Flag
+
+if TYPE_CHECKING:
+    from appliance.drivers.emulated.parallel import ParallelErrors
 
 
 class FrameChain:
@@ -60,12 +65,14 @@ class FrameChain:
             from appliance.drivers.frontend_rms import digipot_setting, rms_ranges
 
             self.ranges = rms_ranges(profile)
+            assert profile.excitation.current_a is not None     # the chain's: board_profile checked it is set
             self.current_a = digipot_setting(profile, profile.excitation.current_a)[1]
         else:
             from appliance.drivers.frontend_ad5933 import ACTUAL_VPP, ad5933_ranges
 
             self.ranges = ad5933_ranges(profile)
             x = profile.excitation
+            assert x.output_range_vpp is not None and x.transconductance_a_per_v is not None
             self.current_a = ACTUAL_VPP[x.output_range_vpp] / (2 * np.sqrt(2)) * x.transconductance_a_per_v
         self.full_scale = np.array([r.full_scale_input_v for r in self.ranges])
         self.gain = np.array([r.gain for r in self.ranges])
@@ -83,12 +90,14 @@ class FrameChain:
         """(what the detector reports, the quadrature part it was given), volts rms."""
         a, b, c, d = (protocol.readings - 1).T
         z, compliance = transfer, self.profile.excitation.compliance_v
+        assert compliance is not None                   # board_profile sets it
         if self.contact is None:
             drive_ohm = z[a, a] - z[a, b] - z[b, a] + z[b, b] + series_ohm
             current = compliant_current(self.current_a, drive_ohm, compliance)
             self.at_compliance = self.current_a * np.abs(drive_ohm) > compliance
             return current * (z[c, a] - z[c, b] - z[d, a] + z[d, b]), np.zeros(len(a))
         x, m = self.profile.excitation, self.profile.measurement
+        assert m.detector is not None                   # board_profile sets it
         phasors, _, self.at_compliance = reading_phasors(z, protocol.readings - 1, self.current_a, self.contact,
                                                          x.frequency_hz, m.input_capacitance_f or 0.0, compliance,
                                                          series_ohm)
@@ -125,6 +134,7 @@ class FrameChain:
             return adc_full_scale / 32768
         m = self.profile.measurement
         pga = np.array([rng.second_stage for rng in self.ranges])[r]
+        assert m.dft_counts_per_volt is not None and m.vin_gain is not None
         # One DFT count, referred to the RMS level after the in-amp and AD8251.
         return 1.0 / (m.dft_counts_per_volt * m.vin_gain * np.sqrt(2) * pga)
 
@@ -142,6 +152,10 @@ class ParallelFrameChain(FrameChain):
     (NaN); below ``sign_floor_v`` they are flagged LOW_SIGNAL and SIGN_UNCERTAIN.
     """
 
+    # The parallel chain's own error model and its one fixed gain, where the serial chains have a gain per range.
+    errors: ParallelErrors      # type: ignore[assignment]
+    gain: float                 # type: ignore[assignment]
+
     def __init__(self, profile: BoardProfile, *, errors=None, seed: int = 0, contact: ElectrodeContact | None = None):
         from appliance.drivers.channel_map import ChannelMap
         from appliance.drivers.emulated.parallel import ParallelErrors
@@ -155,6 +169,7 @@ class ParallelFrameChain(FrameChain):
         self.cmap = ChannelMap.of_profile(profile)
         self.errors = errors or ParallelErrors.drawn(np.random.default_rng(seed), self.cmap.n_channels)
         self.ranges = parallel_ranges(profile)
+        assert profile.excitation.current_a is not None     # the chain's: board_profile checked it is set
         self.current_a = digipot_setting(profile, profile.excitation.current_a)[1]
         self.full_scale = np.array([r.full_scale_input_v for r in self.ranges])
         self.gain = self.ranges[0].gain
@@ -162,6 +177,7 @@ class ParallelFrameChain(FrameChain):
     def check(self, protocol: Protocol) -> None:
         """Refuse a protocol measuring a pair no channel reads, or for another grid."""
         g = self.profile.grid
+        assert g is not None                            # a parallel profile has its grid
         if protocol.n_electrodes != g.rows * g.cols:
             raise ValueError(f"protocol for {protocol.n_electrodes} electrodes on a parallel front end built for a "
                              f"{g.rows} x {g.cols} grid")
@@ -199,6 +215,7 @@ class ParallelFrameChain(FrameChain):
                                    * self.quadrature_v) + e.offset_v[channels]
         pin += e.input_noise_v * self.gain * self.rng.standard_normal(n)
         oversampling = self.profile.measurement.adc_oversampling
+        assert oversampling is not None
         codes = np.clip(np.round(pin / lsb + e.adc_noise_lsb / np.sqrt(oversampling) * self.rng.standard_normal(n)),
                         -32768, 32767)
         zero_lsb = self.ranges[-1].second_stage / 32768

@@ -64,7 +64,7 @@ class PressureField:
         cols, rows = round(width_mm / pitch_mm), round(height_mm / pitch_mm)
         return cls(np.full((rows, cols), float(pressure_kpa)), pitch_mm)
 
-    def coarsened(self, factor: int) -> "PressureField":
+    def coarsened(self, factor: int) -> PressureField:
         """Cells merged ``factor`` x ``factor`` (their mean pressure: the force is kept)."""
         rows, cols = self.pressure_kpa.shape
         if factor < 1 or rows % factor or cols % factor:
@@ -72,7 +72,7 @@ class PressureField:
         blocks = self.pressure_kpa.reshape(rows // factor, factor, cols // factor, factor)
         return PressureField(blocks.mean(axis=(1, 3)), self.pitch_mm * factor)
 
-    def with_square_load(self, x_mm: float, y_mm: float, side_mm: float, pressure_kpa: float) -> "PressureField":
+    def with_square_load(self, x_mm: float, y_mm: float, side_mm: float, pressure_kpa: float) -> PressureField:
         """This field plus a flat square load centred at (x, y); cells count by the share they overlap."""
         w, h = self.size_mm
         half = side_mm / 2

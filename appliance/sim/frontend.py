@@ -20,6 +20,7 @@ from appliance.core.protocols import Protocol
 from appliance.drivers.adaptive import AdaptivePlan
 from appliance.drivers.profile import BoardProfile, board_profile
 from appliance.drivers.scan import UNUSABLE, Flag, TechnicalCondition, saturation_condition
+from appliance.errors import ConfigError
 from appliance.sim.bed import VirtualBed
 from appliance.sim.chain import FrameChain
 from appliance.sim.scenes import ElectrodeFault
@@ -46,6 +47,7 @@ def virtual_board(layout) -> dict:
     rows, cols = layout.grid_shape
     table = {"profile": "parallel", "grid": {"rows": rows, "cols": cols}}
     base = board_profile({"profile": "parallel"})
+    assert base.measurement.adc_tile_rows is not None      # the parallel profile's: board_profile checked it
     adcs = ChannelMap(rows, cols, base.measurement.adc_tile_rows).n_adcs
     lines = len(base.adc_address_lines)
     extra = {f"adc_cs_a{lines + k}": pin
@@ -106,7 +108,7 @@ class VirtualFrontEnd:
     def _seed_noise(self, t: float) -> None:
         """Noise drawn from the frame's scene time (and how many frames came before it at that instant),
         so a monitor restarted mid-scene reads the very frames an uninterrupted one would have."""
-        ms = int(round(t * 1000))
+        ms = round(t * 1000)
         repeat = self._noise_key[1] + 1 if self._noise_key[0] == ms else 0
         self._noise_key = (ms, repeat)
         self.chain.rng = np.random.default_rng([self.seed, ms, repeat])
@@ -133,6 +135,9 @@ class VirtualFrontEnd:
         self._seed_noise(t)
         volts, flags = self.chain.readings(self.bed.transfer_ohm(t), self.protocol)
         if loaded is not None and self._last is not None:
+            if self.plan is None:
+                raise ConfigError("adaptive frames need a front end built for a grid ([board.grid], the parallel "
+                                  "profile)")
             held = ~np.isin(self.protocol.drive_index, self.plan.drives_for(loaded))
             volts[held], flags[held] = self._last[0][held], self._last[1][held] | Flag.HELD
         self._last = (volts.copy(), flags.copy())

@@ -98,6 +98,7 @@ def square_loads_read_back(model, calibration, front, place, area_cm2: float, *,
         image, info = model.reconstruct(frame.volts, reference, iterate="always")
         kpa = pressure_map(image, calibration, grid, time_s=frame.time_s, usable_readings=info["usable_readings"])
         region = peak_region(kpa.pressure_kpa, grid)
+        assert region is not None, "a load on the mat gives a loaded region"
         peak_errors.append(kpa.peak_kpa / load.pressure_kpa - 1)
         centre_errors.append(np.hypot(region.x_mm - load.x_mm, region.y_mm - load.y_mm))
     place(None)

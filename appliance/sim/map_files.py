@@ -73,7 +73,7 @@ def read_map_mmhg(path) -> np.ndarray:
         lines.pop(0)
     if not lines:
         raise DataFileInvalid(f"{what} holds no values")
-    rows = []
+    rows: list[list[float]] = []
     for n, line in lines:
         cells = line.split(",")
         if rows and len(cells) != len(rows[0]):

@@ -363,7 +363,8 @@ def _pmat_segment(segment: dict, where: str, folder: Path, grid: MatGrid):
         raise ConfigError(f"{where}: shift_mm must be [across, along] in mm, each within 300, got {shift!r}")
     hold = _not_negative(segment, "hold_s", where, None)
     pitch = check_pitch_mm(segment.get("pitch_mm", PMAT_SENSEL_MM), f"{where}: pitch_mm")
-    return pmat_scene(data_dir, subject, posture, grid, sensel_mm=pitch, shift_mm=tuple(map(float, shift))), hold
+    across, along = float(shift[0]), float(shift[1])
+    return pmat_scene(data_dir, subject, posture, grid, sensel_mm=pitch, shift_mm=(across, along)), hold
 
 
 def _map_segment(segment: dict, where: str, folder: Path, grid: MatGrid):
@@ -437,7 +438,7 @@ def _next_state(kind, event, state, last, where, grid, subject) -> Placement | N
 
 def _check_fits(placement: Placement, where: str, grid: MatGrid, subject: Subject, surface: str) -> None:
     for key, value, size in (("x_mm", placement.x_mm, grid.width_mm), ("y_mm", placement.y_mm, grid.height_mm)):
-        if not 0 <= value <= size:
+        if value is not None and not 0 <= value <= size:        # None: centred
             raise ConfigError(f"{where}: {key} = {value:g} puts the body off the "
                               f"{grid.width_mm:g} x {grid.height_mm:g} mm mat")
     try:

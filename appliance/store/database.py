@@ -101,7 +101,7 @@ class Store:
 
     def __init__(self, db: sqlite3.Connection, path: str, *, history_interval_s: float, history_days: float,
                  event_days: float, max_bytes: int):
-        self._db = db
+        self._db: sqlite3.Connection | None = db
         self.path = path
         self.history_interval_s = history_interval_s
         self.history_days = history_days

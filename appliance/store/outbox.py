@@ -223,5 +223,5 @@ class Outbox:
             entry = self._confirmed.pop(seq)
             self._identities.pop(identity(entry.event), None)
             alarm_id = entry.event.get("alarm_id")
-            if self._alarm_seq.get(alarm_id) == seq:
+            if alarm_id is not None and self._alarm_seq.get(alarm_id) == seq:
                 del self._alarm_seq[alarm_id]

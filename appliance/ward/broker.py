@@ -273,7 +273,7 @@ def _checked_listener(listener: Listener) -> Listener:
     for option, path in (("--certfile", listener.certfile), ("--keyfile", listener.keyfile)):
         if path is not None and not Path(path).is_file():
             raise ConfigError(f"{option} {path}: no such file")
-    if listener.certfile is None:
+    if listener.certfile is None or listener.keyfile is None:
         return listener
     return Listener(listener.port, Path(listener.certfile).absolute(), Path(listener.keyfile).absolute())
 

@@ -120,7 +120,7 @@ def board():
 def test_lines_are_found_by_the_pis_names_on_whichever_chip_has_them(pi):
     assert gpiochip_paths() == sorted([pi.decoy, pi.header], key=lambda path: int(path.removeprefix("/dev/gpiochip")))
     found = find_line_chips(PROFILE.gpio.values())
-    assert found == {name: pi.header for name in PROFILE.gpio.values()}
+    assert found == dict.fromkeys(PROFILE.gpio.values(), pi.header)
     assert find_line_chips(["SDA1", "DECOY3"]) == {"SDA1": pi.header, "DECOY3": pi.decoy}
 
 

@@ -81,6 +81,7 @@ class EmulatedAD5933(I2CChipEmulator):
 
     name = "AD5933"
     address = 0x0D
+    pointer: int | None                 # the register the pointer protocol reads next
 
     def __init__(self, clock: SimulatedClock, vin: Callable[[float], complex] | None = None, *,
                  mclk_hz: float = 16.776e6, temperature_c: Callable[[float], float] | None = None,
@@ -144,9 +145,9 @@ class EmulatedAD5933(I2CChipEmulator):
         return bytes(self._register(first + offset) for offset in range(n))
 
     def _power_on(self) -> None:
-        self.registers = {register: 0 for register in (*RESERVED_BITS, *READ_ONLY)}
+        self.registers = dict.fromkeys((*RESERVED_BITS, *READ_ONLY), 0)
         self.registers[CONTROL_HB] = 0xA0
-        self.pointer: int | None = None
+        self.pointer = None
         self.mode = POWER_DOWN
         self._status = 0
         self._start_code = self._increment_code = self._increments = self._index = 0
@@ -236,7 +237,9 @@ class EmulatedAD5933(I2CChipEmulator):
         settling_hb = self.registers[SETTLING_HB]
         cycles = ((settling_hb & 1) << 8 | self.registers[0x8B]) * SETTLING_MULTIPLIERS[settling_hb >> 1 & 0b11]
         self._status &= ~VALID_DATA
-        self._data_due_s = (self.clock.monotonic() + cycles / self.output_frequency_hz
+        frequency_hz = self.output_frequency_hz
+        assert frequency_hz is not None         # initialised or sweeping
+        self._data_due_s = (self.clock.monotonic() + cycles / frequency_hz
                             + DFT_SAMPLES / (self.mclk_hz / 16))
 
     def _stop(self, mode: str) -> None:
@@ -264,8 +267,9 @@ class EmulatedAD5933(I2CChipEmulator):
         if peak_v > ADC_CLIP_V_PEAK:
             v *= _clipped_fundamental_v(peak_v, ADC_CLIP_V_PEAK) / peak_v
         z = COUNTS_PER_VOLT * v * cmath.exp(1j * math.radians(SYSTEM_PHASE_DEG))
-        return tuple(max(-32768, min(32767, round(part + self._rng.gauss(0.0, self.noise_counts))))
-                     for part in (z.real, z.imag))
+        real, imag = (max(-32768, min(32767, round(part + self._rng.gauss(0.0, self.noise_counts))))
+                      for part in (z.real, z.imag))
+        return real, imag
 
     def _value(self, first: int, n_bytes: int) -> int:
         return int.from_bytes(bytes(self.registers[first + i] for i in range(n_bytes)), "big")

@@ -39,8 +39,11 @@ class EmulatedAD8251:
         self._gain = 1
         self._changed_at: dict[str, tuple[float, int]] = {}
         self._seen = {name: bank.driven.get(name, 0) for name in (a0, a1)}
+        def watcher(name: str) -> Callable[[int, int], None]:
+            return lambda old, new: self._address_changed(name, new)
+
         for name in (a0, a1):
-            bank.watch(name, lambda old, new, name=name: self._address_changed(name, new))
+            bank.watch(name, watcher(name))
         bank.watch(wr, self._wr_changed)
 
     @property

@@ -120,10 +120,11 @@ class EmulatedAD9833(SPIChipEmulator):
 
     def _write_frequency(self, n: int, data: int) -> None:
         if self.control & B28:
-            if self._pending_lsb[n] is None:
+            lsb = self._pending_lsb[n]
+            if lsb is None:
                 self._pending_lsb[n] = data
             else:
-                self.freq[n] = (data << 14) | self._pending_lsb[n]
+                self.freq[n] = (data << 14) | lsb
                 self._pending_lsb[n] = None
             return
         msb = bool(self.control & HLB)

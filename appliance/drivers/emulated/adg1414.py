@@ -42,7 +42,8 @@ def drive_of(words: Sequence[int]) -> tuple[int | None, int | None]:
         if len(bus) > 1:
             raise EmulatorViolation(f"drive matrix: electrodes {', '.join(str(e + 1) for e in bus)} all on the "
                                     f"{name} bus; the current would divide between them")
-    return tuple(bus[0] if bus else None for bus in buses)
+    source, sink = (bus[0] if bus else None for bus in buses)
+    return source, sink
 
 
 class EmulatedADG1414Chain(SPIChipEmulator):
@@ -51,7 +52,7 @@ class EmulatedADG1414Chain(SPIChipEmulator):
     name = "ADG1414 chain"
     modes = frozenset({1, 2})
 
-    def __init__(self, chips: int, *, validate: Callable[[list[int]], None] | None = None):
+    def __init__(self, chips: int, *, validate: Callable[[list[int]], object] | None = None):
         self.chips = chips
         self.max_speed_hz = 50_000_000 if chips == 1 else DAISY_MAX_SPEED_HZ
         self.validate = validate

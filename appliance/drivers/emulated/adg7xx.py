@@ -33,6 +33,7 @@ class _SerialMux(SPIChipEmulator):
 
     modes = frozenset({1, 2})
     max_speed_hz = 30_000_000
+    _state: dict[str, int | None]           # mux name -> channel, None when off
 
     def __init__(self):
         self.listeners: list[Callable[[], None]] = []

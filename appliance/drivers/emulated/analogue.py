@@ -57,7 +57,8 @@ class SensorModel(Protocol):
     """The mat as the chain sees it: transfer impedances between electrodes at a time, and the electrodes'
     contacts (``contact``: R parallel C, or None for the forward model's resistive contacts alone)."""
 
-    n_electrodes: int
+    @property
+    def n_electrodes(self) -> int: ...
 
     def transfer_ohm(self, now_s: float) -> np.ndarray:
         """Volts at electrode m per amp into electrode l (and out through ground), shape (n, n)."""
@@ -94,7 +95,7 @@ class ChainErrors:
         return self.scale * (1 + np.reshape(errors, np.shape(pga_gain)))
 
     @classmethod
-    def drawn(cls, rng: np.random.Generator, gains=(1, 2, 4, 8)) -> "ChainErrors":
+    def drawn(cls, rng: np.random.Generator, gains=(1, 2, 4, 8)) -> ChainErrors:
         return cls(scale=1.0 + rng.uniform(-0.003, 0.003),
                    gain_error={float(g): rng.uniform(-3e-4, 3e-4) for g in gains})
 

@@ -29,12 +29,13 @@ from appliance.drivers.emulated.adg7xx import EmulatedADG725, EmulatedADG731
 from appliance.drivers.emulated.ads1115 import EmulatedADS1115
 from appliance.drivers.emulated.analogue import AnalogueChain, ChainErrors, ChainState, SensorModel
 from appliance.drivers.emulated.buses import (BusTiming, EmulatedGPIOLines, EmulatedI2CBus, EmulatedSPIDevice,
-                                              FaultPlan, GPIOBank, Transaction)
+                                              FaultPlan, GPIOBank, I2CChipEmulator, SPIChipEmulator,
+                                              Transaction)
 from appliance.drivers.emulated.clock import SimulatedClock
 from appliance.drivers.emulated.mcp4017 import EmulatedMCP4017
 from appliance.drivers.emulated.mcp9808 import EmulatedMCP9808
 from appliance.drivers.profile import BoardProfile
-from appliance.errors import DeviceMissing
+from appliance.errors import ConfigError, DeviceMissing
 
 HOST = HOST_BOARDS["pi4b"]
 """The Pi the emulated front end sits on: its lines carry that board's names and its SPI1 refuses CPHA = 1."""
@@ -47,6 +48,8 @@ class EmulatedBoard(Board):
     A profile whose chain is ``parallel`` gets the parallel board
     (:mod:`appliance.drivers.emulated.parallel_board`), built the same way.
     """
+
+    clock: SimulatedClock
 
     def __new__(cls, profile: BoardProfile, *args, **kwargs):
         if cls is EmulatedBoard and profile.chain == "parallel":
@@ -66,9 +69,13 @@ class EmulatedBoard(Board):
         # The I2C bus runs at the clock the system's device tree gives it, whatever the profile hoped for.
         i2c_clock_hz = self.system.i2c_clock_hz.get(profile.i2c_bus, I2C_DEFAULT_CLOCK_HZ)
         self.timing = BusTiming(i2c_clock_hz, profile.timing.call_overhead_s)
-        self.bank = GPIOBank(self.clock, HOST.names(self.system.kernel), self.log)
+        names = HOST.names(self.system.kernel)
+        if names is None:
+            raise ConfigError(f"the {HOST.model}'s GPIO line names under the {self.system.kernel} kernel are not "
+                              "known: the emulated header needs them")
+        self.bank = GPIOBank(self.clock, names, self.log)
         self.i2c_bus = EmulatedI2CBus(profile.i2c_bus, self.clock, self.timing, self.log, self.faults)
-        self.spi_chips: dict[tuple[int, int], object] = {}
+        self.spi_chips: dict[tuple[int, int], SPIChipEmulator] = {}
         self.temperature_c = temperature_c
         rng = np.random.default_rng(seed)
         self.chain = self._build_chain(rng, seed)
@@ -80,6 +87,7 @@ class EmulatedBoard(Board):
     def _build_chain(self, rng, seed: int) -> AnalogueChain:
         p = self.profile
         t = p.timing
+        assert p.excitation.compliance_v is not None     # board_profile sets it
         return AnalogueChain(self.clock, self.sensor, state=self._chain_state, inamp_gain=p.measurement.inamp_gain,
                              compliance_v=p.excitation.compliance_v, drive_settle_s=t.drive_settle_s,
                              settle_accuracy=t.settle_accuracy or 1e-4,
@@ -95,6 +103,7 @@ class EmulatedBoard(Board):
         self.thermometer = EmulatedMCP9808(self.clock, lambda now: self.temperature_c,
                                            address=p.i2c["thermometer"])
         self.i2c_bus.attach(self.thermometer)
+        self.muxes: dict[str, EmulatedADG725 | EmulatedADG731]
         if p.multiplexer == "adg725":
             self.muxes = {role: EmulatedADG725() for role in ("drive_mux", "measure_mux")}
         else:
@@ -113,25 +122,30 @@ class EmulatedBoard(Board):
             self.bank.connect(gpio["phase_sign"], self.chain.phase_source())
         else:
             vin_gain = p.measurement.vin_gain
+            assert vin_gain is not None         # the chain's: board_profile checked it is set
             self.impedance = EmulatedAD5933(self.clock, lambda now: self.chain.vin_phasor(now, vin_gain),
                                             seed=seed + 1)
             self.i2c_bus.attach(self.impedance)
 
     def _listen(self) -> None:
-        chips = [self.pga, *self.muxes.values()]
-        chips += [self.dds, self.digipot] if self.profile.chain == "rms" else [self.impedance]
-        for chip in chips:
-            chip.listeners.append(self.chain.state_changed)
+        listeners = [self.pga.listeners, *(mux.listeners for mux in self.muxes.values())]
+        listeners += ([self.dds.listeners, self.digipot.listeners] if self.profile.chain == "rms"
+                      else [self.impedance.listeners])
+        for chip_listeners in listeners:
+            chip_listeners.append(self.chain.state_changed)
         self.bank.watch(self.profile.gpio["source_enable"], lambda old, new: self.chain.state_changed())
 
     def _pair(self, pos_role: str, neg_role: str | None = None) -> tuple[int, int] | None:
         """The electrodes (0-based) a multiplexer pair connects, None while either is off."""
         if neg_role is None:
             mux = self.muxes[pos_role]
-            pair = (mux.selected("A"), mux.selected("B"))
+            assert isinstance(mux, EmulatedADG725)
+            a, b = mux.selected("A"), mux.selected("B")
         else:
-            pair = (self.muxes[pos_role].selected(), self.muxes[neg_role].selected())
-        return None if None in pair else pair
+            pos, neg = self.muxes[pos_role], self.muxes[neg_role]
+            assert isinstance(pos, EmulatedADG731) and isinstance(neg, EmulatedADG731)
+            a, b = pos.selected(), neg.selected()
+        return None if a is None or b is None else (a, b)
 
     def _chain_state(self) -> ChainState:
         p = self.profile
@@ -148,9 +162,11 @@ class EmulatedBoard(Board):
         if self.profile.chain == "rms":
             if self.dds.output_hz <= 0 or self.dds.waveform != "sine":
                 return 0.0
+            assert x.full_scale_current_a is not None
             return x.full_scale_current_a * self.digipot.wiper / 127
         if self.impedance.output_frequency_hz is None:
             return 0.0
+        assert x.transconductance_a_per_v is not None
         return self.impedance.output_vpp / (2 * np.sqrt(2)) * x.transconductance_a_per_v
 
     # -- Board ---------------------------------------------------------------------------
@@ -161,7 +177,7 @@ class EmulatedBoard(Board):
             raise DeviceMissing(f"SPI {name}: no such device (is SPI enabled with dtparam=spi=on, and does the "
                                 "board have this chip select?)")
         controller = HOST.spi.get(bus)
-        if controller is not None and mode not in controller.modes:
+        if controller is not None and controller.modes is not None and mode not in controller.modes:
             raise os_error_to_bus_error(f"SPI {name}", OSError(errno.EINVAL, f"Invalid argument: mode {mode} on "
                                                                               f"{controller.driver}"))
         return EmulatedSPIDevice(name, mode, max_speed_hz, chip, self.clock, self.timing, self.log, self.faults)
@@ -177,7 +193,9 @@ class EmulatedBoard(Board):
 
     def reset(self) -> None:
         """Every chip to its power-on state, faults cleared, log emptied (the mat is kept)."""
-        for chip in [*self.spi_chips.values(), *self.i2c_bus.chips.values(), self.pga]:
+        chips: list[SPIChipEmulator | I2CChipEmulator | EmulatedAD8251] = [
+            *self.spi_chips.values(), *self.i2c_bus.chips.values(), self.pga]
+        for chip in chips:
             chip.reset()
         self.faults.clear()
         self.log.clear()

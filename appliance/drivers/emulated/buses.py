@@ -202,7 +202,12 @@ class EmulatedI2CBus(I2CBus):
 
     def write(self, address: int, data: bytes) -> None:
         data = bytes(data)
-        self._transact("i2c-write", address, data, 0, 1, lambda chip: chip.write(data) or b"")
+
+        def write(chip: I2CChipEmulator) -> bytes:
+            chip.write(data)
+            return b""
+
+        self._transact("i2c-write", address, data, 0, 1, write)
 
     def read(self, address: int, n: int) -> bytes:
         return self._transact("i2c-read", address, b"", n, 1, lambda chip: _exactly(chip.read(n), n, chip))
@@ -351,8 +356,9 @@ class EmulatedGPIOLines(GPIOLines):
 
     def _next_edge(self, name: str) -> float | None:
         """When the first edge of ``name`` not yet taken came or will come; None if none is known."""
-        source = self.bank.sources.get(name)
-        return None if source is None else source.next_edge(self._taken_until[name], self.request.inputs[name])
+        source, edge = self.bank.sources.get(name), self.request.inputs[name]
+        assert edge is not None                 # _check_edge_input saw it requested with edge detection
+        return None if source is None else source.next_edge(self._taken_until[name], edge)
 
     def release(self) -> None:
         self.released = True

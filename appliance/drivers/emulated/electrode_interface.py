@@ -53,7 +53,7 @@ class ElectrodeContact:
 
     @classmethod
     def uniform(cls, n_electrodes: int, *, resistance_ohm: float, capacitance_f: float, spread: float = 0.0,
-                rng: np.random.Generator | None = None) -> "ElectrodeContact":
+                rng: np.random.Generator | None = None) -> ElectrodeContact:
         """Every electrode at the nominal values, each scaled by a factor drawn from 1 +/- ``spread``."""
         rng = rng or np.random.default_rng(0)
         scale = 1 + spread * rng.uniform(-1, 1, (2, n_electrodes))

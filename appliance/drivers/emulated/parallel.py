@@ -72,7 +72,7 @@ class ParallelErrors:
     adc_noise_lsb: float = 0.5                      # AD7606 transition noise
 
     @classmethod
-    def drawn(cls, rng: np.random.Generator, n_channels: int) -> "ParallelErrors":
+    def drawn(cls, rng: np.random.Generator, n_channels: int) -> ParallelErrors:
         return cls(scale=1.0 + rng.uniform(-0.002, 0.002),
                    channel_gain=rng.uniform(-0.002, 0.002, n_channels),
                    offset_v=rng.uniform(-0.5e-3, 0.5e-3, n_channels),
@@ -201,9 +201,10 @@ class ParallelChain:
 
     def adc_inputs(self, t: float) -> np.ndarray:
         """The eight inputs of every AD7606 at ``t``, shape (n_adcs, 8); inputs with no channel read 0 V."""
-        if self._cache[0] != t:
+        cached_t, out = self._cache
+        if cached_t != t or out is None:
             out = np.zeros((self.cmap.n_adcs, CHANNELS_PER_ADC))
             index = self.cmap.adc_index
             out[index[:, 0], index[:, 1]] = self.outputs_v(t)
             self._cache = (t, out)
-        return self._cache[1]
+        return out

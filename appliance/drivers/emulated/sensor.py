@@ -39,7 +39,7 @@ class ForwardSensor:
 
     @classmethod
     def of_layout(cls, layout: Layout, *, inclusions=(), sheet_conductance_s: float = SALINE_SHEET_S,
-                  density: float = 1.0, contact: ElectrodeContact | None = None) -> "ForwardSensor":
+                  density: float = 1.0, contact: ElectrodeContact | None = None) -> ForwardSensor:
         """Solve the layout's finite-element model once; ``inclusions`` scale the sheet locally."""
         from appliance.core.fem import build_fem_model
         from appliance.core.forward import solve_electrodes

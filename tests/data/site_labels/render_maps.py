@@ -64,7 +64,7 @@ def draw(ax, kpa, title, vmax=120):
     im = ax.imshow(mmhg, cmap="jet", norm=PowerNorm(0.5, vmin=0, vmax=vmax), interpolation="nearest",
                    aspect="equal")
     ax.contour(mmhg, levels=[LOADED_MMHG], colors="white", linewidths=0.5)
-    for i, (r, c, p) in enumerate(find_spots(kpa), 1):
+    for i, (r, c, _) in enumerate(find_spots(kpa), 1):
         ax.plot(c, r, "o", mfc="none", mec="white", ms=7, mew=1.2)
         ax.text(c + 3, r, str(i), color="white", fontsize=10, fontweight="bold",
                 bbox=dict(facecolor="black", alpha=0.6, pad=0.5, lw=0))
@@ -100,7 +100,8 @@ if __name__ == "__main__":
         s = int(sys.argv[2])
         postures = [int(x) for x in sys.argv[4].split(",")] if len(sys.argv) > 4 else range(1, 18)
         render([(f"S{s} #{p} {NAMES[p]}", pmat_map(s, p)) for p in postures], sys.argv[3],
-               ncols=min(6, len(postures)) if len(sys.argv) <= 5 else int(sys.argv[5]), size=(20, 15.5) if len(sys.argv) <= 5 else (14, 15.5))
+               ncols=min(6, len(postures)) if len(sys.argv) <= 5 else int(sys.argv[5]),
+               size=(20, 15.5) if len(sys.argv) <= 5 else (14, 15.5))
     elif kind == "popu":
         v = int(sys.argv[2])
         render([(f"PoPu v{v} prone{k}", popu_map(f"prone{k}", v)) for k in range(1, 8)], sys.argv[3],
