@@ -25,15 +25,21 @@ def check_writable(path: Path, what: str, suffixes: tuple[str, ...] = (), kinds:
     return path
 
 
-def write_atomic(path: Path, content: str | bytes) -> None:
+def write_atomic(path: Path, content) -> None:
     """Write ``content`` to a new file beside ``path``, flush it to the disk, rename it over ``path``, and flush
-    the folder so the rename itself survives a power cut. A failed write leaves no temporary file behind."""
+    the folder so the rename itself survives a power cut. A failed write leaves no temporary file behind.
+
+    ``content`` is text, bytes, or a function writing to the open binary file: a large file (a model's
+    matrices) is then streamed rather than held in memory twice."""
     path = Path(path)
     data = content.encode("utf-8") if isinstance(content, str) else content
     handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(handle, "wb") as out:
-            out.write(data)
+            if callable(data):
+                data(out)
+            else:
+                out.write(data)
             out.flush()
             os.fsync(out.fileno())
         os.replace(temporary, path)

@@ -89,7 +89,8 @@ def pixel_jacobian(model: ForwardModel, sigma, protocol: Protocol, mapping: sp.s
     products summed over its elements, S = sum_e w_e (F_e u_e)^T (F_e u_e), are one
     dense matrix product (BLAS), from which every reading takes its four entries:
     -(S[a, c] - S[a, d] - S[b, c] + S[b, d]). Memory is the result plus one pixel's
-    L x L products; time is a few seconds on a bed mat.
+    node potentials and L x L products (no potentials of every node: 94 MiB on a bed mat);
+    time is a few seconds on a bed mat.
 
     Parameters
     ----------
@@ -109,13 +110,15 @@ def pixel_jacobian(model: ForwardModel, sigma, protocol: Protocol, mapping: sp.s
                          f"got shape {mapping.shape}")
     weight = np.where(model.fixed_elements, 0.0, sigma if relative else 1.0)
     factors = _square_roots(model.element_matrices)                    # (n_el, m, m): k_e = F^T F
-    potentials = model.node_map @ fields.solution                       # (n_nodes, L)
+    node_map = sp.csr_matrix(model.node_map)        # each pixel's node potentials taken as it comes, not all at once
     a, b, c, d = (protocol.readings - 1).T
     out = np.empty((len(protocol), mapping.shape[1]))
     for k in range(mapping.shape[1]):
         rows = slice(mapping.indptr[k], mapping.indptr[k + 1])
         elements, share = mapping.indices[rows], mapping.data[rows] * weight[mapping.indices[rows]]
-        f = np.matmul(factors[elements], potentials[model.element_nodes[elements]])    # (n, m, L)
+        nodes = model.element_nodes[elements]
+        u = (node_map[nodes.ravel()] @ fields.solution).reshape(*nodes.shape, -1)      # (n, m, L)
+        f = np.matmul(factors[elements], u)                                            # (n, m, L)
         f = (np.sqrt(share)[:, None, None] * f).reshape(-1, f.shape[2])
         s = f.T @ f
         out[:, k] = -(s[a, c] - s[a, d] - s[b, c] + s[b, d])

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import io
 import json
 import os
 from dataclasses import dataclass, field
@@ -401,9 +400,7 @@ def save_model(model: ReconstructionModel, path: Path) -> None:
         arrays["sensitivity"] = r.sensitivity
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
-    write_atomic(path, buffer.getvalue())
+    write_atomic(path, lambda out: np.savez(out, **arrays))
 
 
 def load_model(path: Path, setup: ModelSetup) -> ReconstructionModel:

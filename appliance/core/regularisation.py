@@ -144,14 +144,19 @@ class ExpectedErrorSpectrum:
     """
 
     def __init__(self, normal, prior, targets, desired, areas, left=None):
+        # In an order that frees each pixel-square matrix once it is used: a bed mat's are 30 MB each.
         self.mu, v = sla.eigh(normal, prior)
         u = v if left is None else left @ v
         weighted_u = u * areas[:, None]
         y = v.T @ (normal @ targets)                                  # (n, targets)
-        g = u.T @ weighted_u
-        self._g_m = g * (y @ y.T)
         self._h = np.einsum("it,it->i", y, weighted_u.T @ desired)
-        self._g_q = g * (v.T @ normal @ v)                            # R S R^T = L A^-1 N A^-1 L^T
+        g = u.T @ weighted_u
+        del u, weighted_u
+        self._g_m = y @ y.T
+        self._g_m *= g
+        del y
+        self._g_q = v.T @ normal @ v                                  # R S R^T = L A^-1 N A^-1 L^T
+        self._g_q *= g
         self._constant = float(np.einsum("pt,p,pt->", desired, areas, desired))
         self._targets = targets.shape[1]
 
