@@ -136,11 +136,10 @@ def main() -> None:
         subprocess.run(["git", "worktree", "add", "--detach", str(old), args.baseline], cwd=ROOT, check=True,
                        capture_output=True)
         try:
-            subprocess.run([sys.executable, "-c", RUNNER, "run", "--frames", "1", "--speed", "0", "--data-dir",
-                            str(work / "warm")], cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin",
-                                                                "HOME": str(Path.home())},
-                           capture_output=True, check=True)           # the model and calibration cached first
-            results = per_frame({"baseline": old, "this tree": ROOT}, work)
+            trees = {"baseline": old, "this tree": ROOT}
+            for tree in trees.values():                 # each tree's model and calibration cached before measuring
+                run(tree, 1, work)
+            results = per_frame(trees, work)
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(old)], cwd=ROOT, check=False)
     base, now = results["baseline"], results["this tree"]
