@@ -235,6 +235,7 @@ def test_a_nurse_acknowledges_the_alarm_finds_it_in_the_history_and_sees_the_pat
     assert "Accounts" not in text(driver, "header nav")                      # not for a nurse
 
     wait_for(lambda: "frame" in text(driver, "#status"), 30, "the live map")
+    assert text(driver, "#simulated") == "SIMULATED: the virtual bed, not a patient"     # on every page
     supine = driver.execute_script(MAP_PIXELS)
     wait_for(lambda: "sacrum" in text(driver, "#alarms"), 60, "the sacral alarm on the live view")
     wait_for(lambda: "[shown at the ward station]" in text(driver, "#alarms"), 30, "the ward's confirmation")
@@ -317,7 +318,8 @@ def test_the_ward_station_shows_every_bed_a_new_alarm_within_2_s_and_a_stopped_b
     def summarise():
         while running.is_set():
             for bed_id, notifier in notifiers.items():
-                notifier.summarise(summary(bed_id, time_s=time.time(), alarms=alarms.get(bed_id, ())))
+                notifier.summarise(summary(bed_id, time_s=time.time(), alarms=alarms.get(bed_id, ()),
+                                           source="virtual" if bed_id == "ward3-bed09" else "hardware"))
             time.sleep(0.5)
     publisher = threading.Thread(target=summarise, daemon=True)
     publisher.start()
@@ -334,6 +336,7 @@ def test_the_ward_station_shows_every_bed_a_new_alarm_within_2_s_and_a_stopped_b
         assert [t["bed"] for t in shown[:2]] == ["ward3-bed04", "ward3-bed09"]                   # high first
         assert "high" in shown[0]["class"] and "HIGH: Sacrum" in shown[0]["text"]
         assert shown[0]["link"] == "https://ward3-bed04.ward3.example/"
+        assert "SIMULATED: the virtual bed" in shown[1]["text"] and "SIMULATED" not in shown[0]["text"]
 
         # how fast it shows is measured in benchmarks/ward_load.py (median 137 ms, against the 2 s required)
         notifiers["ward3-bed11"].notify(alarm(alarm_id=7, time_s=time.time()))

@@ -200,10 +200,10 @@ def test_the_stream_sends_each_new_snapshot(app, tmp_path):
 def test_every_stream_shares_one_read_of_each_snapshot(app, tmp_path, monkeypatch):
     import webui.live
 
-    reads = []
-    monkeypatch.setattr(webui.live, "read_live", lambda path: reads.append(path) or read_live(path))
     client = app.test_client()
     set_up(client)
+    reads = []                                      # the streams' reads, after the pages of setting up
+    monkeypatch.setattr(webui.live, "read_live", lambda path: reads.append(path) or read_live(path))
     live = LiveChannel(tmp_path / "live.json")
     live.publish({"bed_id": "bed-4", "time_s": 1.0, "sequence": 7, "frame_interval_s": 1.0})
     live.close()

@@ -15,10 +15,10 @@ def as_sent(event, bed_id, seq=None):
     return {**event.to_dict(), "bed_id": bed_id, "seq": event.alarm_id if seq is None else seq}
 
 
-def summary(bed_id, time_s=100.0, alarms=(), seq=0):
-    """A summary, holding every event up to ``seq`` (a ward link sets its own)."""
+def summary(bed_id, time_s=100.0, alarms=(), seq=0, source="hardware"):
+    """A summary, holding every event up to ``seq`` (a ward link sets its own), from a monitor on ``source``."""
     return {"bed_id": bed_id, "time_s": time_s, "seq": seq, "peak_mmhg": 41.5,
             "regions": [{"zone": "sacrum", "peak_mmhg": 41.5, "dose": 0.3}], "turn": {"due_in_s": 3600.0},
             "alarms": [{"alarm_id": i, "key": "pressure:sacrum", "priority": p, "state": "active",
                         "message": "Sacrum dose over limit", "acknowledged_by": None} for i, p in alarms],
-            "status": {"maps": 7, "faults": 0}}
+            "status": {"maps": 7, "faults": 0, "source": source}}

@@ -54,7 +54,8 @@ def create_app(data_dir, *, secure_cookies: bool = True, blueprints=BLUEPRINTS, 
     app.extensions["login_limiter"] = LoginLimiter()
     app.before_request(guard)
     app.after_request(add_security_headers)
-    app.jinja_env.globals.update(csrf_token=csrf_token, nav_links=nav_links)
+    app.jinja_env.globals.update(csrf_token=csrf_token, nav_links=nav_links, simulated_banner=live.simulated_banner,
+                                 simulated_texts=live.SIMULATED)
     for blueprint in blueprints:
         app.register_blueprint(blueprint)
     return app

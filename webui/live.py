@@ -20,6 +20,9 @@ from appliance.service.live import read_live
 from webui.streams import event_stream
 
 bp = Blueprint("live", __name__)
+SIMULATED: dict[str | None, str] = {"virtual": "SIMULATED: the virtual bed, not a patient",
+                                     "emulated": "SIMULATED: an emulated front end, not a patient's mat"}
+"""The banner every page shows, by the monitor's ``source``; a real front end ("hardware") shows none."""
 STALE_AFTER_FRAMES = 3
 POLL_S = 0.2
 wall, monotonic = time.time, time.monotonic             # the clocks, replaceable by a test
@@ -43,6 +46,19 @@ def snapshot() -> dict:
     period = data.get("wall_interval_s") or data.get("frame_interval_s", 1.0)     # wall seconds between frames
     data["stale"] = age > STALE_AFTER_FRAMES * max(float(period), 1.0)
     return data
+
+
+def simulated_banner() -> str | None:
+    """The SIMULATED banner for the monitor whose ``live.json`` this screen reads, or None for real data.
+
+    A screen with no live view (the ward station's) or none written yet shows none: the live page says so.
+    """
+    path = current_app.config.get("LIVE_PATH")
+    try:
+        data = read_live(path) if path is not None else None
+    except ValueError:
+        return None
+    return SIMULATED.get(((data or {}).get("status") or {}).get("source"))
 
 
 @bp.route("/")

@@ -12,6 +12,7 @@ import time
 
 from flask import Blueprint, current_app, jsonify, render_template
 
+from webui.live import SIMULATED
 from webui.streams import event_stream
 
 bp = Blueprint("ward", __name__)
@@ -38,7 +39,8 @@ def _bed(bed: dict, now: float, config) -> dict:
             "heard_s_ago": None if bed["last_heard_at"] is None else round(now - bed["last_heard_at"], 1),
             "highest_priority": bed["highest_priority"], "alarms": bed["alarms"],
             "peak_mmhg": summary.get("peak_mmhg"), "turn_due_in_s": turn.get("due_in_s"), "regions": regions,
-            "screen_url": config.screen_of(bed["bed_id"])}
+            "screen_url": config.screen_of(bed["bed_id"]),
+            "simulated": SIMULATED.get((summary.get("status") or {}).get("source"))}
 
 
 def _change_key() -> tuple:

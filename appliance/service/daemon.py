@@ -78,7 +78,8 @@ def ward_summary(snapshot: dict) -> dict:
             "turn": {"due_in_s": snapshot["turn"]["due_in_s"]},
             "alarms": [{k: a[k] for k in ("alarm_id", "key", "priority", "state", "message", "acknowledged_by")}
                        for a in snapshot["alarms"]],
-            "status": {"maps": snapshot["status"]["maps"], "faults": snapshot["status"]["faults"]}}
+            "status": {"maps": snapshot["status"]["maps"], "faults": snapshot["status"]["faults"],
+                       "source": snapshot["status"].get("source")}}
 
 
 class MonitorDaemon:

@@ -16,8 +16,16 @@ function colour(mmhg) {
   return `rgb(${r},${g},${b})`;
 }
 
+function showSource(snapshot) {
+  const banner = document.getElementById("simulated");
+  const text = JSON.parse(banner.dataset.texts)[(snapshot.status || {}).source];
+  banner.hidden = !text;
+  banner.textContent = text || "";
+}
+
 function draw(snapshot) {
   document.getElementById("stale").hidden = !snapshot.stale;
+  if (snapshot.status) showSource(snapshot);
   const status = document.getElementById("status");
   if (!snapshot.map) { status.textContent = snapshot.message || "no map yet"; return; }
   const rows = snapshot.map.mmhg, canvas = document.getElementById("map"), ctx = canvas.getContext("2d");

@@ -18,6 +18,7 @@ function tile(bed) {
     title.appendChild(a);
   }
   div.appendChild(title);
+  if (bed.simulated) div.appendChild(element("p", "simulated", bed.simulated));
   if (!bed.online) {
     const heard = bed.heard_s_ago === null ? "never heard" : `last heard ${Math.round(bed.heard_s_ago)} s ago`;
     div.appendChild(element("p", "offline-note", `OFFLINE (${bed.status === "offline" ? "monitor stopped" : "silent"}, ${heard})`));
