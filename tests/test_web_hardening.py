@@ -393,3 +393,41 @@ def test_a_hundred_and_fifty_idle_connections_do_not_shut_out_a_browser(served):
     finally:
         for s in idle:
             s.close()
+
+
+def _first_start(app, base_url):
+    """The first-start page and the answer to its form, both at ``base_url``."""
+    client = app.test_client()
+    page = client.get("/setup", base_url=base_url).get_data(as_text=True)
+    sent = re.search(r'name="csrf_token" value="([^"]+)"', page).group(1)
+    return page, client.post("/setup", base_url=base_url, data={"name": "admin.ward3", "password": PASSWORD,
+                                                                 "confirm": PASSWORD, "csrf_token": sent})
+
+
+def test_over_plain_http_from_another_machine_the_screen_says_logging_in_needs_https(tmp_path):
+    app = create_app(tmp_path, TESTING=True)                       # Secure cookies, as the appliance serves it
+    page = app.test_client().get("/setup", base_url="http://bed-4.ward3.example").get_data(as_text=True)
+    assert "logging in needs HTTPS" in page and "https://bed-4.ward3.example/" in page     # before anyone types
+    sent = re.search(r'name="csrf_token" value="([^"]+)"', page).group(1)
+    # A browser keeps no Secure cookie from plain HTTP, so the form comes back without the session it needs.
+    answer = app.test_client().post("/setup", base_url="http://bed-4.ward3.example",
+                                    data={"name": "admin.ward3", "password": PASSWORD, "confirm": PASSWORD,
+                                          "csrf_token": sent})
+    assert answer.status_code == 400
+    said = answer.get_data(as_text=True)
+    assert "logging in needs HTTPS" in said and "CSRF" not in said      # ...and the reason given is the real one
+    assert app.extensions["users"].count() == 0
+
+
+@pytest.mark.parametrize("base_url", ["https://bed-4.ward3.example", "http://127.0.0.1:8080", "http://localhost"])
+def test_over_https_or_on_the_machine_itself_the_first_start_works_with_no_https_notice(tmp_path, base_url):
+    app = create_app(tmp_path, TESTING=True)
+    page, answer = _first_start(app, base_url)
+    assert "needs HTTPS" not in page
+    assert answer.status_code == 302 and app.extensions["users"].count() == 1
+
+
+def test_with_plain_http_chosen_no_https_notice_is_shown(tmp_path):
+    app = create_app(tmp_path, secure_cookies=False, TESTING=True)
+    page, answer = _first_start(app, "http://bed-4.ward3.example")
+    assert "needs HTTPS" not in page and answer.status_code == 302

@@ -23,7 +23,7 @@ from webui import accounts, alarms, auth, engineering, history, live, patient, s
 from webui.headers import add_security_headers
 from webui.limiter import LoginLimiter
 from webui.private import private_file
-from webui.security import csrf_token, guard
+from webui.security import csrf_token, guard, needs_https
 from webui.sessions import SessionStore
 from webui.users import UserStore
 
@@ -54,8 +54,8 @@ def create_app(data_dir, *, secure_cookies: bool = True, blueprints=BLUEPRINTS, 
     app.extensions["login_limiter"] = LoginLimiter()
     app.before_request(guard)
     app.after_request(add_security_headers)
-    app.jinja_env.globals.update(csrf_token=csrf_token, nav_links=nav_links, simulated_banner=live.simulated_banner,
-                                 simulated_texts=live.SIMULATED)
+    app.jinja_env.globals.update(csrf_token=csrf_token, nav_links=nav_links, needs_https=needs_https,
+                                 simulated_banner=live.simulated_banner, simulated_texts=live.SIMULATED)
     for blueprint in blueprints:
         app.register_blueprint(blueprint)
     return app

@@ -20,6 +20,19 @@ from webui.users import User
 
 PUBLIC_ENDPOINTS = {"auth.login", "auth.setup", "static"}
 STATE_CHANGING = {"POST", "PUT", "PATCH", "DELETE"}
+LOOPBACK_HOSTS = {"localhost", "127.0.0.1", "[::1]"}
+"""Where browsers keep Secure cookies over plain HTTP (a page on the machine itself is a secure context)."""
+NEEDS_HTTPS = ("logging in needs HTTPS: this page came over plain HTTP, where the browser drops the screen's "
+               "Secure session cookie. Open it as https://{host}/ (on the appliance, plain HTTP is redirected "
+               "there); on a trusted test network the screen can be started with --plain-http")
+
+
+def needs_https() -> str | None:
+    """Why logging in cannot work over this connection, or None when the session cookie will be kept."""
+    if not current_app.config.get("SESSION_COOKIE_SECURE") or request.is_secure:
+        return None
+    host = request.host.rsplit(":", 1)[0] if not request.host.endswith("]") else request.host
+    return None if host in LOOPBACK_HOSTS else NEEDS_HTTPS.format(host=host)
 
 
 def csrf_token() -> str:
@@ -34,7 +47,7 @@ def guard() -> Response | None:
     if request.method in STATE_CHANGING:
         sent = request.form.get("csrf_token") or request.headers.get("X-CSRF-Token") or ""
         if not session.get("csrf") or not secrets.compare_digest(sent, session["csrf"]):
-            abort(400, description="missing or wrong CSRF token: reload the page and try again")
+            abort(400, description=needs_https() or "missing or wrong CSRF token: reload the page and try again")
     users = current_app.extensions["users"]
     token = session.get("sid")
     g.user = current_app.extensions["sessions"].user(token) if token else None
