@@ -7,6 +7,7 @@ import pytest
 
 from appliance.core.pressure_map import HIGH_PRESSURE_MMHG
 from appliance.alerts.events import Event
+from appliance.alerts.wording import alarm_words
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.service.live import LiveChannel
 from appliance.store import Store
@@ -208,6 +209,15 @@ def test_the_running_monitors_regions_and_alarm_are_on_the_page(small_mat_calibr
     page = nurse.get("/history").get_data(as_text=True)
     assert page.count('<svg class="chart"') == len(data["regions"])
     assert f"<figcaption>{data['regions'][0]['label']}</figcaption>" in page
-    assert raised.key in page and "raised" in page
+    assert alarm_words(raised.key) in page and raised.key not in page and "raised" in page
     summary = nurse.get("/history/summary").get_data(as_text=True)
     assert raised.message in summary and "not acknowledged" in summary
+
+
+@pytest.mark.parametrize("path", ["/history", "/alarms", "/history/summary"])
+def test_nurse_pages_name_alarms_in_words_not_by_their_keys(filled, nurse, path):
+    page = nurse.get(path).get_data(as_text=True)
+    for key in ("pressure:sacrum", "technical:front-end", "turn:due"):
+        assert key not in page, (path, key)
+    if path != "/history/summary":                     # the summary lists clinical alarms by their messages
+        assert "Pressure at the sacrum" in page and "Equipment: measuring electronics" in page

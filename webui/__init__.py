@@ -19,6 +19,7 @@ from pathlib import Path
 
 from flask import Flask, current_app, g, redirect, url_for
 
+from appliance.alerts.wording import alarm_words, setting_words
 from webui import accounts, alarms, auth, engineering, history, live, patient, settings, ward
 from webui.headers import add_security_headers
 from webui.limiter import LoginLimiter
@@ -56,6 +57,7 @@ def create_app(data_dir, *, secure_cookies: bool = True, blueprints=BLUEPRINTS, 
     app.after_request(add_security_headers)
     app.jinja_env.globals.update(csrf_token=csrf_token, nav_links=nav_links, needs_https=needs_https,
                                  simulated_banner=live.simulated_banner, simulated_texts=live.SIMULATED)
+    app.jinja_env.filters.update(alarm_words=alarm_words, setting_words=setting_words)
     for blueprint in blueprints:
         app.register_blueprint(blueprint)
     return app

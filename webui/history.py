@@ -27,6 +27,7 @@ from appliance.alerts.alarms import PRIORITIES
 from appliance.alerts.pipeline import AlertSettings
 from appliance.alerts.anatomy import SITES, SMALL_MAT_SITE, UNIDENTIFIED_SITE, site_words
 from appliance.alerts.turns import TURN_KINDS as TURN_EVENT_KINDS
+from appliance.alerts.wording import alarm_words
 from appliance.core.pressure import KPA_PER_MMHG
 from webui.alarms import clock, store
 from webui.live import snapshot
@@ -275,7 +276,7 @@ def chart(series: RegionSeries, history: History, threshold: float) -> Chart:
 
     runs = unbroken_runs(series, history.map_times)
     markers = [Marker(x(e["time_s"]), "turn", f"{e['kind']} {clock(e['time_s'])}") for e in history.turns]
-    markers += [Marker(x(e["time_s"]), e["kind"], f"alarm {e['kind']}: {e.get('key')} {clock(e['time_s'])}"
+    markers += [Marker(x(e["time_s"]), e["kind"], f"alarm {e['kind']}: {alarm_words(e.get('key'))} {clock(e['time_s'])}"
                        + (f" by {e['user']}" if e.get("user") else ""))
                 for e in history.alarms
                 if e["kind"] in ("raised", "acknowledged") and e.get("site") in (None, *series.sites)]

@@ -35,7 +35,9 @@ def snapshot() -> dict:
     try:
         data = read_live(path)
     except ValueError as exc:           # damaged (a disk fault): shown as stale until the monitor rewrites it
-        return {"stale": True, "age_s": None, "message": f"the live view {path} cannot be read: {exc}"}
+        current_app.logger.warning("the live view cannot be read: %s", exc)
+        return {"stale": True, "age_s": None,
+                "message": "the monitor's newest frame cannot be read: it is written again at the next frame"}
     if data is None:
         return {"stale": True, "age_s": None, "message": "the monitor has not written a frame yet"}
     identity = (data.get("sequence"), data["written_at"])
