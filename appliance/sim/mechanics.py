@@ -73,7 +73,7 @@ from scipy.interpolate import RegularGridInterpolator
 from appliance.core.forward import ForwardModel
 from appliance.errors import ModelInputInvalid, SolverError
 from appliance.sim.field import PressureField
-from appliance.sim.multigrid import InexactSteps, MembraneHierarchy
+from appliance.sim.multigrid import InexactSteps, MembraneHierarchy, dot
 
 SOLVERS = ("multigrid", "direct")
 """How :func:`solve_deflection` solves a Newton step's systems."""
@@ -410,11 +410,11 @@ def solve_deflection(params: MatParameters, pressure_kpa: np.ndarray, pitch_mm: 
             pressure, stiffness_r = _reservoir_pressure(params, held)
             mismatch = pressure - liquid
             give = 1.0 / (cell_mm2 * stiffness_r)
-            liquid_step = ((_dot(volume, x1) + _dot(volume, u) - held / cell_mm2 + mismatch * give)
-                           / (_dot(volume, x2) + give))
+            liquid_step = ((dot(volume, x1) + dot(volume, u) - held / cell_mm2 + mismatch * give)
+                           / (dot(volume, x2) + give))
             held_step = (liquid_step - mismatch) / stiffness_r
         else:
-            liquid_step, held_step = (_dot(volume, x1) + _dot(volume, u)) / _dot(volume, x2), 0.0
+            liquid_step, held_step = (dot(volume, x1) + dot(volume, u)) / dot(volume, x2), 0.0
         step = x1 - liquid_step * x2
         w_step = basis @ step
         deeper = w_step > 0
@@ -445,12 +445,6 @@ def _reservoir_pressure(params: MatParameters, held_mm3: float) -> tuple[float, 
     c, v = params.reservoir_mm3_per_kpa, params.reservoir_capacity_mm3
     room = 1.0 - abs(held_mm3) / v
     return held_mm3 / (c * room), 1.0 / (c * room * room)
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    """a . b without BLAS: a threaded BLAS dot between two factorisations wakes idle threads that then
-    spin against the next factorisation, which cost a loaded two-core machine 25 ms a Newton step."""
-    return float(np.add.reduce(a * b))
 
 
 @dataclass(frozen=True)
