@@ -242,3 +242,7 @@ time (64.8 s against 61.9 s). The multigrid hierarchy holds across the whole ran
 on the membrane alone: where the foundation is stiff the system is diagonally dominant and Gauss-Seidel damps
 the error by itself, and where it is slack the membrane's smooth modes are what the coarse levels carry.
 """
+
+
+if __name__ == "__main__":
+    main()
