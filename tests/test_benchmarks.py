@@ -187,26 +187,37 @@ def test_contact_capacitance_benchmark_compares_the_detectors(monkeypatch):
     assert rms_change > 20 * in_phase_change, body
 
 
-def test_calibration_cost_counts_the_mechanics_factorisations_and_replays_them_exactly():
-    """Every Newton step of the mat mechanics is one counted factorisation, named where it is made; the
-    kept-factor replay finds the same deflections (to Newton's own tolerance) with fewer factorisations."""
+def test_calibration_cost_counts_the_mechanics_factorisations_and_replays_them_exactly(monkeypatch):
+    """A calibration-like run (maps in turn on the bed mat, each from the last one's deflection): a factorisation
+    per Newton step with the direct solver, counted where it is made; with multigrid only the grid's own two
+    and a small coarsest-level Cholesky a step. The replay finds the recorded deflections with both."""
     from appliance.sim import mechanics
     from appliance.sim.bed import BED_MAT_PARAMETERS
 
     bench = load("calibration_cost")
     rows, cols = np.mgrid[0:40, 0:20]
     fields = [np.where((rows - r) ** 2 + (cols - c) ** 2 < 30, kpa, 0.0) for r, c, kpa in
-              ((12, 8, 6.0), (14, 9, 8.0), (26, 11, 5.0))]
-    landed, start = [], None
-    with bench.Counted() as counted:
-        for field in fields:
-            landed.append(mechanics.solve_deflection(BED_MAT_PARAMETERS, field, 10.0, start_mm=start)[0])
-            start = landed[-1]
-    assert set(counted.calls) <= {"mechanics.py:solve_deflection", "mechanics.py:_bordered_system"}
-    assert counted.calls["mechanics.py:solve_deflection"] >= 3 * len(fields)    # several Newton steps a field
-    kept, start = bench.KeptFactor(), None
-    for field, deflection in zip(fields, landed):
-        replayed = bench.newton_with(BED_MAT_PARAMETERS, field, 10.0, start, kept)
-        assert np.abs(replayed - deflection).max() < 1e-9
-        start = deflection
-    assert 1 <= kept.factorisations < counted.calls["mechanics.py:solve_deflection"]
+              ((12, 8, 6.0), (14, 9, 8.0), (26, 11, 5.0), (20, 10, 40.0), (21, 10, 0.5), (8, 6, 12.0))]
+    counts, solves = {}, []
+    for solver in bench.SOLVERS:
+        mechanics._bordered_system.cache_clear()
+        start = None
+        with bench.Counted() as counted:
+            for field in fields:
+                deflection = mechanics.solve_deflection(BED_MAT_PARAMETERS, field, 10.0, start_mm=start,
+                                                        solver=solver)
+                if solver == "direct":
+                    solves.append((BED_MAT_PARAMETERS, field, 10.0, None, start, deflection))
+                start = deflection[0]
+        counts[solver] = counted
+    direct, multigrid = counts["direct"], counts["multigrid"]
+    assert direct.calls["mechanics.py:solve"] == direct.steps >= 3 * len(fields)    # several Newton steps a field
+    assert direct.calls["mechanics.py:_bordered_system"] == 2 and direct.setups == direct.iterations == 0
+    assert bench.mechanics_factorisations(multigrid.calls) == 2, multigrid.calls     # the grid's, once
+    assert multigrid.calls["multigrid.py:preconditioner"] == multigrid.steps and multigrid.setups == 1
+    assert multigrid.iterations >= 2 * multigrid.steps
+    monkeypatch.setattr(bench, "REPEATS", 1)
+    replayed = bench.replay(solves)
+    assert bench.mechanics_factorisations(replayed["direct"][0].calls) == replayed["direct"][0].steps
+    assert bench.mechanics_factorisations(replayed["multigrid"][0].calls) == 0      # the grid is set up already
+    assert replayed["direct"][2] == 0.0 and replayed["multigrid"][2] < 1e-9

@@ -42,8 +42,9 @@ they share three unknowns, its sink and two tilts. It also sinks into the
 membrane's surface before it moves any liquid (:func:`surface_sink_mm`): every
 thesis table's first weight sinks about 0.3 mm more than the rest of its branch
 carries on, whatever its area, with no matching signal. The problem is the
-minimum of a convex energy, solved by Newton's method on the bordered system
-with one sparse factorisation per step.
+minimum of a convex energy, solved by Newton's method on the bordered system;
+each step's systems by conjugate gradients on a multigrid hierarchy made once for
+the grid (:mod:`appliance.sim.multigrid`), or by a sparse factorisation each.
 
 >>> from appliance.sim.field import PressureField
 >>> field = PressureField.uniform(100, 100, 2.0).with_square_load(50, 50, 20, 9.81)
@@ -72,6 +73,10 @@ from scipy.interpolate import RegularGridInterpolator
 from appliance.core.forward import ForwardModel
 from appliance.errors import ModelInputInvalid, SolverError
 from appliance.sim.field import PressureField
+from appliance.sim.multigrid import InexactSteps, MembraneHierarchy, dot
+
+SOLVERS = ("multigrid", "direct")
+"""How :func:`solve_deflection` solves a Newton step's systems."""
 
 TEMPERATURE_RANGE_C = (0.0, 60.0)
 """Where a linear temperature coefficient describes saline and glycol mixtures well enough."""
@@ -348,7 +353,7 @@ def platen_basis(shape: tuple[int, int], platen: np.ndarray | None) -> sp.csr_ma
 
 def solve_deflection(params: MatParameters, pressure_kpa: np.ndarray, pitch_mm: float,
                      platen: np.ndarray | None = None, start_mm: np.ndarray | None = None,
-                     max_steps: int = 100) -> tuple[np.ndarray, float]:
+                     max_steps: int = 100, solver: str = "multigrid") -> tuple[np.ndarray, float]:
     """Deflection (mm, positive down) and liquid pressure rise (kPa) under ``pressure_kpa`` (rows, cols).
 
     Damped Newton on -T lap(w) + f(w) + p_liquid = p with pitch^2 sum(w) equal to
@@ -356,7 +361,13 @@ def solve_deflection(params: MatParameters, pressure_kpa: np.ndarray, pitch_mm: 
     never takes more than 90 % of the remaining gap to the base, so the depth
     stays positive. ``start_mm`` (the last
     deflection) is where Newton starts; it changes the steps taken, not the answer.
+    ``solver`` solves each step's systems: ``"multigrid"`` by conjugate gradients on the grid's
+    multigrid hierarchy, as loosely as Newton's progress allows (:mod:`appliance.sim.multigrid`: no
+    factorisation of the mat), ``"direct"`` by a sparse factorisation per step, the reference it is
+    checked against. Both stop on the same rule.
     """
+    if solver not in SOLVERS:
+        raise ModelInputInvalid(f"mechanics solver must be one of {', '.join(SOLVERS)}, got {solver!r}")
     shape = np.shape(pressure_kpa)
     p = np.asarray(pressure_kpa, dtype=float).ravel()
     if not p.any():
@@ -384,14 +395,13 @@ def solve_deflection(params: MatParameters, pressure_kpa: np.ndarray, pitch_mm: 
     w, liquid, held = basis @ u, 0.0, 0.0          # held: the reservoir's volume, mm^3
     cell_mm2 = float(pitch_mm) ** 2
     capacity = params.reservoir_capacity_mm3
+    steps = InexactSteps(system.hierarchy) if solver == "multigrid" else _DirectSteps()
     for _ in range(max_steps):
         force, slope = foundation_force(params, w)
         residual = stiffness @ u + system.basis_t @ force + liquid * volume - load
-        matrix = sp.csc_matrix(stiffness + system.basis_t @ sp.diags(slope) @ basis)
-        # Symmetric positive definite, numbered in a fill-reducing order once for the grid: no ordering
-        # and no pivoting left to do.
-        lu = spla.splu(matrix, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-        x1, x2 = lu.solve(-residual), lu.solve(volume)
+        # Symmetric positive definite: the membrane's stiffness plus a non-negative diagonal.
+        matrix = sp.csr_matrix(stiffness + system.basis_t @ sp.diags(slope) @ basis)
+        x1, x2 = steps.solve(matrix, -residual, volume)
         # The bordered rows, linearised: pitch^2 sum(w) = held, and the reservoir's pressure at what it
         # holds is the liquid's (Schur complement on the liquid's pressure). The reservoir's volume is an
         # unknown beside the deflection: its pressure rises without bound as it fills, where a Newton
@@ -400,11 +410,11 @@ def solve_deflection(params: MatParameters, pressure_kpa: np.ndarray, pitch_mm: 
             pressure, stiffness_r = _reservoir_pressure(params, held)
             mismatch = pressure - liquid
             give = 1.0 / (cell_mm2 * stiffness_r)
-            liquid_step = ((_dot(volume, x1) + _dot(volume, u) - held / cell_mm2 + mismatch * give)
-                           / (_dot(volume, x2) + give))
+            liquid_step = ((dot(volume, x1) + dot(volume, u) - held / cell_mm2 + mismatch * give)
+                           / (dot(volume, x2) + give))
             held_step = (liquid_step - mismatch) / stiffness_r
         else:
-            liquid_step, held_step = (_dot(volume, x1) + _dot(volume, u)) / _dot(volume, x2), 0.0
+            liquid_step, held_step = (dot(volume, x1) + dot(volume, u)) / dot(volume, x2), 0.0
         step = x1 - liquid_step * x2
         w_step = basis @ step
         deeper = w_step > 0
@@ -419,18 +429,22 @@ def solve_deflection(params: MatParameters, pressure_kpa: np.ndarray, pitch_mm: 
                       f"{p.max():.4g} kPa, last step {np.abs(w_step).max():.3g} mm)")
 
 
+class _DirectSteps:
+    """A Newton step's systems by one sparse factorisation of its matrix."""
+
+    def solve(self, matrix: sp.csr_matrix, rhs: np.ndarray, volume: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # Numbered in a fill-reducing order once for the grid: no ordering and no pivoting left to do.
+        lu = spla.splu(sp.csc_matrix(matrix), permc_spec="NATURAL", diag_pivot_thresh=0.0,
+                       options={"SymmetricMode": True})
+        return lu.solve(rhs), lu.solve(volume)
+
+
 def _reservoir_pressure(params: MatParameters, held_mm3: float) -> tuple[float, float]:
     """The inverse of :func:`reservoir_volume_mm3`: the pressure (kPa) at which the reservoir holds
     ``held_mm3``, and its rate of change (kPa per mm^3)."""
     c, v = params.reservoir_mm3_per_kpa, params.reservoir_capacity_mm3
     room = 1.0 - abs(held_mm3) / v
     return held_mm3 / (c * room), 1.0 / (c * room * room)
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    """a . b without BLAS: a threaded BLAS dot between two factorisations wakes idle threads that then
-    spin against the next factorisation, which cost a loaded two-core machine 25 ms a Newton step."""
-    return float(np.add.reduce(a * b))
 
 
 @dataclass(frozen=True)
@@ -444,6 +458,11 @@ class _BorderedSystem:
     stiffness: sp.csr_matrix
     volume: np.ndarray
     projector: spla.SuperLU
+
+    @functools.cached_property
+    def hierarchy(self) -> MembraneHierarchy:
+        """The multigrid hierarchy of the membrane's stiffness, made on the first solve that needs it."""
+        return MembraneHierarchy(self.stiffness)
 
 
 @functools.lru_cache(maxsize=8)
