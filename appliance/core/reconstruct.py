@@ -42,6 +42,7 @@ in milliseconds, keeping lambda (a factored bed model updates its factor instead
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from dataclasses import dataclass
 from functools import cached_property
@@ -242,10 +243,8 @@ class NormalForm:
         update = None
         if k * (n + k) < n * n:
             c = self.solve(removed)
-            try:
+            with contextlib.suppress(np.linalg.LinAlgError):     # S not positive definite: a factor of its own
                 update = c, sla.cho_factor(np.eye(k) - removed.T @ c)
-            except np.linalg.LinAlgError:
-                pass                                  # the update is too ill-conditioned: a factor of its own
         form = NormalForm(self.normal, self.prior, weights, self.left, self.lam, self, update)
         if update is None:
             a = self.normal - removed @ removed.T
