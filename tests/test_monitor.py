@@ -152,3 +152,17 @@ def test_an_electrode_lost_mid_run_is_a_technical_alarm_and_monitoring_goes_on(s
     with pytest.raises(ValueError, match="electrode 17 is not on this 16-electrode mat"):
         source.front_end.disconnect(17)
     source.front_end.open_electrodes.clear()                               # the mat is shared by the module
+
+
+def test_the_monitor_returns_freed_memory_to_the_system_every_so_many_maps(small_mat, monkeypatch):
+    import appliance.service.monitor as monitor_module
+
+    model, source, calibration = small_mat
+    calls = []
+    monkeypatch.setattr(monitor_module, "RETURN_MEMORY_FRAMES", 2)
+    monkeypatch.setattr(monitor_module, "return_freed_memory", lambda: calls.append(monitor.maps_made))
+    monitor = Monitor(source.acquire, model, calibration)
+    monitor.take_reference(source.empty_reference())
+    for _ in range(5):
+        monitor.next_map()
+    assert calls == [2, 4]
