@@ -74,13 +74,13 @@ takes well under a second. A bed fits on request: 2 s on grid-8x16 and about 40 
 grid-16x32, paid again at every restart, where relinearising is a second model build (about half a
 minute) that moves the bed's images less than their scatter (benchmarks/mismatch.md)."""
 
-DROPPED_KEPT_BYTES = 16 * 2**20
+DROPPED_KEPT_BYTES = 8 * 2**20
 """What the reconstructors for sets of missing readings may keep together, the least recently used
-forgotten first (the newest is kept whatever it takes). A bed set keeps about 2 MB an electrode
-(:class:`appliance.core.reconstruct.NormalForm`, at most one pixel-square factor, 29.5 MB), so a night's
-faults, a few electrodes at a time, are served from here, and the monitor stays within the 32 MiB it may
-grow by over a night of them with room for the work space glibc holds (benchmarks/memory.md); a small
-mat's set is its R, well under a megabyte."""
+forgotten first (the newest is kept whatever it takes). A bed set keeps about 2.3 MB an electrode
+(:class:`appliance.core.reconstruct.NormalForm`; at most a pixel-square factor, 28 MiB), so this holds a
+fault and the contact that flickers beside it (a set of one electrode and one of two), and a night of
+faults stays well within the 32 MiB the monitor may grow by, which glibc's arenas and a frame's work space
+share (benchmarks/memory.md); a small mat's set is its R, well under a megabyte."""
 
 LINEAR_LIMIT = 0.05
 """Below this largest relative change the one-step image is taken as it is, without the
