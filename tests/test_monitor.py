@@ -166,3 +166,18 @@ def test_the_monitor_returns_freed_memory_to_the_system_every_so_many_maps(small
     for _ in range(5):
         monitor.next_map()
     assert calls == [2, 4]
+
+
+def test_the_monitor_factorises_its_reconstructor_when_the_reference_is_set(small_mat, monkeypatch):
+    import appliance.core.reconstruct as reconstruct
+    from appliance.core.model_cache import build_model
+
+    model, source, calibration = small_mat
+    monkeypatch.setattr(reconstruct, "DENSE_LIMIT", 0)
+    factored = build_model(model.setup)                                    # kept as its factors, as a bed's
+    form = factored.reconstructor.normal_form
+    del form.__dict__["solve"]                                             # as a model loaded from the cache
+    monitor = Monitor(source.acquire, factored, calibration)
+    assert "solve" not in form.__dict__
+    monitor.take_reference(source.empty_reference())
+    assert "solve" in form.__dict__                                        # not left to the first frame
