@@ -221,3 +221,19 @@ def test_calibration_cost_counts_the_mechanics_factorisations_and_replays_them_e
     assert bench.mechanics_factorisations(replayed["direct"][0].calls) == replayed["direct"][0].steps
     assert bench.mechanics_factorisations(replayed["multigrid"][0].calls) == 0      # the grid is set up already
     assert replayed["direct"][2] == 0.0 and replayed["multigrid"][2] < 1e-9
+
+
+def test_memory_benchmark_night_changes_electrodes_in_turn_and_its_control_has_no_faults(tmp_path):
+    memory = load("memory")
+    from appliance.sim.scenes import load_scene
+
+    scenes = {}
+    for faults in (True, False):
+        path = tmp_path / f"night-{faults}.toml"
+        path.write_text(memory.night_scenario(faults), encoding="utf-8")
+        scenes[faults] = load_scene(str(path))
+    assert scenes[True].duration_s == scenes[False].duration_s == memory.NIGHT_H * 3600
+    assert len(scenes[False].faults) == 0
+    out = [f.electrode for f in scenes[True].faults if not f.connected]
+    assert len(set(out)) == 24 and out.count(memory.FLICKER) == 14    # 23 spells' electrodes; 256 twice in 7
+    assert len(scenes[True].faults) == 73

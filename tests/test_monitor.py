@@ -152,3 +152,32 @@ def test_an_electrode_lost_mid_run_is_a_technical_alarm_and_monitoring_goes_on(s
     with pytest.raises(ValueError, match="electrode 17 is not on this 16-electrode mat"):
         source.front_end.disconnect(17)
     source.front_end.open_electrodes.clear()                               # the mat is shared by the module
+
+
+def test_the_monitor_returns_freed_memory_to_the_system_every_so_many_maps(small_mat, monkeypatch):
+    import appliance.service.monitor as monitor_module
+
+    model, source, calibration = small_mat
+    calls = []
+    monkeypatch.setattr(monitor_module, "RETURN_MEMORY_FRAMES", 2)
+    monkeypatch.setattr(monitor_module, "return_freed_memory", lambda: calls.append(monitor.maps_made))
+    monitor = Monitor(source.acquire, model, calibration)
+    monitor.take_reference(source.empty_reference())
+    for _ in range(5):
+        monitor.next_map()
+    assert calls == [2, 4]
+
+
+def test_the_monitor_factorises_its_reconstructor_when_the_reference_is_set(small_mat, monkeypatch):
+    import appliance.core.reconstruct as reconstruct
+    from appliance.core.model_cache import build_model
+
+    model, source, calibration = small_mat
+    monkeypatch.setattr(reconstruct, "DENSE_LIMIT", 0)
+    factored = build_model(model.setup)                                    # kept as its factors, as a bed's
+    form = factored.reconstructor.normal_form
+    del form.__dict__["solve"]                                             # as a model loaded from the cache
+    monitor = Monitor(source.acquire, factored, calibration)
+    assert "solve" not in form.__dict__
+    monitor.take_reference(source.empty_reference())
+    assert "solve" in form.__dict__                                        # not left to the first frame

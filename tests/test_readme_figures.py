@@ -49,7 +49,7 @@ def _paragraphs():
 
 
 def _numbers(text: str, pattern: re.Pattern = NUMBER) -> list[str]:
-    return [n.rstrip(",").replace(",", "") for n in pattern.findall(text)]
+    return [n.rstrip(",").replace(",", "").lstrip("+") for n in pattern.findall(text)]
 
 
 def _quoted_figures():

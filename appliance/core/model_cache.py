@@ -22,10 +22,13 @@ each setup, so a restart with the same reference loads its model instead of buil
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import hashlib
 import json
 import os
+import platform
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -70,6 +73,14 @@ AFFORDABLE_FIT_ELECTRODES = 32
 takes well under a second. A bed fits on request: 2 s on grid-8x16 and about 40 s (0.6 GB) on
 grid-16x32, paid again at every restart, where relinearising is a second model build (about half a
 minute) that moves the bed's images less than their scatter (benchmarks/mismatch.md)."""
+
+DROPPED_KEPT_BYTES = 8 * 2**20
+"""What the reconstructors for sets of missing readings may keep together, the least recently used
+forgotten first (the newest is kept whatever it takes). A bed set keeps about 2.3 MB an electrode
+(:class:`appliance.core.reconstruct.NormalForm`; at most a pixel-square factor, 28 MiB), so this holds a
+fault and the contact that flickers beside it (a set of one electrode and one of two), and a night of
+faults stays well within the 32 MiB the monitor may grow by, which glibc's arenas and a frame's work space
+share (benchmarks/memory.md); a small mat's set is its R, well under a megabyte."""
 
 LINEAR_LIMIT = 0.05
 """Below this largest relative change the one-step image is taken as it is, without the
@@ -182,7 +193,7 @@ class ReconstructionModel:
     reconstructor: Reconstructor
     cache_dir: Path | None = None
     contact_fit: ContactFit | None = None
-    _dropped: dict = field(default_factory=dict, repr=False)
+    _dropped: OrderedDict = field(default_factory=OrderedDict, repr=False)
     _fits: dict = field(default_factory=dict, repr=False)
 
     @cached_property
@@ -255,13 +266,23 @@ class ReconstructionModel:
         return model
 
     def for_readings(self, missing: np.ndarray) -> Reconstructor:
-        """The reconstructor without the ``missing`` readings (bool mask), built once per mask."""
+        """The reconstructor without the ``missing`` readings (bool mask), built once per mask while it
+        is among the most recently used within DROPPED_KEPT_BYTES."""
         if not missing.any():
             return self.reconstructor
         key = np.packbits(missing).tobytes()
-        if key not in self._dropped:
-            self._dropped[key] = without_readings(self.reconstructor, missing)
-        return self._dropped[key]
+        if key in self._dropped:
+            self._dropped.move_to_end(key)
+            return self._dropped[key]
+        r = self._dropped[key] = without_readings(self.reconstructor, missing)
+        while len(self._dropped) > 1 and sum(map(kept_bytes, self._dropped.values())) > DROPPED_KEPT_BYTES:
+            self._dropped.popitem(last=False)
+        return_freed_memory()
+        return r
+
+    def matrix_bytes(self) -> int:
+        """Bytes the model's matrices take: the Jacobian and what its reconstructor keeps (:func:`kept_bytes`)."""
+        return self.reconstructor.linear.jacobian.nbytes + kept_bytes(self.reconstructor)
 
     def reconstruct(self, frame: np.ndarray, reference: np.ndarray, iterate: str = "auto"
                     ) -> tuple[np.ndarray, dict]:
@@ -311,9 +332,28 @@ class ReconstructionModel:
         return localise(model.forward, r, frame, reference, image, sign)
 
 
+def kept_bytes(r: Reconstructor) -> int:
+    """Bytes ``r`` keeps beyond its linear model: its R, or its factored form's own arrays and factor
+    (for a set of missing readings, what it adds to the full set's, which it shares)."""
+    own = r.usable.nbytes + (0 if r.sensitivity is None else r.sensitivity.nbytes)
+    if r.matrix is not None:
+        return own + r.matrix.nbytes
+    assert r.normal_form is not None            # one of the two is always built
+    return own + r.normal_form.nbytes()
+
+
+def return_freed_memory() -> None:
+    """Hand the pages freed since back to the system. glibc keeps a freed block that is not at the top of
+    its heap, so a monitor would hold the work space of every set of missing readings it built and of its
+    frames; other C libraries have no malloc_trim, and need nothing done."""
+    if platform.libc_ver()[0] == "glibc":
+        ctypes.CDLL(None).malloc_trim(0)
+
+
 def build_model(setup: ModelSetup, progress=None, mesh: Mesh | None = None) -> ReconstructionModel:
     """Mesh (unless the setup's ``mesh`` is given), forward model, Jacobian on the pixels, reconstruction
-    matrix; ``progress(step, share)`` is told each step as it starts."""
+    matrix; ``progress(step, share)`` is told each step as it starts, and at the end what the model's
+    matrices take."""
     report = progress or (lambda step, share: None)
     report("meshing", 0.0)
     mesh = mesh if mesh is not None else mesh_layout(setup.layout, setup.density)
@@ -324,9 +364,9 @@ def build_model(setup: ModelSetup, progress=None, mesh: Mesh | None = None) -> R
     linear = linear_model(forward, setup.protocol, grid)
     report("choosing lambda and the reconstruction matrix", 0.6)
     reconstructor = build_reconstructor(linear, setup.options)
-    report("done", 1.0)
     model = ReconstructionModel(setup, mesh, reconstructor)
     model.__dict__["forward"] = forward
+    report(f"done: its matrices take {model.matrix_bytes() / 2**20:.1f} MiB", 1.0)
     return model
 
 

@@ -27,7 +27,7 @@ Lambda comes from a stated rule (by default the expected image error under the
 noise model, :mod:`appliance.core.regularisation`) and is stored with the
 reconstructor, as is the noise figure it gives.
 When a reading or an electrode fails, :func:`without_readings` rebuilds R from J
-in milliseconds, keeping lambda.
+in milliseconds, keeping lambda (a factored bed model updates its factor instead, :class:`NormalForm`).
 
 >>> from appliance.core.layouts import get_layout
 >>> from appliance.core.protocols import default_protocol
@@ -42,6 +42,7 @@ in milliseconds, keeping lambda.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from dataclasses import dataclass
 from functools import cached_property
@@ -144,16 +145,27 @@ DENSE_LIMIT = 6_000_000
 """Pixels x readings beyond which R is kept as its factors rather than as one matrix. A bed
 mat at 30 mm pixels has an R of 1,920 x 14,786 (227 MB), and each set of missing readings
 would cost another; its factors are two pixel-square matrices and J, which the model keeps
-anyway, and a new set of missing readings costs one Cholesky factorisation."""
+anyway, and a set of missing readings adds a low-rank update of them (:class:`NormalForm`)."""
 
 
 @dataclass(frozen=True)
 class NormalForm:
     """R = L (N + lambda P)^-1 J^T W kept as its parts, applied to a frame's changes directly.
 
-    ``normal`` is J^T W J over the usable readings, ``prior`` P, ``weights`` W (zero on the
-    unusable readings), ``left`` GREIT's desired-image blur L (None for Gauss-Newton).
+    ``normal`` is J^T W J over the readings the model was built with, ``prior`` P, ``weights`` W
+    (zero on the unusable readings), ``left`` GREIT's desired-image blur L (None for Gauss-Newton).
     A frame costs one product with J^T and two triangular solves: about what R itself costs.
+
+    A set of missing readings (:meth:`without`) shares ``base``, the full set's form, its matrices
+    and its Cholesky factor, and keeps lambda P as it was: with B B^T the dropped readings' part of
+    N, (N - B B^T + lambda P)^-1 = A^-1 + C S^-1 C^T (A = N + lambda P, C = A^-1 B, S = I - B^T C),
+    exact, by the Woodbury identity. ``update`` holds C and S's Cholesky factor: a few megabytes an
+    electrode on the bed mat, and a frame costs two products with C more. Where C and S would take
+    more than a factor of their own, or S is not positive definite, the set keeps its own factor
+    (``update`` None). Keeping lambda P rather than scaling the prior with the readings left (as a
+    fresh build's :func:`appliance.core.regularisation.prior_matrix` would) keeps the regularisation
+    of the pixels far from a failed electrode what it was; benchmarks/memory.md measures how little
+    it moves the images.
     """
 
     normal: np.ndarray
@@ -161,11 +173,33 @@ class NormalForm:
     weights: np.ndarray
     left: np.ndarray | None
     lam: float
+    base: NormalForm | None = None
+    update: tuple[np.ndarray, tuple] | None = None
 
     @cached_property
     def solve(self):
-        """x -> (N + lambda P)^-1 x, factorised once."""
-        return spd_solver(self.normal + self.lam * self.prior)
+        """x -> (N' + lambda P)^-1 x over the usable readings' N', factorised once."""
+        if self.base is None:
+            return spd_solver(self.normal + self.lam * self.prior)
+        assert self.update is not None              # a set without an update had its own factor made by without()
+        full, (c, s) = self.base.solve, self.update
+        return lambda x: full(x) + c @ sla.cho_solve(s, c.T @ x, check_finite=False)
+
+    @cached_property
+    def _sparse_prior(self) -> sp.csr_matrix:
+        """P as a sparse matrix: every prior here is diagonal or a few neighbours a pixel."""
+        return sp.csr_matrix(self.prior if self.base is None else self.base._sparse_prior)
+
+    def nbytes(self) -> int:
+        """Bytes this form keeps of its own: the full set's matrices and factor, or a set of missing
+        readings' weights and update (or its own factor), whose base it shares."""
+        own = self.weights.nbytes
+        if self.base is None:
+            return own + 3 * self.normal.nbytes + (0 if self.left is None else self.left.nbytes)
+        if self.update is None:
+            return own + self.normal.nbytes
+        c, (s, _) = self.update
+        return own + c.nbytes + s.nbytes
 
     def apply(self, jacobian: np.ndarray, delta: np.ndarray) -> np.ndarray:
         """The image of reading changes ``delta`` (zero on unusable readings), before scaling."""
@@ -174,26 +208,54 @@ class NormalForm:
 
     def noise_figure(self, jacobian: np.ndarray, noise_std: np.ndarray, target: np.ndarray,
                      areas: np.ndarray) -> float:
-        """As :func:`appliance.core.regularisation.noise_figure`, without forming R: with W = S^-1
-        the image noise R S R^T is L A^-1 N A^-1 L^T (A = N + lambda P), pixel-sized."""
+        """As :func:`appliance.core.regularisation.noise_figure`, without forming R: with W = S^-1 the
+        image noise R S R^T is L A^-1 N A^-1 L^T = L (A^-1 - lambda A^-1 P A^-1) L^T (A = N + lambda P),
+        of which only the diagonal is needed, NOISE_BLOCK pixels at a time, with the sparse P."""
         signal = np.where(noise_std > 0, jacobian @ target, 0.0)          # unusable readings: std 0
         snr_in = np.linalg.norm(signal) / np.sqrt(np.sum(noise_std**2))
-        a_inv_n = self.solve(self.normal)
-        image = a_inv_n @ target
-        covariance = self.solve(a_inv_n.T)
+        image = self.solve(jacobian.T @ (self.weights * signal))
+        n = len(target)
+        variance = np.empty(n)
+        for start in range(0, n, NOISE_BLOCK):
+            block = slice(start, min(start + NOISE_BLOCK, n))
+            if self.left is None:
+                columns = np.zeros((n, block.stop - start))
+                columns[block, :] = np.eye(block.stop - start)
+            else:
+                columns = self.left[block].T
+            y = self.solve(columns)                                       # A^-1 L^T e_p
+            variance[block] = (np.einsum("ij,ij->j", columns, y)
+                               - self.lam * np.einsum("ij,ij->j", y, self._sparse_prior @ y))
         if self.left is not None:
-            image, covariance = self.left @ image, self.left @ covariance @ self.left.T
-        snr_out = np.sqrt(np.sum(areas * image**2)) / np.sqrt(np.sum(areas * np.diag(covariance)))
+            image = self.left @ image
+        snr_out = np.sqrt(np.sum(areas * image**2)) / np.sqrt(np.sum(areas * variance))
         return float(snr_in / snr_out)
 
     def without(self, jacobian: np.ndarray, drop: np.ndarray) -> NormalForm:
-        """The same with the readings ``drop`` (bool) removed: their part taken out of N, and the
-        prior scaled to the new N as :func:`appliance.core.regularisation.prior_matrix` scales it."""
+        """The same with the readings ``drop`` (bool) removed, lambda P kept: an update of the full
+        set's factor (see the class)."""
+        if self.base is not None:
+            return self.base.without(jacobian, np.asarray(drop, dtype=bool) | (self.weights == 0))
         drop = np.asarray(drop, dtype=bool) & (self.weights > 0)
-        part = jacobian[drop]
-        normal = self.normal - (part.T * self.weights[drop]) @ part
-        prior = self.prior * (np.trace(normal) / np.trace(self.normal))
-        return NormalForm(normal, prior, np.where(drop, 0.0, self.weights), self.left, self.lam)
+        removed = (jacobian[drop] * np.sqrt(self.weights[drop])[:, None]).T          # B, (pixels, k)
+        weights = np.where(drop, 0.0, self.weights)
+        n, k = removed.shape
+        update = None
+        if k * (n + k) < n * n:
+            c = self.solve(removed)
+            with contextlib.suppress(np.linalg.LinAlgError):     # S not positive definite: a factor of its own
+                update = c, sla.cho_factor(np.eye(k) - removed.T @ c)
+        form = NormalForm(self.normal, self.prior, weights, self.left, self.lam, self, update)
+        if update is None:
+            a = self.normal - removed @ removed.T
+            a += self.lam * self.prior
+            form.__dict__["solve"] = spd_solver(a)        # frozen fields; the cache beside them, as cached_property
+        return form
+
+
+NOISE_BLOCK = 256
+"""Pixels whose image noise is computed at once: a bed's noise figure then needs a few megabytes of
+work space rather than two pixel-square matrices."""
 
 
 @dataclass(frozen=True)
@@ -373,8 +435,13 @@ NORMAL_BLOCK = 2048
 
 
 def without_readings(r: Reconstructor, drop: np.ndarray) -> Reconstructor:
-    """``r`` rebuilt without the readings marked in ``drop`` (bool, n_readings), same lambda."""
-    usable = r.usable & ~np.asarray(drop, dtype=bool)
+    """``r`` rebuilt without the readings marked in ``drop`` (bool, n_readings), same lambda (and on a
+    factored model the same lambda P, :class:`NormalForm`)."""
+    drop = np.asarray(drop)
+    if drop.shape != r.usable.shape or drop.dtype != bool:
+        raise ConfigError(f"the readings to drop need a mask of {len(r.usable)} booleans, got {drop.dtype} "
+                          f"of shape {drop.shape}")
+    usable = r.usable & ~drop
     if r.normal_form is not None:
         if usable.sum() < 2:
             raise ReconstructionError(f"only {int(usable.sum())} of {len(usable)} readings are usable: "

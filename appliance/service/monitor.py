@@ -15,7 +15,7 @@ from collections.abc import Callable
 import numpy as np
 
 from appliance.core.iterative import affordable_iterate
-from appliance.core.model_cache import ReconstructionModel
+from appliance.core.model_cache import ReconstructionModel, return_freed_memory
 from appliance.core.pressure import PressureCalibration, temperature_corrected
 from appliance.core.pressure_map import PressureMap, loaded_electrodes, pressure_map
 from appliance.drivers.scan import SATURATION_PART, Flag, TechnicalCondition
@@ -26,6 +26,12 @@ SATURATION_ALARM_SHARE = 0.05
 """Saturated readings are left out of the image; only when more than this share of a frame is lost
 to them (a short, a failing gain stage, a load far beyond the mat's range) does the image suffer enough
 for a technical alarm. A lateral tilt on the bed saturates up to 6 of 6020 readings (0.1 %)."""
+
+
+RETURN_MEMORY_FRAMES = 60
+"""Every this many maps the pages freed since go back to the system: each frame's work space is freed,
+but glibc keeps what is not at the top of its heap, so a night of the bed's frames held more of it the
+longer it ran. Sixty is an hour of the bed's frames at one a minute; a trim costs under a millisecond."""
 
 
 CALIBRATION_MAX_AGE_DAYS = 365.0
@@ -93,6 +99,7 @@ class Monitor:
         self.reference: np.ndarray | None = None
         self.reference_temperature_c: float | None = None
         self.conditions: tuple = ()         # the alarm-worthy technical conditions of the last frame acquired
+        self.maps_made = 0                  # to return freed memory every RETURN_MEMORY_FRAMES maps
 
     def take_reference(self, frame=None, progress=None):
         """The empty mat (``frame``, or the next one acquired): every map is a change from it.
@@ -106,9 +113,9 @@ class Monitor:
         """Image every frame against ``volts``, the empty mat at ``temperature_c``.
 
         The model is fitted to the reference here (each electrode's contact and the
-        sheet's conductance, then relinearised: ``ReconstructionModel.for_reference``),
-        so the cost falls now and not on the next frame. Returns the fit (None where the
-        setup does not fit contacts).
+        sheet's conductance, then relinearised: ``ReconstructionModel.for_reference``)
+        and its reconstructor factorised, so the cost falls now and not on the next frame.
+        Returns the fit (None where the setup does not fit contacts).
 
         Raises
         ------
@@ -118,6 +125,7 @@ class Monitor:
         """
         volts = np.asarray(volts, dtype=float)
         fitted = self.model.for_reference(volts, progress)
+        fitted.for_readings(~np.isfinite(volts)).pixels(volts, volts)    # its factors made now, not at the first frame
         self.reference, self.reference_temperature_c = volts, temperature_c
         self.loaded = None                                   # a full pass first, as after any new reference
         return fitted.contact_fit
@@ -138,4 +146,7 @@ class Monitor:
                               temperature_c=frame.temperature_c, usable_readings=info["usable_readings"])
         if self.adaptive:
             self.loaded = loaded_electrodes(result.pressure_kpa, grid, self.model.setup.layout.centroids_mm()) or None
+        self.maps_made += 1
+        if self.maps_made % RETURN_MEMORY_FRAMES == 0:
+            return_freed_memory()
         return result
