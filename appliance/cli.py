@@ -191,7 +191,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _layouts(args) -> int:
-    from appliance.core.layouts import BUILTIN_NAMES, get_layout
+    from appliance.core.named_layouts import BUILTIN_NAMES, get_layout
 
     for name in BUILTIN_NAMES:
         layout = get_layout(name)
@@ -205,14 +205,14 @@ def _layouts(args) -> int:
 
 def _layout(args) -> int:
     from appliance.core.layout_files import layout_to_toml
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
 
     sys.stdout.write(layout_to_toml(get_layout(args.layout)))
     return 0
 
 
 def _protocol(args) -> int:
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.core.protocols import protocol_for, protocol_to_csv
     from appliance.errors import ConfigError
 
@@ -229,7 +229,7 @@ def _simulate(args) -> int:
     from appliance.core.fem import build_fem_model
     from appliance.core.forward import simulate
     from appliance.core.frames import frame_to_csv
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.core.network import build_network_model, network_for_layout
     from appliance.core.phantoms import conductivity, covered_area_mm2
     from appliance.core.protocols import default_protocol, load_protocol
@@ -268,8 +268,8 @@ def _simulate(args) -> int:
 def _reconstruct(args) -> int:
     from appliance.core.frames import Frame, check_same_protocol, load_calibration, load_frame
     from appliance.core import ktc
-    from appliance.core.layouts import get_layout
     from appliance.core.model_cache import ModelSetup, cached_model, default_cache_dir, default_setup
+    from appliance.core.named_layouts import get_layout
     from appliance.core.reconstruct import build_reconstructor
     from appliance.core.regularisation import NoiseModel
     from appliance.errors import ConfigError

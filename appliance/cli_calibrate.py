@@ -87,8 +87,8 @@ def _source_options(p: argparse.ArgumentParser) -> None:
 def _pressure(args) -> int:
     from appliance.calibration import CALIBRATION_PRESSURES_KPA, calibration_loads, pressure_calibration
     from appliance.files import check_writable
-    from appliance.core.layouts import get_layout
     from appliance.core.model_cache import cached_model, default_cache_dir, default_setup
+    from appliance.core.named_layouts import get_layout
     from appliance.core.pressure import save_pressure_calibration
     from appliance.errors import ConfigError
 
@@ -134,7 +134,7 @@ def _pressure(args) -> int:
 def _sensitivity(args) -> int:
     from appliance.calibration import sensitivity_calibration
     from appliance.files import check_writable
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.core.pixels import pixel_grid
     from appliance.core.protocols import default_protocol
 

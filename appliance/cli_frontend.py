@@ -81,7 +81,7 @@ def board_table(args) -> dict:
 def _open(args):
     """The layout, the board and its front end the options ask for."""
     from appliance.cli import _parse_inclusion
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.drivers import open_board
     from appliance.drivers.frontend import open_front_end
     from appliance.errors import ConfigError

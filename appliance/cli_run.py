@@ -80,7 +80,7 @@ def _check_named(config) -> None:
     """The layout, scenario, calibration and data folder the configuration names, refused before the model is
     built (minutes on a bed mat) and by --check-config, which would otherwise pass a typo."""
     from appliance.cli import check_input
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.errors import ConfigError
 
     get_layout(config.layout)

@@ -167,7 +167,7 @@ def _replay(args) -> int:
 
     from appliance.alerts.pipeline import AlertPipeline
     from appliance.cli_run import monitor_config
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.core.pixels import pixel_grid
     from appliance.errors import ConfigError
     from appliance.sim.scenes import load_scene

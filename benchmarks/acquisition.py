@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from appliance.core.fem import build_fem_model
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol, protocol_for
 from appliance.drivers.ad7606 import CONVERSION_S
 from appliance.drivers.adg1414 import DriveMatrix

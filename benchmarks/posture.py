@@ -33,7 +33,7 @@ from appliance.alerts.posture import (
     SHIPPED_PMAT_SUBJECTS, SHIPPED_POPU_VARIATIONS, bed_views, default_posture_model, fit_logistic, fit_sources,
     recording_fields, training_features,
 )
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
 from report import machine, median_seconds, table
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from appliance.core.fem import build_fem_model
 from appliance.core.forward import factorise, solve_electrodes
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.drivers.profile import board_profile
 from appliance.sim.bed import VirtualBed, mat_parameters_for

@@ -10,7 +10,7 @@ import pytest
 
 import appliance  # noqa: F401  (first: it pins BLAS to one thread before numpy loads)
 from appliance.core.fem import build_fem_model
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.network import build_network_model, network_for_layout
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))

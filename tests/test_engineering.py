@@ -11,7 +11,7 @@ from werkzeug.datastructures import FileStorage
 from werkzeug.test import encode_multipart
 
 from appliance.core.frames import load_frame
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.pressure import layout_fingerprint, load_pressure_calibration, save_pressure_calibration
 from appliance.core.protocols import default_protocol
 from appliance.service.engineering import checked_args, engineering_commands

@@ -5,7 +5,7 @@ import errno
 import numpy as np
 import pytest
 
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.drivers.emulated.board import EmulatedBoard
 from appliance.drivers.frontend import open_front_end

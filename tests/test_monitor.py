@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from appliance.cli import main
-from appliance.core.layouts import get_layout
 from appliance.core.model_cache import ModelSetup, cached_model
+from appliance.core.named_layouts import get_layout
 from appliance.core.pressure import load_pressure_calibration, save_pressure_calibration
 from appliance.core.protocols import default_protocol
 from appliance.errors import ConfigError

@@ -9,7 +9,7 @@ from appliance.alerts.anatomy import POSTURES, BodyView, body_view, posture_grou
 from appliance.alerts.posture import (
     BED_PITCH_MM, PostureModel, bed_views, default_posture_model, is_sitting_on_edge, mirrored, posture_features,
 )
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
 from appliance.errors import DataFileInvalid, ModelInputInvalid
 from appliance.sim.recordings import pmat_scene, popu_scene

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.drivers.scan import UNUSABLE, Flag, ScanEngine, average_frames
 from conftest import sensor_of, sensor_readings

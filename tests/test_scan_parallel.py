@@ -5,7 +5,7 @@ import functools
 import numpy as np
 import pytest
 
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import protocol_for
 from appliance.drivers.adaptive import AdaptivePlan
 from appliance.drivers.emulated.board import EmulatedBoard

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.drivers.scan import Flag, TechnicalCondition, saturation_condition
 from appliance.errors import ConfigError, DataFileInvalid

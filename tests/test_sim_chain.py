@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.phantoms import Inclusion
 from appliance.core.protocols import default_protocol, protocol_for
 from appliance.drivers.emulated.board import EmulatedBoard

@@ -26,7 +26,7 @@ from flask import Blueprint, Response, current_app, flash, g, jsonify, redirect,
 from appliance.alerts.dose import BUILT_IN as BUILT_IN_CURVES
 from appliance.alerts.dose import RECOVERY_MODES
 from appliance.alerts.limits import POLICY, SAFE_RANGES, check_policy, check_within_policy, span_text
-from appliance.core.layouts import BUILTIN_NAMES
+from appliance.core.named_layouts import BUILTIN_NAMES
 from appliance.errors import ConfigError
 from appliance.service import settings as monitor_settings
 from appliance.service.config import config_from_mapping

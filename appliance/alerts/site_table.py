@@ -140,7 +140,7 @@ def mirrored_posture(posture: str) -> str:
 def label_maps(label_dir: Path, pmat_dir: Path, subjects=TRAINING_SUBJECTS):
     """(subject, posture, view, spots) of every labelled map of ``subjects``: the middle frame the labels were
     given on, as the monitor's pixels see it; spots as in the label files."""
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.core.pixels import pixel_grid
     from appliance.sim.body import MatGrid
     from appliance.sim.recordings import pmat_scene

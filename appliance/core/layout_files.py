@@ -1,6 +1,6 @@
 """Layout files: a sensor mat described in TOML, read and written.
 
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> text = layout_to_toml(get_layout("grid-4x4"))
 >>> text.splitlines()[:2]
 ['name = "grid-4x4"', 'grid = [4, 4]']

@@ -38,8 +38,8 @@ def assemble(config: MonitorConfig, *, say: Callable[[str], None], on_event=None
 
 
 def _assemble(config: MonitorConfig, lock, *, say, on_event, on_map, live: bool) -> MonitorDaemon:
-    from appliance.core.layouts import get_layout
     from appliance.core.model_cache import cached_model, default_cache_dir, default_setup
+    from appliance.core.named_layouts import get_layout
     from appliance.service import settings
     from appliance.service.engineering import engineering_commands
     from appliance.store import Store

@@ -42,7 +42,7 @@ from pathlib import Path
 
 from appliance.alerts.limits import POLICY, alert_values, check_policy, check_within_policy
 from appliance.alerts.pipeline import AlertPipeline
-from appliance.core.layouts import BUILTIN_NAMES
+from appliance.core.named_layouts import BUILTIN_NAMES
 from appliance.core.toml_files import read_toml
 from appliance.errors import ConfigError
 from appliance.files import write_atomic
