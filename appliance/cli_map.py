@@ -26,7 +26,7 @@ from appliance.errors import ConfigError
 
 
 def add_parser(sim) -> None:
-    from appliance.cli import seed
+    from appliance.cli_args import seed
 
     p = sim.add_parser("map", help="put pressure maps (CSV, mmHg) on the virtual bed and write the maps the appliance "
                                    "reconstructs from them")

@@ -21,7 +21,7 @@ from pathlib import Path
 
 
 def add_parsers(sub) -> None:
-    from appliance.cli import LONGEST_RUN_H, seed, whole_within, within
+    from appliance.cli_args import LONGEST_RUN_H, seed, whole_within, within
     from appliance.service.config import FRAME_INTERVAL_RANGE_S, SPEED_RANGE
 
     p = sub.add_parser("run", help="run the monitor (the virtual bed when there is no hardware)")
@@ -79,7 +79,7 @@ def monitor_config(args, **fixed):
 def _check_named(config) -> None:
     """The layout, scenario, calibration and data folder the configuration names, refused before the model is
     built (minutes on a bed mat) and by --check-config, which would otherwise pass a typo."""
-    from appliance.cli import check_input
+    from appliance.cli_args import check_input
     from appliance.core.named_layouts import get_layout
     from appliance.errors import ConfigError
 

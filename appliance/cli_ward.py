@@ -20,7 +20,7 @@ DEFAULT_STATION = "ward-station"
 
 
 def add_parsers(sub) -> None:
-    from appliance.cli import whole_within
+    from appliance.cli_args import whole_within
 
     p = sub.add_parser("ward", help="run the ward station: every bed's state and alarms from the MQTT broker")
     p.add_argument("--config", type=Path, required=True, help="the station's TOML configuration ([broker], "
