@@ -78,15 +78,14 @@ def sensor_readings(sensor, protocol, current_a: float) -> np.ndarray:
 @pytest.fixture
 def emulated():
     """Factory: (board, front end) for a profile and layout on the emulated board; closed afterwards."""
-    from appliance.drivers.emulated.board import EmulatedBoard
-    from appliance.drivers.frontend import open_front_end
+    from appliance.drivers.backend import emulated_board, open_front_end
     from appliance.drivers.profile import board_profile
 
     opened = []
 
     def make(profile="reference", layout="grid-4x4", inclusions=(), seed=0, overrides=None):
         table = {"profile": profile, **(overrides or {})}
-        board = EmulatedBoard(board_profile(table), sensor_of(layout, tuple(inclusions)), seed=seed)
+        board = emulated_board(board_profile(table), sensor_of(layout, tuple(inclusions)), seed=seed)
         front_end = open_front_end(board, board.profile)
         opened.append(board)
         return board, front_end
