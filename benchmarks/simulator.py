@@ -34,7 +34,8 @@ from appliance.sim.body import MatGrid
 from appliance.sim.field import PressureField
 from appliance.sim.frontend import VirtualFrontEnd
 from appliance.sim.mechanics import conductance_on_model, sheet_conductance
-from appliance.sim.scenes import CHANGE_TOLERANCE_KPA, Scene, load_scene
+from appliance.sim.scene_base import CHANGE_TOLERANCE_KPA, Scene
+from appliance.sim.scenes import load_scene
 from appliance.sim.transfer import TransferSolver
 
 sys.path.insert(0, str(Path(__file__).parent))

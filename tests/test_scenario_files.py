@@ -15,7 +15,8 @@ from appliance.sim.body import G_M_S2, total_force_n
 from appliance.sim.frontend import VirtualFrontEnd
 from appliance.sim.loads import empty_mat
 from appliance.sim.recordings import pmat_scene
-from appliance.sim.scenes import ElectrodeFault, builtin_scenes, load_scene, scene_from_mapping
+from appliance.sim.scene_base import ElectrodeFault
+from appliance.sim.scenes import builtin_scenes, load_scene, scene_from_mapping
 
 GRID = get_layout("grid-4x4")
 PROTOCOL = default_protocol(GRID)

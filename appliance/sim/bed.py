@@ -43,7 +43,7 @@ from appliance.core.layouts import Layout
 from appliance.errors import ModelInputInvalid
 from appliance.sim.field import PressureField
 from appliance.sim.mechanics import MatParameters, MatState, conductance_on_model, sheet_conductance
-from appliance.sim.scenes import Scene
+from appliance.sim.scene_base import Scene
 from appliance.sim.transfer import TransferSolver
 
 SOLVERS = ("block", "fields")

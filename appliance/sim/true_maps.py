@@ -22,7 +22,7 @@ from appliance.core.pixels import PixelGrid
 from appliance.core.pressure import KPA_PER_MMHG  # noqa: F401  (the doctest speaks mmHg)
 from appliance.core.pressure_map import PressureMap, loaded_regions
 from appliance.sim.recordings import area_shares
-from appliance.sim.scenes import Scene
+from appliance.sim.scene_base import Scene
 
 
 def on_pixels(pressure_kpa: np.ndarray, pitch_mm: float, grid: PixelGrid) -> np.ndarray:
