@@ -9,14 +9,14 @@ from flask import url_for
 from mqtt_broker import free_port
 from webui_client import PASSWORD, client_as, log_in, set_up, token
 
-from appliance.service.config import MqttSettings
+from appliance.accounts.users import AccountError, UserStore
+from appliance.service.config_sections import MqttSettings
 from appliance.service.live import LiveChannel, read_live
 from appliance.store import Store
 from appliance.ward.config import WardConfig
 from appliance.ward.station import WardStation
 from webui import create_app, create_ward_app
 from webui.limiter import ADDRESS_ATTEMPTS, LoginLimiter
-from webui.users import AccountError, UserStore
 
 
 @pytest.fixture

@@ -44,10 +44,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from appliance.accounts.users import AccountError, UserStore
 from appliance.core.toml_files import read_toml
 from appliance.errors import ConfigError
 from appliance.files import write_atomic
-from appliance.service.config import config_from_mapping, mqtt_settings
+from appliance.service.config import config_from_mapping
+from appliance.service.config_sections import mqtt_settings
 
 SETUP_FILE = Path("/boot/firmware/appliance-setup.toml")
 CONFIG_DIR = Path("/etc/appliance")
@@ -183,8 +185,6 @@ def _write_monitor_config(setup: Setup, config_dir: Path, account: str | None) -
 
 def _create_admin(setup: Setup, data_dir: Path, account: str | None) -> bool:
     """The screen's first admin, unless that account exists; the screen's store is given to ``account``."""
-    from webui.users import AccountError, UserStore
-
     data_dir.mkdir(parents=True, exist_ok=True)
     path = data_dir / "webui.db"
     store = UserStore(path)
