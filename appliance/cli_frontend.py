@@ -19,7 +19,7 @@ MAX_SERIES = 60             # sets in one series: watching for longer is the mon
 def add_parsers(sub) -> None:
     from appliance.cli_args import whole_within, within
     from appliance.drivers.boards import HOST_BOARDS
-    from appliance.service.config import FRAME_INTERVAL_RANGE_S
+    from appliance.service.config_sections import FRAME_INTERVAL_RANGE_S
 
     p = sub.add_parser("acquire", help="acquire frames of readings from the front end")
     _board_options(p)

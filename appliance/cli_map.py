@@ -52,7 +52,7 @@ def _map(args) -> int:
     from appliance.cli_calibrate import pressure_calibration_for
     from appliance.core.model_cache import cached_model, default_cache_dir, default_setup
     from appliance.core.named_layouts import get_layout
-    from appliance.service.config import MonitorConfig
+    from appliance.service.config_sections import MonitorConfig
     from appliance.sim.map_files import write_map_mmhg
     from appliance.sim.map_scenes import load_map, place_map, scene_grid
 

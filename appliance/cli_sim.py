@@ -32,7 +32,7 @@ from pathlib import Path
 
 def add_parsers(sub) -> None:
     from appliance.cli_args import LONGEST_RUN_H, density, numbers, seed, within
-    from appliance.service.config import FRAME_INTERVAL_RANGE_S
+    from appliance.service.config_sections import FRAME_INTERVAL_RANGE_S
     from appliance.sim.load_test import AREA_RANGE_CM2
     from appliance.sim.mechanics import DEFAULT_PARAMETERS, TEMPERATURE_RANGE_C
 

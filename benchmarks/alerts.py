@@ -45,7 +45,7 @@ from appliance.core.named_layouts import get_layout
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.core.pressure_map import PressureMap, loaded_regions
 from appliance.service.assemble import virtual_calibration_path
-from appliance.service.config import MonitorConfig
+from appliance.service.config_sections import MonitorConfig
 from appliance.service.monitor import Monitor
 from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.body import BED_GRID

@@ -107,7 +107,7 @@ def bed_monitoring(model_cache):
     them: (model, calibration)."""
     from appliance.core.model_cache import cached_model, default_setup
     from appliance.service.assemble import virtual_calibration_path
-    from appliance.service.config import MonitorConfig
+    from appliance.service.config_sections import MonitorConfig
     from appliance.service.virtual_bed import VirtualBedSource
     from appliance.sim.scenes import load_scene
 

@@ -14,7 +14,8 @@ from appliance.core.frames import load_frame
 from appliance.core.named_layouts import get_layout
 from appliance.core.pressure import layout_fingerprint, load_pressure_calibration, save_pressure_calibration
 from appliance.core.protocols import default_protocol
-from appliance.service.engineering import checked_args, engineering_commands
+from appliance.service.engineering import engineering_commands
+from appliance.service.engineering_tasks import checked_args
 from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.loads import empty_mat
 from appliance.store import Store

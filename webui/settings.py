@@ -29,7 +29,7 @@ from appliance.alerts.limits import POLICY, SAFE_RANGES, check_policy, check_wit
 from appliance.core.named_layouts import BUILTIN_NAMES
 from appliance.errors import ConfigError
 from appliance.service import settings as monitor_settings
-from appliance.service.config import config_from_mapping
+from appliance.service.config_sections import read_sections
 from webui.alarms import store
 from webui.security import requires
 
@@ -71,7 +71,7 @@ def current() -> dict:
         saved, file_error = {}, str(exc)
     with store() as s:
         running = s.load_state(monitor_settings.STATE)
-    defaults = monitor_settings.settings_values(config_from_mapping({}))
+    defaults = monitor_settings.settings_values(read_sections({}))
     values: dict[str, dict] = {}
     for section, table in defaults.items():
         values[section] = {}

@@ -46,7 +46,7 @@ from appliance.core.named_layouts import BUILTIN_NAMES
 from appliance.core.toml_files import read_toml
 from appliance.errors import ConfigError
 from appliance.files import write_atomic
-from appliance.service.config import MonitorConfig, config_from_mapping
+from appliance.service.config_sections import MonitorConfig, read_sections
 
 SETTINGS_FILE = "settings.toml"
 COMMAND = "apply-settings"
@@ -87,7 +87,7 @@ def check_settings(settings: dict) -> MonitorConfig:
         extra = sorted(set(table) - set(keys))
         if extra:
             raise ConfigError(f"[{section}]: unknown key {extra[0]!r}; settings allowed: {', '.join(keys)}")
-    checked = config_from_mapping({section: dict(settings[section]) for section in SECTIONS if section in settings})
+    checked = read_sections({section: dict(settings[section]) for section in SECTIONS if section in settings})
     if "layout" in settings.get("monitor", {}) and checked.layout not in BUILTIN_NAMES:
         raise ConfigError(f"[monitor]: layout must be one of {', '.join(BUILTIN_NAMES)}, got {checked.layout!r}")
     check_within_policy(settings.get("alerts", {}), policy)
