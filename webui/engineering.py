@@ -33,7 +33,7 @@ from appliance.errors import ApplianceError
 from appliance.files import write_atomic
 from appliance.service.config_sections import read_config
 from appliance.service.engineering_tasks import ENGINEERING_DIR, TASKS, checked_args, engineering_file
-from webui.alarms import store
+from webui.alarms import reader, store
 from webui.security import requires
 
 bp = Blueprint("engineering", __name__)
@@ -67,7 +67,7 @@ def files() -> list[dict]:
 
 
 def _page(error: str | None = None, status: int = 200):
-    with store() as s:
+    with reader() as s:
         commands = s.commands_since(time.time() - RECENT_S, TASKS)
     listed = files()
     return render_template("engineering.html", commands=commands, files=listed, error=error, tasks=TASKS,
