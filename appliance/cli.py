@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import math
 import sys
 import time
 from pathlib import Path
 
+from appliance.cli_args import check_input, density, numbers, parse_inclusion, parse_pixels, whole_within, within
 from appliance.errors import ApplianceError, BusError, ChipError
 from appliance.files import check_writable
 
@@ -36,75 +36,6 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except BrokenPipeError:
         return 0
-
-
-def _number(kind, test, wanted: str):
-    """An argparse ``type=`` for numbers that pass ``test``: NaN, infinity or a value out of range is refused where
-    it enters, naming the option, instead of reaching a model or a loop that cannot use it."""
-    def parse(text: str):
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"takes {wanted}, got {text!r}") from None
-        if not math.isfinite(value) or not test(value):
-            raise argparse.ArgumentTypeError(f"takes {wanted}, got {text!r}")
-        return value
-
-    parse.__name__ = wanted        # argparse names the type in its message when a conversion fails
-    return parse
-
-
-def within(low: float, high: float, unit: str = "", *, above: bool = False):
-    """A ``type=`` for a number from ``low`` (or, ``above``, over it) to ``high`` in ``unit``: a value outside is
-    refused with the range, so a unit slip or a stray exponent never reaches a model or a loop."""
-    start = f"above {low:g} and at most" if above else f"from {low:g} to"
-    return _number(float, lambda v: (v > low if above else v >= low) and v <= high,
-                   f"a number {start} {high:g}{' ' + unit if unit else ''}")
-
-
-def whole_within(low: int, high: int):
-    """A ``type=`` for a whole number from ``low`` to ``high``."""
-    return _number(int, lambda v: low <= v <= high, f"a whole number from {low} to {high}")
-
-
-def numbers(item, count: int | None = None):
-    """A ``type=`` for numbers separated by commas (``count`` of them, or any number), each parsed by ``item``."""
-    wanted = f"{count or 'one or more'} numbers separated by commas, each {item.__name__}"
-
-    def parse(text: str) -> list:
-        try:
-            values = [item(v) for v in text.split(",")]
-        except argparse.ArgumentTypeError:
-            raise argparse.ArgumentTypeError(f"takes {wanted}, got {text!r}") from None
-        if count is not None and len(values) != count:
-            raise argparse.ArgumentTypeError(f"takes {wanted}, got {text!r}")
-        return values
-
-    parse.__name__ = wanted
-    return parse
-
-
-seed = whole_within(0, 2**32 - 1)           # numpy's seeds, as the configuration's [virtual] seed
-MAX_DENSITY = 8.0
-"""The finest mesh density: each doubling has four times the elements, so beyond this a mesh only exhausts memory."""
-density = within(0.0, MAX_DENSITY, above=True)
-LONGEST_RUN_H = 24 * 365
-"""A year: longer than any scenario or stay on one mat, so a longer run is a slip (seconds given for hours)."""
-MAT_MM = 10_000.0
-"""Positions and sizes on a mat: ten metres is far beyond any (a bed's is 1.9 m), so more is a unit slip."""
-CONTRAST_RANGE = (1e-6, 1e6)
-"""Conductivity ratios, insulator to metal in saline, that the forward solve stays accurate for (core/linsolve.py)."""
-
-
-def check_input(path: Path, option: str) -> Path:
-    """``path`` if it is a file, else a ConfigError naming ``option``, before anything slow is built."""
-    from appliance.errors import ConfigError
-
-    if not path.exists():
-        raise ConfigError(f"{option} {path} does not exist")
-    if not path.is_file():
-        raise ConfigError(f"{option} {path} is not a file")
-    return path
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -191,7 +122,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _layouts(args) -> int:
-    from appliance.core.layouts import BUILTIN_NAMES, get_layout
+    from appliance.core.named_layouts import BUILTIN_NAMES, get_layout
 
     for name in BUILTIN_NAMES:
         layout = get_layout(name)
@@ -205,14 +136,14 @@ def _layouts(args) -> int:
 
 def _layout(args) -> int:
     from appliance.core.layout_files import layout_to_toml
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
 
     sys.stdout.write(layout_to_toml(get_layout(args.layout)))
     return 0
 
 
 def _protocol(args) -> int:
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.core.protocols import protocol_for, protocol_to_csv
     from appliance.errors import ConfigError
 
@@ -229,7 +160,7 @@ def _simulate(args) -> int:
     from appliance.core.fem import build_fem_model
     from appliance.core.forward import simulate
     from appliance.core.frames import frame_to_csv
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.core.network import build_network_model, network_for_layout
     from appliance.core.phantoms import conductivity, covered_area_mm2
     from appliance.core.protocols import default_protocol, load_protocol
@@ -239,7 +170,7 @@ def _simulate(args) -> int:
         check_writable(args.out, "--out")
     layout = get_layout(args.layout)
     protocol = load_protocol(args.protocol, layout.n_electrodes) if args.protocol else default_protocol(layout)
-    inclusions = [_parse_inclusion(text) for text in args.inclusion]
+    inclusions = [parse_inclusion(text) for text in args.inclusion]
     start = time.perf_counter()
     if args.model == "fem":
         model = build_fem_model(layout, density=args.density)
@@ -268,10 +199,11 @@ def _simulate(args) -> int:
 def _reconstruct(args) -> int:
     from appliance.core.frames import Frame, check_same_protocol, load_calibration, load_frame
     from appliance.core import ktc
-    from appliance.core.layouts import get_layout
     from appliance.core.model_cache import ModelSetup, cached_model, default_cache_dir, default_setup
+    from appliance.core.named_layouts import get_layout
     from appliance.core.reconstruct import build_reconstructor
     from appliance.core.regularisation import NoiseModel
+    from appliance.core.render import write_image
     from appliance.errors import ConfigError
 
     if args.pressure and args.normalise:
@@ -329,7 +261,7 @@ def _reconstruct(args) -> int:
     image, info = model.reconstruct(volts, reference.volts, iterate=iterate)
     done = time.perf_counter()
     if pressure is None:
-        _write_image(args.out, image, args.normalise)
+        write_image(args.out, image, args.normalise)
     else:
         from appliance.cli_calibrate import write_pressure_map
 
@@ -347,77 +279,3 @@ def _reconstruct(args) -> int:
 
         report_pressure(pressure_kpa, model.reconstructor.grid)
     return 0
-
-
-def _write_image(path: Path, image, normalise: bool) -> None:
-    """The image as CSV (``nan`` off the sheet) or PNG; ``normalise`` maps it to 0-100 (eq. 3.4.3).
-
-    A PNG shows log(sigma / sigma_ref), which is the relative change for small changes and
-    keeps an insulator (at most -1) as visible beside a conductor (unbounded) as it deserves.
-    """
-    import numpy as np
-
-    if normalise:
-        low, high = np.nanmin(image), np.nanmax(image)
-        image = 100.0 * (image - low) / (high - low) if high > low else np.zeros_like(image)
-    if path.suffix.lower() == ".png":
-        from appliance.core.render import write_png
-
-        shown = image if normalise else np.log(np.clip(1.0 + image, 1e-6, None))
-        write_png(path, shown, palette="sequential" if normalise else "diverging", scale=16)
-    else:
-        path.write_text("\n".join(",".join("nan" if np.isnan(v) else f"{v:.6g}" for v in row) for row in image)
-                        + "\n")
-
-
-MAX_PIXELS = 256
-"""The finest pixel grid on a side: the KTC2023 label image's; finer grids only cost memory and time."""
-
-
-def parse_pixels(text: str | None) -> tuple[int, int] | None:
-    """``ROWSxCOLS`` as two whole numbers of 1 to MAX_PIXELS (None without ``text``); a ConfigError naming
-    --pixels otherwise."""
-    from appliance.errors import ConfigError
-
-    if not text:
-        return None
-    rows, _, cols = text.lower().partition("x")
-    if not (rows.strip().isdigit() and cols.strip().isdigit()
-            and 1 <= int(rows) <= MAX_PIXELS and 1 <= int(cols) <= MAX_PIXELS):
-        raise ConfigError(f"--pixels takes ROWSxCOLS, whole numbers from 1 to {MAX_PIXELS}, got {text!r}")
-    return int(rows), int(cols)
-
-
-def _parse_inclusion(text: str):
-    from appliance.core.phantoms import Inclusion
-    from appliance.errors import ModelInputInvalid
-
-    shape, _, listed = text.partition(":")
-    try:
-        values = [float(v) for v in listed.split(",")]
-    except ValueError:
-        raise ModelInputInvalid(f"inclusion {text!r}: values must be numbers") from None
-    try:
-        if shape == "rect" and len(values) == 5:
-            return _physical(Inclusion("rect", *values))
-        if shape == "disc" and len(values) == 4:
-            x, y, d, contrast = values
-            return _physical(Inclusion("disc", x, y, d, d, contrast))
-    except ModelInputInvalid as exc:
-        raise ModelInputInvalid(f"inclusion {text!r}: {exc}") from None
-    raise ModelInputInvalid(f"inclusion {text!r}: use rect:X,Y,W,H,CONTRAST or disc:X,Y,D,CONTRAST")
-
-
-def _physical(inclusion):
-    """``inclusion`` if it could lie on a mat and its contrast is one the model solves; a ModelInputInvalid naming
-    which is not."""
-    from appliance.errors import ModelInputInvalid
-
-    low, high = CONTRAST_RANGE
-    if max(abs(inclusion.x_mm), abs(inclusion.y_mm), inclusion.width_mm, inclusion.height_mm) > MAT_MM:
-        raise ModelInputInvalid(f"positions must be from -{MAT_MM:g} to {MAT_MM:g} mm and sizes at most "
-                                f"{MAT_MM:g} mm")
-    if not low <= inclusion.contrast <= high:
-        raise ModelInputInvalid(f"contrast must be from {low:g} to {high:g} (a conductivity ratio), got "
-                                f"{inclusion.contrast:g}")
-    return inclusion

@@ -25,7 +25,7 @@ MAX_FRAMES_PER_POSTURE = 100    # PmatData records a posture for 1 to 3.5 min at
 
 
 def add_parsers(sub) -> None:
-    from appliance.cli import MAT_MM, numbers, whole_within, within
+    from appliance.cli_args import MAT_MM, numbers, whole_within, within
     from appliance.cli_frontend import MAX_AVERAGE
     from appliance.sim.mechanics import DEFAULT_PARAMETERS
 
@@ -69,7 +69,7 @@ def add_parsers(sub) -> None:
 
 
 def _source_options(p: argparse.ArgumentParser) -> None:
-    from appliance.cli import density, seed
+    from appliance.cli_args import density, seed
 
     p.add_argument("--layout", required=True, help="layout name or .toml file")
     p.add_argument("--source", default="virtual", choices=["virtual", "emulated", "hardware"],
@@ -87,8 +87,8 @@ def _source_options(p: argparse.ArgumentParser) -> None:
 def _pressure(args) -> int:
     from appliance.calibration import CALIBRATION_PRESSURES_KPA, calibration_loads, pressure_calibration
     from appliance.files import check_writable
-    from appliance.core.layouts import get_layout
     from appliance.core.model_cache import cached_model, default_cache_dir, default_setup
+    from appliance.core.named_layouts import get_layout
     from appliance.core.pressure import save_pressure_calibration
     from appliance.errors import ConfigError
 
@@ -134,7 +134,7 @@ def _pressure(args) -> int:
 def _sensitivity(args) -> int:
     from appliance.calibration import sensitivity_calibration
     from appliance.files import check_writable
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.core.pixels import pixel_grid
     from appliance.core.protocols import default_protocol
 
@@ -168,7 +168,7 @@ def calibration_to_csv(rows) -> str:
 
 
 def _pixels(text: str | None) -> tuple[int, int] | None:
-    from appliance.cli import parse_pixels
+    from appliance.cli_args import parse_pixels
 
     return parse_pixels(text)
 
@@ -228,8 +228,7 @@ def _still_mat(layout):
 @contextlib.contextmanager
 def _scan_engine(table: dict, sensor, protocol, seed: int):
     """A scan engine on the board ``table`` describes, as ``acquire`` opens it; closed afterwards."""
-    from appliance.drivers import open_board
-    from appliance.drivers.frontend import open_front_end
+    from appliance.drivers.backend import open_board, open_front_end
     from appliance.drivers.scan import ScanEngine
 
     board, profile = open_board(table, sensor=sensor, seed=seed)
@@ -286,9 +285,9 @@ def write_pressure_map(path: Path, pressure_kpa) -> None:
 
         write_png(path, pressure_kpa, vmin=0.0, palette="sequential", scale=16)
     else:
-        from appliance.cli import _write_image
+        from appliance.core.render import write_image
 
-        _write_image(path, pressure_kpa, False)
+        write_image(path, pressure_kpa, False)
 
 
 def report_pressure(pressure_kpa, grid) -> None:

@@ -17,9 +17,9 @@ MAX_SERIES = 60             # sets in one series: watching for longer is the mon
 
 
 def add_parsers(sub) -> None:
-    from appliance.cli import whole_within, within
+    from appliance.cli_args import whole_within, within
     from appliance.drivers.boards import HOST_BOARDS
-    from appliance.service.config import FRAME_INTERVAL_RANGE_S
+    from appliance.service.config_sections import FRAME_INTERVAL_RANGE_S
 
     p = sub.add_parser("acquire", help="acquire frames of readings from the front end")
     _board_options(p)
@@ -54,7 +54,7 @@ def add_parsers(sub) -> None:
 
 
 def _board_options(p: argparse.ArgumentParser) -> None:
-    from appliance.cli import seed
+    from appliance.cli_args import seed
 
     p.add_argument("--layout", default="grid-4x4", help="layout name or .toml file (default grid-4x4)")
     p.add_argument("--emulated", action="store_true", help="use the emulated front end instead of the real board")
@@ -80,10 +80,9 @@ def board_table(args) -> dict:
 
 def _open(args):
     """The layout, the board and its front end the options ask for."""
-    from appliance.cli import _parse_inclusion
-    from appliance.core.layouts import get_layout
-    from appliance.drivers import open_board
-    from appliance.drivers.frontend import open_front_end
+    from appliance.cli_args import parse_inclusion
+    from appliance.core.named_layouts import get_layout
+    from appliance.drivers.backend import open_board, open_front_end
     from appliance.errors import ConfigError
 
     layout = get_layout(args.layout)
@@ -92,7 +91,7 @@ def _open(args):
         table["backend"] = "emulated"
     elif args.inclusion:
         raise ConfigError("--inclusion places objects on the emulated mat; add --emulated")
-    inclusions = [_parse_inclusion(text) for text in args.inclusion]
+    inclusions = [parse_inclusion(text) for text in args.inclusion]
 
     def sensor():
         from appliance.drivers.emulated.sensor import ForwardSensor

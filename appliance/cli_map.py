@@ -26,7 +26,7 @@ from appliance.errors import ConfigError
 
 
 def add_parser(sim) -> None:
-    from appliance.cli import seed
+    from appliance.cli_args import seed
 
     p = sim.add_parser("map", help="put pressure maps (CSV, mmHg) on the virtual bed and write the maps the appliance "
                                    "reconstructs from them")
@@ -50,9 +50,9 @@ def add_parser(sim) -> None:
 
 def _map(args) -> int:
     from appliance.cli_calibrate import pressure_calibration_for
-    from appliance.core.layouts import get_layout
     from appliance.core.model_cache import cached_model, default_cache_dir, default_setup
-    from appliance.service.config import MonitorConfig
+    from appliance.core.named_layouts import get_layout
+    from appliance.service.config_sections import MonitorConfig
     from appliance.sim.map_files import write_map_mmhg
     from appliance.sim.map_scenes import load_map, place_map, scene_grid
 

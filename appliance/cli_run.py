@@ -21,8 +21,8 @@ from pathlib import Path
 
 
 def add_parsers(sub) -> None:
-    from appliance.cli import LONGEST_RUN_H, seed, whole_within, within
-    from appliance.service.config import FRAME_INTERVAL_RANGE_S, SPEED_RANGE
+    from appliance.cli_args import LONGEST_RUN_H, seed, whole_within, within
+    from appliance.service.config_sections import FRAME_INTERVAL_RANGE_S, SPEED_RANGE
 
     p = sub.add_parser("run", help="run the monitor (the virtual bed when there is no hardware)")
     p.add_argument("--config", type=Path, default=None,
@@ -79,8 +79,8 @@ def monitor_config(args, **fixed):
 def _check_named(config) -> None:
     """The layout, scenario, calibration and data folder the configuration names, refused before the model is
     built (minutes on a bed mat) and by --check-config, which would otherwise pass a typo."""
-    from appliance.cli import check_input
-    from appliance.core.layouts import get_layout
+    from appliance.cli_args import check_input
+    from appliance.core.named_layouts import get_layout
     from appliance.errors import ConfigError
 
     get_layout(config.layout)
@@ -141,7 +141,7 @@ def _start_screen(where: str, config, say):
     import subprocess
     import sys
 
-    from appliance.service.virtual_bed import default_data_dir
+    from appliance.service.config_sections import default_data_dir
 
     host, port = listen_address(where, "--screen")
     data_dir = config.data_dir or default_data_dir()

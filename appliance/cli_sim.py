@@ -31,8 +31,8 @@ from pathlib import Path
 
 
 def add_parsers(sub) -> None:
-    from appliance.cli import LONGEST_RUN_H, density, numbers, seed, within
-    from appliance.service.config import FRAME_INTERVAL_RANGE_S
+    from appliance.cli_args import LONGEST_RUN_H, density, numbers, seed, within
+    from appliance.service.config_sections import FRAME_INTERVAL_RANGE_S
     from appliance.sim.load_test import AREA_RANGE_CM2
     from appliance.sim.mechanics import DEFAULT_PARAMETERS, TEMPERATURE_RANGE_C
 
@@ -167,7 +167,7 @@ def _replay(args) -> int:
 
     from appliance.alerts.pipeline import AlertPipeline
     from appliance.cli_run import monitor_config
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.core.pixels import pixel_grid
     from appliance.errors import ConfigError
     from appliance.sim.scenes import load_scene

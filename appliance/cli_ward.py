@@ -20,7 +20,7 @@ DEFAULT_STATION = "ward-station"
 
 
 def add_parsers(sub) -> None:
-    from appliance.cli import whole_within
+    from appliance.cli_args import whole_within
 
     p = sub.add_parser("ward", help="run the ward station: every bed's state and alarms from the MQTT broker")
     p.add_argument("--config", type=Path, required=True, help="the station's TOML configuration ([broker], "
@@ -62,7 +62,7 @@ def add_parsers(sub) -> None:
 def _ward(args) -> int:
     from appliance.cli_run import listen_address
     from appliance.errors import ConfigError
-    from appliance.service.virtual_bed import default_data_dir
+    from appliance.service.config_sections import default_data_dir
     from appliance.ward.config import load_ward_config
     from appliance.ward.station import WardStation
     from webui import create_ward_app

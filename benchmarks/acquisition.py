@@ -33,17 +33,16 @@ from pathlib import Path
 import numpy as np
 
 from appliance.core.fem import build_fem_model
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol, protocol_for
 from appliance.drivers.ad7606 import CONVERSION_S
 from appliance.drivers.adg1414 import DriveMatrix
 from appliance.drivers.boards import I2C_DEFAULT_CLOCK_HZ, SYSTEMS
 from appliance.drivers.channel_map import ChannelMap
 from appliance.drivers.contact import check_contacts
-from appliance.drivers.emulated.board import EmulatedBoard
+from appliance.drivers.backend import emulated_board, open_front_end
 from appliance.drivers.emulated.parallel import SWITCH_OHM, ParallelErrors
 from appliance.drivers.emulated.sensor import ForwardSensor
-from appliance.drivers.frontend import open_front_end
 from appliance.drivers.profile import BUILTIN_PROFILES, board_profile
 from appliance.drivers.scan import Flag, ScanEngine
 from appliance.sim.bed import VirtualBed
@@ -114,7 +113,7 @@ def run_case(profile_name: str, layout_name: str, order: str, system=None):
     layout = get_layout(layout_name)
     protocol = default_protocol(layout)
     sensor = ForwardSensor.of_layout(layout)
-    board = EmulatedBoard(board_profile({"profile": profile_name}), sensor, system=system)
+    board = emulated_board(board_profile({"profile": profile_name}), sensor, system=system)
     front_end = open_front_end(board, board.profile)
     engine = ScanEngine(front_end, protocol, order=order)
     cold = engine.scan()
@@ -208,7 +207,7 @@ def run_parallel() -> dict:
     protocol = protocol_for(layout, "rows", reach=2)
     sensor, sheet = bed_sensor(layout)
     profile = board_profile({"profile": "parallel"})
-    board = EmulatedBoard(profile, sensor)
+    board = emulated_board(profile, sensor)
     fe = open_front_end(board, profile)
     engine = ScanEngine(fe, protocol)
     cold = engine.scan()

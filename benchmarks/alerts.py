@@ -40,12 +40,12 @@ from appliance.alerts.dose import SiteDose, tolerance_curve
 from appliance.alerts.pipeline import AlertPipeline, AlertSettings
 from appliance.alerts.posture import SURE_GROUP_PROBABILITY, default_posture_model
 from appliance.alerts.sites import label_cells, locate_sites
-from appliance.core.layouts import get_layout
 from appliance.core.model_cache import cached_model, default_setup
+from appliance.core.named_layouts import get_layout
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.core.pressure_map import PressureMap, loaded_regions
 from appliance.service.assemble import virtual_calibration_path
-from appliance.service.config import MonitorConfig
+from appliance.service.config_sections import MonitorConfig
 from appliance.service.monitor import Monitor
 from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.body import BED_GRID

@@ -42,8 +42,8 @@ import numpy as np
 from scipy import ndimage
 
 from appliance.calibration import MapLoad
-from appliance.core.layouts import get_layout
 from appliance.core.model_cache import ModelSetup, cached_model, default_setup
+from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.core.reconstruct import ReconstructionOptions

@@ -27,8 +27,8 @@ import scipy.linalg
 import scipy.sparse.linalg
 
 from appliance.calibration import pressure_calibration
-from appliance.core.layouts import get_layout
 from appliance.core.model_cache import cached_model, default_cache_dir, default_setup
+from appliance.core.named_layouts import get_layout
 from appliance.drivers.profile import board_profile
 from appliance.service.virtual_bed import VirtualBedSource, shipped_calibration
 from appliance.sim import mechanics, multigrid

@@ -22,8 +22,8 @@ HERE = Path(__file__).parent
 LIMIT_GB = 0.6
 BUILD = """
 import json, resource, sys, tempfile, time
-from appliance.core.layouts import get_layout
 from appliance.core.model_cache import cached_model, default_setup
+from appliance.core.named_layouts import get_layout
 start = time.perf_counter()
 with tempfile.TemporaryDirectory() as cache:
     model, loaded = cached_model(default_setup(get_layout(sys.argv[1])), cache)
@@ -40,7 +40,7 @@ def cold_build(layout: str) -> dict:
 
 
 def main() -> None:
-    from appliance.core.layouts import BUILTIN_NAMES
+    from appliance.core.named_layouts import BUILTIN_NAMES
 
     rows = []
     for name in (*BUILTIN_NAMES, "grid-12x24"):

@@ -23,7 +23,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from report import machine, table  # noqa: E402
 
-from appliance.core.layouts import get_layout  # noqa: E402
+from appliance.core.named_layouts import get_layout  # noqa: E402
 from appliance.core.phantoms import Inclusion  # noqa: E402
 from appliance.core.protocols import default_protocol  # noqa: E402
 from appliance.drivers.emulated.electrode_interface import ElectrodeContact, detect, reading_phasors  # noqa: E402

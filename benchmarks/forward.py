@@ -17,8 +17,8 @@ import numpy as np
 
 from appliance.core.fem import build_fem_model
 from appliance.core.forward import electrode_currents, factorise, simulate, solve_electrodes
-from appliance.core.layouts import get_layout
 from appliance.core.mesh import mesh_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.network import build_network_model, network_for_layout
 from appliance.core.phantoms import Inclusion, conductivity
 from appliance.core.protocols import default_protocol

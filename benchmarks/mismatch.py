@@ -33,9 +33,9 @@ from appliance.core import ktc
 from appliance.core.fem import DEFAULT_CONTACT_IMPEDANCE_OHM_M2, build_fem_model, with_contact_impedance
 from appliance.core.forward import simulate
 from appliance.core.ktc_score import challenge_score
-from appliance.core.layouts import get_layout
 from appliance.core.mesh import mesh_layout
 from appliance.core.model_cache import ModelSetup, build_model, cached_model
+from appliance.core.named_layouts import get_layout
 from appliance.core.phantoms import Inclusion, conductivity
 from appliance.core.protocols import default_protocol, protocol_for
 from appliance.core.reconstruct import ReconstructionOptions, readings_using

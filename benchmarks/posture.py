@@ -29,11 +29,9 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from appliance.alerts.anatomy import POSTURES, BodyView, body_view, posture_group, tilt_deg
-from appliance.alerts.posture import (
-    SHIPPED_PMAT_SUBJECTS, SHIPPED_POPU_VARIATIONS, bed_views, default_posture_model, fit_logistic, fit_sources,
-    recording_fields, training_features,
-)
-from appliance.core.layouts import get_layout
+from appliance.alerts.posture import default_posture_model
+from appliance.alerts.posture_training import SHIPPED_PMAT_SUBJECTS, SHIPPED_POPU_VARIATIONS, bed_views, fit_logistic, fit_sources, recording_fields, training_features
+from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
 from report import machine, median_seconds, table
 

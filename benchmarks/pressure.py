@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from appliance.calibration import Load, calibration_loads, pressure_calibration
-from appliance.core.layouts import get_layout
 from appliance.core.model_cache import ModelSetup, cached_model, default_cache_dir
+from appliance.core.named_layouts import get_layout
 from appliance.core.pressure_map import HIGH_PRESSURE_KPA, loaded_area_cm2, loaded_regions, peak_region
 from appliance.core.protocols import default_protocol
 from appliance.core.reconstruct import ReconstructionOptions

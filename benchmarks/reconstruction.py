@@ -21,10 +21,11 @@ import numpy as np
 
 from appliance.core.fem import build_fem_model
 from appliance.core.forward import simulate
-from appliance.core.layouts import DiscSheet, get_layout
+from appliance.core.layouts import DiscSheet
 from appliance.core.merit import image_figures
 from appliance.core.mesh import mesh_layout
 from appliance.core.model_cache import ModelSetup, build_model
+from appliance.core.named_layouts import get_layout
 from appliance.core.phantoms import Inclusion, conductivity
 from appliance.core.pixels import pixel_grid
 from appliance.core.protocols import default_protocol

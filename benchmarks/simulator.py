@@ -26,7 +26,7 @@ import numpy as np
 
 from appliance.core.fem import build_fem_model
 from appliance.core.forward import factorise, solve_electrodes
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.drivers.profile import board_profile
 from appliance.sim.bed import VirtualBed, mat_parameters_for
@@ -34,7 +34,8 @@ from appliance.sim.body import MatGrid
 from appliance.sim.field import PressureField
 from appliance.sim.frontend import VirtualFrontEnd
 from appliance.sim.mechanics import conductance_on_model, sheet_conductance
-from appliance.sim.scenes import CHANGE_TOLERANCE_KPA, Scene, load_scene
+from appliance.sim.scene_base import CHANGE_TOLERANCE_KPA, Scene
+from appliance.sim.scenes import load_scene
 from appliance.sim.transfer import TransferSolver
 
 sys.path.insert(0, str(Path(__file__).parent))

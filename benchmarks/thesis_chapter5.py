@@ -19,9 +19,9 @@ import numpy as np
 
 from appliance.core.fem import build_fem_model
 from appliance.core.forward import simulate, solve_electrodes
-from appliance.core.layouts import get_layout
 from appliance.core.merit import calibration_sensitivity, fractional_change, sensitivity_profile, visibility
 from appliance.core.mesh import mesh_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.network import appendix_b_electrode_volts, build_network_model, thesis_phantom
 from appliance.core.phantoms import Inclusion, conductivity
 from appliance.core.protocols import default_protocol

@@ -8,7 +8,7 @@ Four kinds of process, each timed on its own (CPU from /proc/<pid>/stat):
 * **Mosquitto**, on a free local port, reporting its counters on ``$SYS`` every second.
 * **The ward station**, ``appliance ward --config ward.toml --data-dir DIR --listen 127.0.0.1:PORT
   --plain-http``: the ``WardStation`` and its web view (waitress), with one nurse account made
-  beforehand (``webui.users.UserStore``), keep-alive 5 s to the broker, summary interval 1 s.
+  beforehand (``appliance.accounts.users.UserStore``), keep-alive 5 s to the broker, summary interval 1 s.
 * **The load generator**, one process driving 50 production publishers (``WardLink``, each with its
   outbox and one MQTT connection, with its last will, keep-alive 5 s). Each bed takes a frame a second,
   at its own phase within the second: it sends a summary in ``ward_summary()``'s format (4 to 8 regions with
@@ -507,7 +507,7 @@ def station_process(folder: Path, broker_port: int, *, use_stand_in: bool):
     if use_stand_in:
         command = python("stand-in", "--port", str(broker_port), "--listen-port", str(port))
     else:
-        from webui.users import UserStore
+        from appliance.accounts.users import UserStore
 
         data = folder / "ward-data"
         data.mkdir()

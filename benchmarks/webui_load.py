@@ -56,7 +56,7 @@ def appliance(folder: Path, *, speed: float, interval_s: float, screen_nice: int
     """The monitor and the screen (at ``screen_nice``) on one data directory, on the appliance's CPU; yields
     (url, monitor, screen, live.json)."""
     data = folder / f"data-{speed:g}-{screen_nice}"
-    subprocess.run([sys.executable, "-c", "from webui.users import UserStore; import sys; "
+    subprocess.run([sys.executable, "-c", "from appliance.accounts.users import UserStore; import sys; "
                     "u = UserStore(sys.argv[1]); [u.create(f'nurse.{k:02d}', sys.argv[2], 'nurse', by='bench') "
                     f"for k in range({CLIENTS + 1})]", str(_mkdir(data) / "webui.db"), PASSWORD], check=True)
     port = free_port()

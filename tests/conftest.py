@@ -10,7 +10,7 @@ import pytest
 
 import appliance  # noqa: F401  (first: it pins BLAS to one thread before numpy loads)
 from appliance.core.fem import build_fem_model
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.network import build_network_model, network_for_layout
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -78,15 +78,14 @@ def sensor_readings(sensor, protocol, current_a: float) -> np.ndarray:
 @pytest.fixture
 def emulated():
     """Factory: (board, front end) for a profile and layout on the emulated board; closed afterwards."""
-    from appliance.drivers.emulated.board import EmulatedBoard
-    from appliance.drivers.frontend import open_front_end
+    from appliance.drivers.backend import emulated_board, open_front_end
     from appliance.drivers.profile import board_profile
 
     opened = []
 
     def make(profile="reference", layout="grid-4x4", inclusions=(), seed=0, overrides=None):
         table = {"profile": profile, **(overrides or {})}
-        board = EmulatedBoard(board_profile(table), sensor_of(layout, tuple(inclusions)), seed=seed)
+        board = emulated_board(board_profile(table), sensor_of(layout, tuple(inclusions)), seed=seed)
         front_end = open_front_end(board, board.profile)
         opened.append(board)
         return board, front_end
@@ -108,7 +107,7 @@ def bed_monitoring(model_cache):
     them: (model, calibration)."""
     from appliance.core.model_cache import cached_model, default_setup
     from appliance.service.assemble import virtual_calibration_path
-    from appliance.service.config import MonitorConfig
+    from appliance.service.config_sections import MonitorConfig
     from appliance.service.virtual_bed import VirtualBedSource
     from appliance.sim.scenes import load_scene
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from appliance.alerts.pipeline import AlertPipeline, AlertSettings
-from appliance.core.layouts import get_layout
-from appliance.service.config import MonitorConfig
+from appliance.core.named_layouts import get_layout
+from appliance.service.config_sections import MonitorConfig
 from appliance.service.monitor import Monitor
 from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.scenes import load_scene

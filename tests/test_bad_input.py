@@ -20,7 +20,7 @@ import pytest
 
 from appliance.cli import main
 from appliance.core.layout_files import layout_to_toml
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 
 GOOD_SETTINGS = ["--data-dir", "{t}/data", "--cache-dir", "{t}/cache"]
 

@@ -6,7 +6,7 @@ import pytest
 import appliance.sim.bed as bed_module
 from appliance.core.fem import build_fem_model
 from appliance.core.forward import solve_electrodes
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.network import build_network_model, network_for_layout
 from appliance.core.protocols import default_protocol
 from appliance.errors import ModelInputInvalid

@@ -24,7 +24,7 @@ def load(name):
 
 def test_forward_benchmark_phases():
     forward = load("forward")
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
 
     nodes, build, assemble, factor, solve, total = forward.phase_times(get_layout("grid-4x4"), 0.5)
     assert 300 < nodes < 1500
@@ -54,7 +54,7 @@ def test_chapter5_sensitivity_map_peaks_at_the_centre_for_c(chapter5):
 
 def test_pressure_benchmark_helpers_and_a_small_backprojection_run(monkeypatch):
     pressure = load("pressure")
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.core.pixels import pixel_grid
     from appliance.core.pressure_map import loaded_regions
     from appliance.sim.field import PressureField
@@ -87,7 +87,7 @@ def test_pressure_benchmark_helpers_and_a_small_backprojection_run(monkeypatch):
 
 def test_mismatch_benchmark_runs_a_small_case(monkeypatch):
     mismatch = load("mismatch")
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.core.protocols import default_protocol
 
     monkeypatch.setattr(mismatch, "DRAWS", 1)
@@ -107,7 +107,7 @@ def test_mismatch_benchmark_runs_a_small_case(monkeypatch):
 
 def test_bed_benchmark_spots_sites_tilts_and_nights():
     bed = load("bed")
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.core.pixels import pixel_grid
 
     truth = np.zeros((30, 64))

@@ -11,7 +11,7 @@ from appliance.drivers.adg7xx import ADG725
 from appliance.drivers.board_check import check_profile, running_host
 from appliance.drivers.boards import HOST_BOARDS, SYSTEMS
 from appliance.drivers.bus import LineRequest
-from appliance.drivers.emulated.board import EmulatedBoard
+from appliance.drivers.backend import emulated_board
 from appliance.drivers.profile import BUILTIN_PROFILES, board_profile
 from appliance.errors import BoardMismatch, DeviceMissing, TransferFailed
 from conftest import sensor_of
@@ -97,7 +97,7 @@ def test_the_emulated_i2c_bus_runs_at_the_system_s_clock_not_the_profile_s():
     spent = {}
     for clock in (400_000, 100_000):
         system = dataclasses.replace(SYSTEMS["appliance-image"], i2c_clock_hz={1: clock})
-        board = EmulatedBoard(profile, sensor_of("grid-4x4"), system=system)
+        board = emulated_board(profile, sensor_of("grid-4x4"), system=system)
         assert board.timing.i2c_clock_hz == clock
         bus = board.i2c(1)
         start = board.clock.monotonic()
@@ -135,7 +135,7 @@ def test_the_running_board_is_read_from_the_device_tree(tmp_path):
 
 
 def test_the_linux_board_refuses_a_profile_that_does_not_fit_before_opening_anything(monkeypatch):
-    from appliance.drivers import open_board
+    from appliance.drivers.backend import open_board
 
     monkeypatch.setattr("appliance.drivers.board_check.running_host", lambda: HOST_BOARDS["pi4b"])
     with pytest.raises(BoardMismatch, match="GPIO 16 is already SPI1 CE2"):
@@ -143,7 +143,7 @@ def test_the_linux_board_refuses_a_profile_that_does_not_fit_before_opening_anyt
 
 
 def test_the_emulated_spi1_refuses_cpha_1_as_the_kernel_does():
-    board = EmulatedBoard(board_profile({"profile": "reference"}), sensor_of("grid-4x4"))
+    board = emulated_board(board_profile({"profile": "reference"}), sensor_of("grid-4x4"))
     with pytest.raises(TransferFailed, match="spidev1.0: Invalid argument: mode 1") as caught:
         board.spi(1, 0, mode=1, max_speed_hz=1_000_000, consumer="measure_mux")
     assert caught.value.errno == errno.EINVAL
@@ -151,7 +151,7 @@ def test_the_emulated_spi1_refuses_cpha_1_as_the_kernel_does():
 
 
 def test_the_emulated_lines_carry_the_names_of_the_systems_kernel():
-    board = EmulatedBoard(board_profile({"profile": "ad5933", "system": "appliance-image"}), sensor_of("grid-4x4"))
+    board = emulated_board(board_profile({"profile": "ad5933", "system": "appliance-image"}), sensor_of("grid-4x4"))
     assert "GPIO_GCLK" in board.bank.names and "GPIO4" not in board.bank.names
     with pytest.raises(DeviceMissing, match="GPIO4"):
         board.gpio(LineRequest(outputs={"GPIO4": 0}, inputs={}), consumer="test")

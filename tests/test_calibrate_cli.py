@@ -12,7 +12,7 @@ import pytest
 from appliance.calibration import Load, calibration_loads
 from appliance.cli import main
 from appliance.core.frames import frame_to_csv, load_calibration, load_frame
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
 from appliance.core.pressure import layout_fingerprint, load_pressure_calibration
 from appliance.core.protocols import default_protocol

@@ -8,10 +8,9 @@ import pytest
 from appliance.drivers.ads1115 import ADS1115, READY_MARGIN_S, config_word, longest_conversion_s
 from appliance.drivers.bus import FALLING, PULL_UP, LineRequest
 from appliance.drivers.emulated.ads1115 import EmulatedADS1115
-from appliance.drivers.emulated.board import EmulatedBoard
+from appliance.drivers.backend import emulated_board, open_front_end
 from appliance.drivers.emulated.buses import BusTiming, EmulatedGPIOLines, EmulatedI2CBus, EmulatorViolation, GPIOBank
 from appliance.drivers.emulated.clock import SimulatedClock
-from appliance.drivers.frontend import open_front_end
 from appliance.drivers.profile import board_profile
 from appliance.errors import ChipNotResponding, ChipReadbackMismatch, TransferFailed
 from conftest import sensor_of
@@ -192,7 +191,7 @@ def test_the_open_drain_ready_line_must_be_pulled_up():
 
 
 def test_the_front_end_requests_the_ready_line_with_the_pull_up():
-    board = EmulatedBoard(board_profile({}), sensor_of("grid-4x4"))
+    board = emulated_board(board_profile({}), sensor_of("grid-4x4"))
     front_end = open_front_end(board, board.profile)
     ready = board.profile.gpio["adc_ready"]
     assert front_end.inputs.request.bias == {ready: PULL_UP}

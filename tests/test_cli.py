@@ -8,7 +8,7 @@ import pytest
 
 from appliance.cli import main
 from appliance.core.layout_files import layout_to_toml
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 
 
 def run(capsys, *args):
@@ -128,7 +128,7 @@ def test_reconstruct_backprojection_with_an_experimental_calibration(capsys, fra
     """The thesis's calibration, simulated: the rod at every pixel in turn, a frame each."""
     from appliance.core.fem import build_fem_model
     from appliance.core.forward import simulate
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.core.phantoms import Inclusion, conductivity
     from appliance.core.protocols import default_protocol
 

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.phantoms import Inclusion
 from appliance.core.protocols import default_protocol
 from appliance.drivers.emulated.electrode_interface import ElectrodeContact, detect, reading_phasors

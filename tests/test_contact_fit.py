@@ -7,9 +7,9 @@ import pytest
 from appliance.core.contact_fit import ContactPrior, contact_sensitivity, fit_contacts
 from appliance.core.fem import build_fem_model, with_contact_impedance
 from appliance.core.forward import simulate
-from appliance.core.layouts import get_layout
 from appliance.core.mesh import mesh_layout
 from appliance.core.model_cache import ModelSetup, build_model, cached_model
+from appliance.core.named_layouts import get_layout
 from appliance.core.phantoms import Inclusion, conductivity
 from appliance.core.protocols import default_protocol
 from appliance.core.reconstruct import ReconstructionOptions, readings_using

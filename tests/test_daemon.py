@@ -14,7 +14,7 @@ import urllib.request
 import pytest
 
 from appliance.cli import main
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.errors import ConfigError, TransferFailed
 from appliance.service.config import config_from_mapping, load_config

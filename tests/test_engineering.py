@@ -11,10 +11,11 @@ from werkzeug.datastructures import FileStorage
 from werkzeug.test import encode_multipart
 
 from appliance.core.frames import load_frame
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.pressure import layout_fingerprint, load_pressure_calibration, save_pressure_calibration
 from appliance.core.protocols import default_protocol
-from appliance.service.engineering import checked_args, engineering_commands
+from appliance.service.engineering import engineering_commands
+from appliance.service.engineering_tasks import checked_args
 from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.loads import empty_mat
 from appliance.store import Store

@@ -5,10 +5,9 @@ import errno
 import numpy as np
 import pytest
 
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
-from appliance.drivers.emulated.board import EmulatedBoard
-from appliance.drivers.frontend import open_front_end
+from appliance.drivers.backend import emulated_board, open_front_end
 from appliance.drivers.profile import board_profile
 from appliance.drivers.scan import Flag, ScanEngine
 from appliance.drivers.selftest import run_self_test
@@ -73,7 +72,7 @@ def test_an_spi_io_error_on_a_multiplexer_is_retried_then_flagged(emulated):
 
 
 def test_a_device_file_missing_at_start_is_named():
-    board = EmulatedBoard(board_profile({}), sensor_of("grid-4x4"))
+    board = emulated_board(board_profile({}), sensor_of("grid-4x4"))
     board.faults.missing.add("/dev/spidev0.1")
     with pytest.raises(DeviceMissing, match=r"/dev/spidev0\.1"):
         open_front_end(board, board.profile)
@@ -110,7 +109,7 @@ def test_an_insulating_tear_saturates_readings_across_it():
 
     tear = (Inclusion("disc", 50, 50, 50, 50, 1e-3),)     # a near-insulating hole between the electrodes
     sensor = sensor_of("grid-4x4", tear)
-    board = EmulatedBoard(board_profile({}), sensor)
+    board = emulated_board(board_profile({}), sensor)
     front_end = open_front_end(board, board.profile)
     frame = ScanEngine(front_end, PROTOCOL).scan()
     saturated = (frame.flags & int(Flag.SATURATED)) != 0

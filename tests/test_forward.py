@@ -9,8 +9,9 @@ import pytest
 
 from appliance.core.fem import build_fem_model, relative_contact_impedance
 from appliance.core.forward import electrode_currents, simulate, solve_electrodes
-from appliance.core.layouts import Layout, RectElectrode, RectSheet, get_layout
+from appliance.core.layouts import Layout, RectElectrode, RectSheet
 from appliance.core.mesh import MeshSpec, mesh_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.network import build_network_model, network_for_layout
 from appliance.core.phantoms import Inclusion, conductivity
 from appliance.core.protocols import Protocol, default_protocol

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from appliance.core.frames import check_same_protocol, frame_to_csv, load_calibration, load_frame
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
 from appliance.core.protocols import adjacent_protocol, default_protocol
 from appliance.errors import DataFileInvalid, ProtocolInvalid

@@ -7,9 +7,9 @@ import pytest
 
 from appliance.cli import main
 from appliance.core.frames import load_frame
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol, protocol_to_csv
-from appliance.drivers import EmulationFallbackWarning, open_board
+from appliance.drivers.backend import EmulationFallbackWarning, open_board
 from appliance.drivers.profile import board_profile, board_table_from_file
 from appliance.errors import ConfigError, DeviceMissing
 from conftest import sensor_of, sensor_readings

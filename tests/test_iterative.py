@@ -6,7 +6,7 @@ import pytest
 from appliance.core.fem import build_fem_model
 from appliance.core.forward import simulate
 from appliance.core.iterative import LOG_LIMIT, MISFIT_LIMIT, iterative_reconstruct, one_step_misfit
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.phantoms import Inclusion, conductivity
 from appliance.core.protocols import default_protocol
 from appliance.errors import ReconstructionError

@@ -6,7 +6,7 @@ import pytest
 from appliance.core.fem import build_fem_model
 from appliance.core.forward import simulate
 from appliance.core.jacobian import jacobian, pixel_jacobian
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 
 from conftest import PERIPHERAL_AND_GRID

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from appliance.core.layout_files import layout_to_toml, load_layout
-from appliance.core.layouts import DiscSheet, Layout, RectElectrode, RectSheet, SectorElectrode, get_layout
+from appliance.core.layouts import DiscSheet, Layout, RectElectrode, RectSheet, SectorElectrode
+from appliance.core.named_layouts import get_layout
 from appliance.errors import LayoutInvalid
 
 

@@ -1,10 +1,13 @@
-"""The code passes ruff and mypy as ``pyproject.toml`` configures them, the versions the ``test`` extra pins.
+"""The code passes ruff, mypy and import-linter as ``pyproject.toml`` configures them, the versions the ``test``
+extra pins.
 
-Each tool is also shown a small module with a fault it must report, so a configuration that checks
-nothing (no files found, no rule selected) fails here rather than passing quietly.
+Each tool is also shown a fault it must report, so a configuration that checks nothing (no files found, no rule
+selected, no contract that can break) fails here rather than passing quietly.
 """
 
 import importlib.util
+import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -50,3 +53,38 @@ def test_the_checks_report_a_planted_fault(tmp_path):
     mypy = run("mypy", "--no-incremental", "faulty.py", cwd=tmp_path)
     assert mypy.returncode == 1 and "faulty.py:9: error" in mypy.stdout and "[return-value]" in mypy.stdout, \
         mypy.stdout + mypy.stderr
+
+
+def lint_imports(cwd: Path = ROOT) -> subprocess.CompletedProcess:
+    """lint-imports on the packages found first from ``cwd`` (its copy of them), with the contracts of its
+    pyproject.toml."""
+    if importlib.util.find_spec("importlinter") is None:
+        pytest.fail("import-linter is not installed: it comes with the test extra, pip install -e '.[test]'")
+    return subprocess.run([sys.executable, "-c", "from importlinter.cli import lint_imports_command as c; c()",
+                           "--no-cache", "--no-logo"], cwd=cwd, env={**os.environ, "PYTHONPATH": str(cwd)},
+                          capture_output=True, text=True, check=False, timeout=600)
+
+
+def test_imports_keep_every_contract():
+    done = lint_imports()
+    assert done.returncode == 0 and "Contracts: 3 kept, 0 broken." in done.stdout, done.stdout + done.stderr
+
+
+def test_lint_imports_reports_a_planted_import_of_each_kind(tmp_path):
+    for part in ("appliance", "webui"):
+        shutil.copytree(ROOT / part, tmp_path / part, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy(ROOT / "pyproject.toml", tmp_path)
+
+    def plant(module: str, line: str) -> None:
+        path = tmp_path.joinpath(*module.split(".")).with_suffix(".py")
+        path.write_text(path.read_text() + line + "\n")
+
+    plant("appliance.store.database", "import webui.live")                # a low layer importing the screen
+    plant("appliance.service.settings", "import appliance.sim.scene_base")  # the screen reaching the simulator
+    plant("appliance.drivers.bus", "import appliance.drivers.scan")       # the scan engine imports the bus
+    done = lint_imports(tmp_path)
+    assert done.returncode == 1 and "Contracts: 0 kept, 3 broken." in done.stdout, done.stdout + done.stderr
+    assert "appliance.store.database -> webui.live" in done.stdout, done.stdout
+    assert "webui.settings -> appliance.service.settings" in done.stdout, done.stdout
+    assert "No cycles are allowed in appliance.drivers." in done.stdout and "- .bus -> .scan" in done.stdout, \
+        done.stdout

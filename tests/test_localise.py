@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from appliance.core.forward import simulate
-from appliance.core.layouts import get_layout
 from appliance.core.localise import find_regions
+from appliance.core.named_layouts import get_layout
 from appliance.core.phantoms import Inclusion, conductivity
 from appliance.core.protocols import default_protocol
 

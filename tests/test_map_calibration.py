@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from appliance.calibration import Load, MapLoad, pressure_calibration
-from appliance.core.layouts import get_layout
 from appliance.core.model_cache import cached_model, default_setup
+from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
 from appliance.core.pressure import KPA_PER_MMHG, load_pressure_calibration, save_pressure_calibration
 from appliance.errors import ConfigError, DataFileInvalid

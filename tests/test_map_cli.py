@@ -8,8 +8,8 @@ import pytest
 
 from appliance.calibration import calibration_loads, pressure_calibration
 from appliance.cli import main
-from appliance.core.layouts import get_layout
 from appliance.core.model_cache import ModelSetup, cached_model
+from appliance.core.named_layouts import get_layout
 from appliance.core.pressure import save_pressure_calibration
 from appliance.core.protocols import default_protocol
 from appliance.service.virtual_bed import VirtualBedSource

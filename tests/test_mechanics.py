@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from appliance.core.fem import build_fem_model
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.errors import ModelInputInvalid
 from appliance.sim import mechanics
 from appliance.sim.field import PressureField

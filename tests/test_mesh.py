@@ -5,8 +5,10 @@ import math
 import numpy as np
 import pytest
 
-from appliance.core.layouts import SectorElectrode, get_layout
+from appliance.core.layouts import SectorElectrode
+
 from appliance.core.mesh import MeshSpec, mesh_layout
+from appliance.core.named_layouts import get_layout
 from appliance.errors import LayoutInvalid
 
 

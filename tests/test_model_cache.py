@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from appliance.core.layouts import get_layout
 from appliance.core.model_cache import ModelSetup, cached_model, default_cache_dir, load_model
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol, opposite_protocol
 from appliance.core.reconstruct import ReconstructionOptions
 from appliance.core.regularisation import NoiseModel

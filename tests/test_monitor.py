@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 
 from appliance.cli import main
-from appliance.core.layouts import get_layout
 from appliance.core.model_cache import ModelSetup, cached_model
+from appliance.core.named_layouts import get_layout
 from appliance.core.pressure import load_pressure_calibration, save_pressure_calibration
 from appliance.core.protocols import default_protocol
 from appliance.errors import ConfigError
-from appliance.service.config import MonitorConfig
+from appliance.service.config_sections import MonitorConfig
 from appliance.service.live import read_live
 from appliance.service.monitor import Monitor
 from appliance.service.virtual_bed import VirtualBedSource

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from appliance.core.forward import simulate, solve_electrodes
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.network import (
     ELEMENT_MATRIX, NetworkGrid, appendix_b_electrode_volts, build_network_model, conductance_matrix,
     network_for_layout, thesis_phantom,

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import element_pixel_map, pixel_areas_mm2, pixel_grid
 from appliance.errors import ConfigError
 

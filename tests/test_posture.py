@@ -6,10 +6,9 @@ import numpy as np
 import pytest
 
 from appliance.alerts.anatomy import POSTURES, BodyView, body_view, posture_group
-from appliance.alerts.posture import (
-    BED_PITCH_MM, PostureModel, bed_views, default_posture_model, is_sitting_on_edge, mirrored, posture_features,
-)
-from appliance.core.layouts import get_layout
+from appliance.alerts.posture import PostureModel, default_posture_model, is_sitting_on_edge, posture_features
+from appliance.alerts.posture_training import BED_PITCH_MM, bed_views, mirrored
+from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
 from appliance.errors import DataFileInvalid, ModelInputInvalid
 from appliance.sim.recordings import pmat_scene, popu_scene

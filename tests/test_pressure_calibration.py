@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.calibration import FOOT_END, HEEL_SIDE_MM, foot_end_loads, foot_end_mask
 from appliance.core.pixels import pixel_grid
 from appliance.core.pressure import (PressureCalibration, PressureCurve, ZoneCurve, fit_pressure_curve,

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import (
     Protocol, adjacent_protocol, default_protocol, distributed_protocol, load_protocol, opposite_protocol,
     protocol_for, protocol_to_csv, skip_protocol,

@@ -11,10 +11,10 @@ from types import SimpleNamespace
 
 import pytest
 
+from appliance.accounts.users import UserStore
 from appliance.cli import main
 from appliance.service.config import load_config
 from appliance.service.provision import ProvisionError, provision, read_setup
-from webui.users import UserStore
 
 SETUP = """\
 hostname = "ward3-bed12"

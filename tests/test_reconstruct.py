@@ -7,8 +7,8 @@ from scipy import ndimage
 
 from appliance.core.fem import build_fem_model
 from appliance.core.forward import simulate
-from appliance.core.layouts import get_layout
 from appliance.core.model_cache import ModelSetup, build_model
+from appliance.core.named_layouts import get_layout
 from appliance.core.phantoms import Inclusion, conductivity
 from appliance.core.protocols import default_protocol
 from appliance.core.reconstruct import (

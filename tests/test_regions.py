@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from appliance.alerts.regions import RegionTracker
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
 from appliance.core.pressure_map import PressureMap
 

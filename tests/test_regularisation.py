@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
 from appliance.core.regularisation import (
     NoiseModel, choose_lambda, expected_error, laplacian, minimise_lambda, noise_figure, prior_matrix,

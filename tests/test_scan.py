@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.drivers.scan import UNUSABLE, Flag, ScanEngine, average_frames
 from conftest import sensor_of, sensor_readings
@@ -101,9 +101,9 @@ def test_reading_before_the_rms_converter_settles_gives_the_wrong_value(emulated
 
 def test_an_object_on_the_mat_changes_the_readings_as_the_sensor_predicts(emulated):
     inclusion = ("disc:50,50,30,0.3",)
-    from appliance.cli import _parse_inclusion
+    from appliance.cli_args import parse_inclusion
 
-    inclusions = tuple(_parse_inclusion(text) for text in inclusion)
+    inclusions = tuple(parse_inclusion(text) for text in inclusion)
     board, front_end = emulated("reference", "grid-4x4", inclusions=inclusions)
     protocol = default_protocol(get_layout("grid-4x4"))
     frame = ScanEngine(front_end, protocol).scan()

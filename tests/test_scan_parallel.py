@@ -5,13 +5,14 @@ import functools
 import numpy as np
 import pytest
 
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import protocol_for
 from appliance.drivers.adaptive import AdaptivePlan
+from appliance.drivers.backend import emulated_board, open_front_end
 from appliance.drivers.emulated.board import EmulatedBoard
 from appliance.drivers.emulated.parallel import settle_time_s
+from appliance.drivers.emulated.parallel_board import EmulatedParallelBoard
 from appliance.drivers.emulated.sensor import ForwardSensor
-from appliance.drivers.frontend import open_front_end
 from appliance.drivers.profile import board_profile
 from appliance.drivers.scan import UNUSABLE, Flag, ScanEngine
 from appliance.drivers.selftest import run_self_test
@@ -29,8 +30,15 @@ def mat(sheet_s: float = 0.02):
 
 
 def parallel(sensor=None, seed=0, **overrides):
-    board = EmulatedBoard(board_profile({"profile": "parallel", **GRID, **overrides}), sensor or mat(), seed=seed)
+    board = emulated_board(board_profile({"profile": "parallel", **GRID, **overrides}), sensor or mat(), seed=seed)
     return board, open_front_end(board, board.profile)
+
+
+def test_the_board_follows_the_profiles_chain():
+    assert type(parallel()[0]) is EmulatedParallelBoard
+    assert type(emulated_board(board_profile({}), mat())) is EmulatedBoard
+    with pytest.raises(ConfigError, match="parallel front end: its emulated board is EmulatedParallelBoard"):
+        EmulatedBoard(board_profile({"profile": "parallel", **GRID}), mat())
 
 
 def errors_in_accuracy(frame, front_end, sensor, *, measured=False):
@@ -216,7 +224,7 @@ def test_the_parallel_front_end_refuses_what_it_cannot_read():
         ScanEngine(fe, protocol_for(LAYOUT, "local", reach=2))
     with pytest.raises(ConfigError, match="4 x 8 grid"):
         ScanEngine(fe, protocol_for(get_layout("grid-4x4"), "rows"))
-    board = EmulatedBoard(board_profile({}), ForwardSensor.of_layout(get_layout("grid-4x4")))
+    board = emulated_board(board_profile({}), ForwardSensor.of_layout(get_layout("grid-4x4")))
     engine = ScanEngine(open_front_end(board, board.profile), protocol_for(get_layout("grid-4x4"), "rows"),
                         contact_check=False)
     engine.scan()
@@ -246,7 +254,7 @@ def test_the_self_test_passes_and_checks_the_switch_chain():
 def test_the_parallel_profile_without_its_hardware_names_the_missing_device(monkeypatch):
     """On a Pi 4B's facts (this machine's own board is unknown, so the mainline name GPIO_GCLK could not be
     placed on it), the profile fits, and opening it names the first device node that is not there."""
-    from appliance.drivers import open_board
+    from appliance.drivers.backend import open_board
     from appliance.drivers.boards import HOST_BOARDS
     from appliance.errors import DeviceMissing
 

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.drivers.scan import Flag, TechnicalCondition, saturation_condition
 from appliance.errors import ConfigError, DataFileInvalid
@@ -15,7 +15,8 @@ from appliance.sim.body import G_M_S2, total_force_n
 from appliance.sim.frontend import VirtualFrontEnd
 from appliance.sim.loads import empty_mat
 from appliance.sim.recordings import pmat_scene
-from appliance.sim.scenes import ElectrodeFault, builtin_scenes, load_scene, scene_from_mapping
+from appliance.sim.scene_base import ElectrodeFault
+from appliance.sim.scenes import builtin_scenes, load_scene, scene_from_mapping
 
 GRID = get_layout("grid-4x4")
 PROTOCOL = default_protocol(GRID)

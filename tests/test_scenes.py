@@ -8,7 +8,8 @@ import pytest
 from appliance.errors import ConfigError, ModelInputInvalid
 from appliance.sim.body import (G_M_S2, MatGrid, Placement, Subject, body_field, body_patches, outline_box_mm,
                                 total_force_n)
-from appliance.sim.scenes import ElectrodeFault, builtin_scenes, load_scene, scene_from_mapping
+from appliance.sim.scene_base import ElectrodeFault
+from appliance.sim.scenes import builtin_scenes, load_scene, scene_from_mapping
 
 LIE = {"at_s": 0, "kind": "lie-down", "posture": "supine", "x_mm": 450, "y_mm": 80}
 

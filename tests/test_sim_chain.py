@@ -3,12 +3,11 @@
 import numpy as np
 import pytest
 
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.phantoms import Inclusion
 from appliance.core.protocols import default_protocol, protocol_for
-from appliance.drivers.emulated.board import EmulatedBoard
+from appliance.drivers.backend import emulated_board, open_front_end
 from appliance.drivers.emulated.sensor import ForwardSensor
-from appliance.drivers.frontend import open_front_end
 from appliance.drivers.profile import board_profile
 from appliance.drivers.scan import Flag, ScanEngine
 from appliance.sim.chain import FrameChain, ParallelFrameChain
@@ -18,7 +17,7 @@ PROTOCOL = default_protocol(get_layout("grid-4x4"))
 
 
 def scanned(profile, sensor, seed=0):
-    board = EmulatedBoard(board_profile({"profile": profile}), sensor, seed=seed)
+    board = emulated_board(board_profile({"profile": profile}), sensor, seed=seed)
     engine = ScanEngine(open_front_end(board, board.profile), PROTOCOL)
     engine.scan()
     return engine.scan()
@@ -49,7 +48,7 @@ def test_with_unequal_contacts_a_scan_reports_what_the_profiles_detector_does(pr
     table = {"profile": profile, "measurement": {"input_capacitance_f": 1e-9}}
     contact = ElectrodeContact.uniform(16, resistance_ohm=30.0, capacitance_f=0.0, spread=0.3)
     sensor = dataclasses.replace(sensor_of("grid-4x4"), contact=contact)
-    board = EmulatedBoard(board_profile(table), sensor, seed=0)
+    board = emulated_board(board_profile(table), sensor, seed=0)
     engine = ScanEngine(open_front_end(board, board.profile), PROTOCOL)
     engine.scan()
     frame = engine.scan()
@@ -97,7 +96,7 @@ SMALL_GRID = {"profile": "parallel", "grid": {"rows": 4, "cols": 8}}
 
 def settled_parallel_scan(profile, sensor, protocol, *, seed, frames=9):
     """A steady frame of the emulated parallel board (after enough frames for the zero's running mean)."""
-    board = EmulatedBoard(profile, sensor, seed=seed)
+    board = emulated_board(profile, sensor, seed=seed)
     engine = ScanEngine(open_front_end(board, profile), protocol, contact_check=False)
     for _ in range(frames):
         frame = engine.scan()

@@ -10,7 +10,7 @@ import pytest
 from appliance.alerts.episodes import Episode
 from appliance.alerts.pipeline import AlertPipeline, AlertSettings
 from appliance.alerts.posture import PostureEstimate
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.core.pressure_map import PressureMap

@@ -185,7 +185,7 @@ table's constants were chosen; the margin allows for small changes to the frame 
 @pytest.fixture(scope="module")
 def training_maps():
     """(subject, posture, view, spots) of every labelled training map, loaded once."""
-    from appliance.alerts.site_table import TRAINING_SUBJECTS, label_maps
+    from appliance.alerts.site_table_fit import TRAINING_SUBJECTS, label_maps
     return list(label_maps(LABELS, PMAT, TRAINING_SUBJECTS))
 
 
@@ -193,14 +193,16 @@ def training_maps():
 def test_the_shipped_table_rebuilds_from_the_label_files(training_maps):
     import json
 
-    from appliance.alerts.site_table import TABLE_PATH, SiteTable, labelled_points
+    from appliance.alerts.site_table import TABLE_PATH, SiteTable
+    from appliance.alerts.site_table_fit import labelled_points
     rebuilt = SiteTable.from_points([p for m in training_maps for p in labelled_points(*m)])
     assert rebuilt.to_json() == json.loads(TABLE_PATH.read_text(encoding="utf-8"))["postures"]
 
 
 @needs_pmat
 def test_leave_one_subject_out_accuracy_holds(training_maps):
-    from appliance.alerts.site_table import SiteTable, labelled_points
+    from appliance.alerts.site_table import SiteTable
+    from appliance.alerts.site_table_fit import labelled_points
     points = [(m[0], labelled_points(*m)) for m in training_maps]
     tables = {subject: SiteTable.from_points([p for s, ps in points if s != subject for p in ps])
               for subject in TRAINING}

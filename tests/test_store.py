@@ -10,7 +10,7 @@ import pytest
 
 from appliance.alerts.alarms import AlarmEvent
 from appliance.alerts.turns import TurnEvent
-from appliance.store import SchemaTooNew, Store, StoreClosed, StoreCorrupt
+from appliance.store import SchemaTooNew, Store, StoreClosed, StoreCorrupt, StoreError
 from appliance.store.database import DAY_S, SCHEMA_VERSION, STATE_SYNC_S
 
 
@@ -40,6 +40,41 @@ def test_schema_created_with_wal_and_incremental_vacuum(tmp_path):
     with Store.open(path) as store:  # reopening migrates nothing and keeps the version
         assert store.last_time() is None
     assert raw(path, "SELECT version FROM schema_version") == [(SCHEMA_VERSION,)]
+
+
+def test_a_read_only_store_reads_beside_a_writer_and_takes_no_writes(tmp_path):
+    path = tmp_path / "store.db"
+    with Store.open(path) as store:
+        store.save_state("alerts", {"dose": 0.5}, 10.0)
+    writer = sqlite3.connect(path, isolation_level=None)
+    writer.execute("BEGIN IMMEDIATE")                     # the monitor inside a frame's commit
+    writer.execute("INSERT INTO state (name, saved_at_s, value) VALUES ('late', 11.0, '{}')")
+    try:
+        with Store.open_read_only(path) as reader:
+            assert reader.load_state("alerts") == {"dose": 0.5} and reader.load_state("late") is None
+            with pytest.raises(StoreError, match="is open read-only: it takes no writes"):
+                reader.save_state("alerts", {"dose": 0.0}, 12.0)
+            with pytest.raises(sqlite3.OperationalError, match="readonly database"):
+                reader._conn().execute("DELETE FROM state")
+    finally:
+        writer.execute("ROLLBACK")
+        writer.close()
+    assert raw(path, "SELECT name FROM state") == [("alerts",)]
+
+
+def test_a_read_only_store_needs_the_file_made_and_migrated_by_a_writer(tmp_path):
+    with pytest.raises(StoreError, match="cannot open store .*missing.db to read"):
+        Store.open_read_only(tmp_path / "missing.db")
+    old = tmp_path / "old.db"
+    with Store.open(old):
+        pass
+    db = sqlite3.connect(old)
+    db.execute("UPDATE schema_version SET version = 1")
+    db.commit()
+    db.close()
+    with pytest.raises(StoreError, match=f"schema version 1, not {SCHEMA_VERSION}: the monitor brings it up"):
+        Store.open_read_only(old)
+    assert raw(old, "SELECT version FROM schema_version") == [(1,)]
 
 
 def test_events_of_both_engines_round_trip_with_extra_fields_in_detail(tmp_path):

@@ -6,13 +6,12 @@ import pytest
 from appliance.calibration import (KPA_PER_GRAM_PER_CM2, Load, calibration_loads, grams_for, pressure_calibration,
                                    sensitivity_calibration, thesis_loads)
 from appliance.core.frames import load_calibration
-from appliance.core.layouts import get_layout
 from appliance.core.model_cache import ModelSetup, cached_model
+from appliance.core.named_layouts import get_layout
 from appliance.core.pressure import layout_fingerprint
 from appliance.core.pressure_map import loaded_regions
 from appliance.core.protocols import default_protocol
-from appliance.drivers import open_board
-from appliance.drivers.frontend import open_front_end
+from appliance.drivers.backend import open_board, open_front_end
 from appliance.drivers.scan import ScanEngine
 from appliance.errors import ConfigError, ModelInputInvalid
 from appliance.sim.bed import VirtualBed

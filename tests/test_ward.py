@@ -16,7 +16,7 @@ from mqtt_broker import free_port, subscribed_station, wait_until
 from ward_payloads import alarm, as_sent, summary
 
 from appliance.alerts.wardlink import WardLink, release
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.service.config import config_from_mapping
 from appliance.service.daemon import MonitorDaemon

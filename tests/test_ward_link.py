@@ -17,7 +17,7 @@ from appliance.alerts.alarms import AlarmEvent
 from appliance.alerts.events import Event, as_event
 from appliance.alerts.turns import TurnEvent
 from appliance.alerts.wardlink import WardLink, release
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.errors import StoreCorrupt
 from appliance.service.config import config_from_mapping

@@ -13,7 +13,7 @@ from ward_payloads import alarm, summary
 from webui_client import client_as
 
 from appliance.errors import ConfigError
-from appliance.service.config import MqttSettings
+from appliance.service.config_sections import MqttSettings
 from appliance.ward.config import WardConfig, load_ward_config, ward_config_from_mapping
 from webui import create_ward_app
 

@@ -18,10 +18,10 @@ import urllib.request
 import pytest
 from webui_client import PASSWORD, client_as, log_in, set_up, token
 
+from appliance.accounts.passwords import common_passwords
+from appliance.accounts.users import MAX_AUDIT_USER, AccountError, UserStore
 from webui import create_app
 from webui.limiter import ADDRESS_ATTEMPTS, PAIR_ATTEMPTS, LoginLimiter
-from webui.passwords import common_passwords
-from webui.users import MAX_AUDIT_USER, AccountError, UserStore
 
 NEW = "staple battery horse"
 
@@ -163,7 +163,7 @@ def test_weak_passwords_are_refused_everywhere_with_the_reason(app, password, me
 
 def test_long_passphrases_pass_and_the_common_list_is_shipped():
     assert len(common_passwords()) >= 300 and {"123456", "password", "qwerty", "letmein"} <= common_passwords()
-    from webui.passwords import check
+    from appliance.accounts.passwords import check
     for good in (PASSWORD, NEW, "Tuesday kettle 42", "blue mug on the ward"):
         check("nurse.jones", good)
 

@@ -2,6 +2,9 @@
 
 import json
 import re
+import sqlite3
+import subprocess
+import sys
 import time
 
 import pytest
@@ -9,14 +12,14 @@ from flask import url_for
 from mqtt_broker import free_port
 from webui_client import PASSWORD, client_as, log_in, set_up, token
 
-from appliance.service.config import MqttSettings
+from appliance.accounts.users import AccountError, UserStore
+from appliance.service.config_sections import MqttSettings
 from appliance.service.live import LiveChannel, read_live
 from appliance.store import Store
 from appliance.ward.config import WardConfig
 from appliance.ward.station import WardStation
 from webui import create_app, create_ward_app
 from webui.limiter import ADDRESS_ATTEMPTS, LoginLimiter
-from webui.users import AccountError, UserStore
 
 
 @pytest.fixture
@@ -294,6 +297,36 @@ def test_behind_the_proxy_the_limiter_counts_each_browser_not_the_proxy(tmp_path
         server.close()
     if behind_proxy:
         assert "from 10.0.0.12" in app.extensions["users"].audit_log()[0]["detail"]
+
+
+def test_the_screen_loads_no_driver_and_no_simulator(tmp_path):
+    code = ("import sys, webui, webui.__main__; webui.create_app(sys.argv[1]); "
+            "print(sorted(m for m in sys.modules if m.startswith(('appliance.drivers', 'appliance.sim'))))")
+    done = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, check=True,
+                          timeout=120)
+    assert done.stdout.strip() == "[]", done.stdout + done.stderr
+
+
+def test_page_views_read_the_store_while_the_monitor_holds_its_write_lock(app):
+    from appliance.store import StoreError
+    from webui.alarms import reader
+
+    nurse = client_as(app, "nurse")
+    path = app.config["STORE_PATH"]
+    Store.open(path).close()                              # the monitor made the store
+    monitor = sqlite3.connect(path, isolation_level=None)
+    monitor.execute("BEGIN IMMEDIATE")                    # and is inside a frame's commit
+    try:
+        for page in ("/alarms", "/history", "/patient", "/settings", "/api/settings"):
+            assert nurse.get(page).status_code == 200, page
+        with app.test_request_context(), reader() as s:
+            with pytest.raises(StoreError, match="open read-only"):
+                s.queue_command("acknowledge", {"alarm_id": 1}, "nurse.test")
+            with pytest.raises(sqlite3.OperationalError, match="readonly database"):
+                s._conn().execute("DELETE FROM commands")
+    finally:
+        monitor.execute("ROLLBACK")
+        monitor.close()
 
 
 def test_the_live_page_has_a_line_for_settings_that_are_not_the_default(app):

@@ -19,14 +19,14 @@ from pathlib import Path
 
 from flask import Flask, current_app, g, redirect, url_for
 
+from appliance.accounts.private import private_file
+from appliance.accounts.users import UserStore
 from appliance.alerts.wording import alarm_words, setting_words
 from webui import accounts, alarms, auth, engineering, history, live, patient, settings, ward
 from webui.headers import add_security_headers
 from webui.limiter import LoginLimiter
-from webui.private import private_file
 from webui.security import csrf_token, guard, needs_https
 from webui.sessions import SessionStore
-from webui.users import UserStore
 
 SESSION_HOURS = 12          # one shift
 BLUEPRINTS = (auth.bp, accounts.bp, live.bp, alarms.bp, patient.bp, history.bp, settings.bp, engineering.bp)

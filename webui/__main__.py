@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from appliance.service.virtual_bed import default_data_dir
+from appliance.service.config_sections import default_data_dir
 from webui import create_app
 from webui.server import serve
 

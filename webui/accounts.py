@@ -2,7 +2,7 @@
 
 There are no shared logins on a ward: each nurse and engineer has an account, so
 the audit log says who acknowledged what. Every change here is audited (by
-:class:`webui.users.UserStore`), and a refused change says why and changes
+:class:`appliance.accounts.users.UserStore`), and a refused change says why and changes
 nothing. A removed or re-roled user's next request already sees the change,
 because the guard reads the account on every request. A new password ends
 every session of its account; the user who set their own stays logged in, in a
@@ -13,10 +13,10 @@ from __future__ import annotations
 
 from flask import Blueprint, current_app, flash, g, redirect, render_template, request, url_for
 
+from appliance.accounts.users import ROLES, AccountError, UserStore
 from webui.alarms import clock
 from webui.auth import log_in
 from webui.security import requires
-from webui.users import ROLES, AccountError, UserStore
 
 bp = Blueprint("accounts", __name__)
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from datetime import datetime
+from pathlib import Path
 
 from flask import Blueprint, abort, current_app, flash, g, jsonify, redirect, render_template, request, url_for
 
@@ -23,7 +24,17 @@ HISTORY_S = 24 * 3600.0
 
 
 def store() -> Store:
+    """The monitor's store opened to queue a command: a write, which waits its turn behind the monitor's."""
     return Store.open(current_app.config["STORE_PATH"])
+
+
+def reader() -> Store:
+    """The monitor's store opened to read, for a page view: it takes no write lock, so a view neither waits for
+    the monitor's commit nor holds it up. A store no monitor has made yet is made first (no monitor to wait for)."""
+    path = Path(current_app.config["STORE_PATH"])
+    if not path.exists():
+        Store.open(path).close()
+    return Store.open_read_only(path)
 
 
 def clock(time_s: float, now_s: float | None = None) -> str:
@@ -37,7 +48,7 @@ def clock(time_s: float, now_s: float | None = None) -> str:
 @bp.route("/alarms")
 def page():
     live = snapshot()
-    with store() as s:
+    with reader() as s:
         last = s.last_time() or 0.0
         history = list(reversed(s.events_since(last - HISTORY_S)))
     return render_template("alarms.html", alarms=live.get("alarms", []), stale=live["stale"], history=history,
@@ -77,7 +88,7 @@ def pause_audio():
 
 @bp.route("/api/commands/<int:command_id>")
 def command_state(command_id: int):
-    with store() as s:
+    with reader() as s:
         command = s.command(command_id)
     if command is None:
         abort(404, description=f"no command {command_id}")

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from flask import Blueprint, current_app, flash, g, redirect, render_template, request, session, url_for
 
+from appliance.accounts.users import AccountError
 from webui.redirects import local_path
-from webui.users import AccountError
 
 MAX_NAME_CHARS = 64         # account names have at most 32; more is not a typing slip
 

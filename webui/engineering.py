@@ -5,7 +5,7 @@ contact check, self-test, a new empty-mat reference, pressure calibration,
 rebuilding the model, saving the map as an image, loading a calibration) is a
 command queued in its store, as the alarms page queues an acknowledgement; the
 page follows each one's progress through ``/api/commands/<id>``. Arguments are
-checked here with the daemon's own rules (``appliance.service.engineering``),
+checked here with the daemon's own rules (``appliance.service.engineering_tasks``),
 so bad input is refused with the field and its allowed values, and nothing is
 queued or audited.
 
@@ -31,9 +31,9 @@ from appliance.core.frames import FRAME_HEADER, load_frame
 from appliance.core.pressure import check_plausible, load_pressure_calibration
 from appliance.errors import ApplianceError
 from appliance.files import write_atomic
-from appliance.service.config import load_config
-from appliance.service.engineering import ENGINEERING_DIR, TASKS, checked_args, engineering_file
-from webui.alarms import store
+from appliance.service.config_sections import read_config
+from appliance.service.engineering_tasks import ENGINEERING_DIR, TASKS, checked_args, engineering_file
+from webui.alarms import reader, store
 from webui.security import requires
 
 bp = Blueprint("engineering", __name__)
@@ -67,7 +67,7 @@ def files() -> list[dict]:
 
 
 def _page(error: str | None = None, status: int = 200):
-    with store() as s:
+    with reader() as s:
         commands = s.commands_since(time.time() - RECENT_S, TASKS)
     listed = files()
     return render_template("engineering.html", commands=commands, files=listed, error=error, tasks=TASKS,
@@ -198,7 +198,9 @@ def upload():
 
 def _check_upload(name: str, content: bytes) -> None:
     """Refuse an upload that is not what its name says: a pressure calibration (.json) or a monitor
-    configuration (.toml), each read by the monitor's own reader."""
+    configuration (.toml), each read by the monitor's own reader (a configuration's every section; its board
+    profile and scenario, which the front end's and the simulator's data judge, are checked when the monitor
+    starts with it, as ``appliance run --check-config`` does)."""
     try:
         text = content.decode("utf-8")
     except UnicodeDecodeError:
@@ -215,6 +217,6 @@ def _check_upload(name: str, content: bytes) -> None:
             if name.lower().endswith(".json"):
                 check_plausible(load_pressure_calibration(path), name)
             else:
-                load_config(path)
+                read_config(path)
         except (ApplianceError, ValueError) as exc:
             raise Refused(f"file: {str(exc).replace(str(path), name)}") from None

@@ -29,7 +29,7 @@ from appliance.alerts.anatomy import SITES, SMALL_MAT_SITE, UNIDENTIFIED_SITE, s
 from appliance.alerts.turns import TURN_KINDS as TURN_EVENT_KINDS
 from appliance.alerts.wording import alarm_words
 from appliance.core.pressure import KPA_PER_MMHG
-from webui.alarms import clock, store
+from webui.alarms import clock, reader
 from webui.live import snapshot
 
 bp = Blueprint("history", __name__)
@@ -83,7 +83,7 @@ class History:
 
 def load_history(hours: float) -> History | None:
     """The last ``hours`` up to the store's newest record; None when it has recorded nothing."""
-    with store() as s:
+    with reader() as s:
         end = s.last_time()
         if end is None:
             return None

@@ -16,7 +16,7 @@ from flask import Blueprint, current_app, flash, g, redirect, render_template, r
 
 from appliance.alerts.episodes import DEFAULT_BED_EXIT_AFTER_S, Episode
 from appliance.errors import ConfigError
-from webui.alarms import clock, store
+from webui.alarms import clock, reader, store
 from webui.live import snapshot
 
 bp = Blueprint("patient", __name__)
@@ -25,7 +25,7 @@ bp = Blueprint("patient", __name__)
 @bp.route("/patient")
 def page():
     live = snapshot()
-    with store() as s:
+    with reader() as s:
         episodes = list(reversed(s.episodes()))
     return render_template("patient.html", patient=live.get("patient"), posture=live.get("posture"),
                            turn=live.get("turn") or {}, stale=live["stale"], episodes=episodes, clock=clock,
@@ -34,7 +34,7 @@ def page():
 
 @bp.route("/patient/history/<path:patient_id>")
 def history(patient_id: str):
-    with store() as s:
+    with reader() as s:
         events = s.patient_events(patient_id)
     return render_template("patient_history.html", patient_id=patient_id, events=events, clock=clock)
 

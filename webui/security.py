@@ -16,7 +16,7 @@ import secrets
 from flask import abort, current_app, g, redirect, request, session, url_for
 from werkzeug.wrappers import Response
 
-from webui.users import User
+from appliance.accounts.users import User
 
 PUBLIC_ENDPOINTS = {"auth.login", "auth.setup", "static"}
 STATE_CHANGING = {"POST", "PUT", "PATCH", "DELETE"}

@@ -18,7 +18,7 @@ import sqlite3
 import time
 from pathlib import Path
 
-from webui.users import User
+from appliance.accounts.users import User
 
 _SCHEMA = ("CREATE TABLE IF NOT EXISTS sessions (token_hash TEXT PRIMARY KEY,"
            " user TEXT NOT NULL REFERENCES users(name) ON DELETE CASCADE,"

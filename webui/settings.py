@@ -26,11 +26,11 @@ from flask import Blueprint, Response, current_app, flash, g, jsonify, redirect,
 from appliance.alerts.dose import BUILT_IN as BUILT_IN_CURVES
 from appliance.alerts.dose import RECOVERY_MODES
 from appliance.alerts.limits import POLICY, SAFE_RANGES, check_policy, check_within_policy, span_text
-from appliance.core.layouts import BUILTIN_NAMES
+from appliance.core.named_layouts import BUILTIN_NAMES
 from appliance.errors import ConfigError
 from appliance.service import settings as monitor_settings
-from appliance.service.config import config_from_mapping
-from webui.alarms import store
+from appliance.service.config_sections import read_sections
+from webui.alarms import reader, store
 from webui.security import requires
 
 bp = Blueprint("settings", __name__)
@@ -69,9 +69,9 @@ def current() -> dict:
         saved, file_error = monitor_settings.read_settings(settings_file()), None
     except ConfigError as exc:
         saved, file_error = {}, str(exc)
-    with store() as s:
+    with reader() as s:
         running = s.load_state(monitor_settings.STATE)
-    defaults = monitor_settings.settings_values(config_from_mapping({}))
+    defaults = monitor_settings.settings_values(read_sections({}))
     values: dict[str, dict] = {}
     for section, table in defaults.items():
         values[section] = {}
@@ -340,7 +340,7 @@ def _as_number(value):
 
 def _page(error: str | None = None, status: int = 200):
     state = current()
-    with store() as s:
+    with reader() as s:
         history = s.commands_since(time.time() - HISTORY_S, [monitor_settings.COMMAND])
     return render_template("settings.html", state=state, error=error, labels=LABELS, choices=_choices(state),
                            history=history, restart_note=monitor_settings.RESTART_NOTE,

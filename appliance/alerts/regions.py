@@ -15,7 +15,7 @@ cannot be inherited by unrelated tissue. Alarms do not rest on regions (they are
 per tissue site, :mod:`appliance.alerts.pipeline`); a region is what the screen
 draws and the history charts, named by the site it holds.
 
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> from appliance.core.pixels import pixel_grid
 >>> from appliance.core.pressure_map import PressureMap
 >>> grid = pixel_grid(get_layout("grid-16x32"))

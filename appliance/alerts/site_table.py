@@ -2,8 +2,9 @@
 
 The hand labels name the loaded spots of real in-bed maps (PmatData) by eye, posture by posture; a spot that is
 loaded but lies over no bony prominence (a buttock, the thoracic spine, a thigh) is labelled None. Each labelled
-spot becomes a point (s, u) in the body frame fitted to its map (:func:`body_coordinates`), kept per posture. A
-place of a new map takes the vote of its ``NEIGHBOURS`` nearest points of its posture, each weighted by
+spot becomes a point (s, u) in the body frame fitted to its map
+(:func:`~appliance.alerts.body_frame.body_coordinates`), kept per posture. A place of a new map takes the
+vote of its ``NEIGHBOURS`` nearest points of its posture, each weighted by
 1 / (distance + ``VOTE_SOFTENING``), ``u`` distances counted ``ACROSS_WEIGHT`` times (sides and the midline
 matter more than a few cm along); it stays unnamed beyond ``REACH`` of every point (no label ever lay there).
 
@@ -14,17 +15,17 @@ These constants were chosen by leave-one-subject-out cross-validation over the e
 locator's label of a loaded labelled spot being its pixel's (benchmarks/site_labels.py): 0.78 of all loaded
 spots and 0.77 of the hand-named ones right (the hand-set landmarks before it: 0.67 and 0.52); k from 5 to 17
 and the across weight from 1 to 3 all gave 0.77-0.78, a relative-pressure feature and pooling 60 with 90
-degrees did not help. tests/test_sites.py recomputes it. Only the training subjects (``TRAINING_SUBJECTS``)
-are fitted: S4, S6 and S11 are held out for validating the product and must never be read here. Prone,
-sitting on the edge and out of bed have no labels: :mod:`appliance.alerts.sites` keeps rules for them.
+degrees did not help. tests/test_sites.py recomputes it. Only the training subjects
+(``site_table_fit.TRAINING_SUBJECTS``) are fitted: S4, S6 and S11 are held out for validating the product
+and must never be read here. Prone, sitting on the edge and out of bed have no labels: :mod:`appliance.alerts.sites`
+keeps rules for them.
 
-Rebuild the shipped table (``site_table.json``) with
-``python -m appliance.alerts.site_table --fit tests/data/site_labels --pmat PMATDATA_DIR``.
+The table is fitted from the labels by :mod:`appliance.alerts.site_table_fit`, which rebuilds the shipped
+``site_table.json``.
 """
 
 from __future__ import annotations
 
-import argparse
 import functools
 import json
 from dataclasses import dataclass
@@ -32,22 +33,14 @@ from pathlib import Path
 
 import numpy as np
 
-from appliance.alerts.anatomy import SITES, BodyView, body_view, check_posture
-from appliance.alerts.body_frame import body_coordinates
+from appliance.alerts.anatomy import SITES, check_posture
 from appliance.errors import DataFileInvalid
 
 TABLE_PATH = Path(__file__).with_name("site_table.json")
-TRAINING_SUBJECTS = (1, 2, 3, 5, 7, 8, 9, 10)
-"""PmatData subjects whose labels are fitted; S4, S6 and S11 are held out for validation."""
-
 LABELLED_POSTURES = ("supine", "inclined", "left-30", "right-30", "left-60", "right-60", "left-90", "right-90",
                      "fetal-left", "fetal-right")
 NEIGHBOURS, ACROSS_WEIGHT, VOTE_SOFTENING, REACH = 7, 2.0, 0.01, 0.12
 DECIMALS = 4
-LABEL_MAT_MM = (900.0, 1900.0, 10.0)
-"""The 10 mm mat the labels' positions are on (width, length, pitch)."""
-MONITOR_LAYOUT = "grid-16x32"
-"""The default bed's pixels: the frame is fitted on the map as the monitor sees it."""
 
 
 @dataclass(frozen=True)
@@ -135,56 +128,3 @@ def mirrored_site(site: str | None) -> str | None:
 def mirrored_posture(posture: str) -> str:
     """The posture seen in a mirror: lying on the other side (supine is itself)."""
     return posture.replace("left", "@").replace("right", "left").replace("@", "right")
-
-
-def label_maps(label_dir: Path, pmat_dir: Path, subjects=TRAINING_SUBJECTS):
-    """(subject, posture, view, spots) of every labelled map of ``subjects``: the middle frame the labels were
-    given on, as the monitor's pixels see it; spots as in the label files."""
-    from appliance.core.layouts import get_layout
-    from appliance.core.pixels import pixel_grid
-    from appliance.sim.body import MatGrid
-    from appliance.sim.recordings import pmat_scene
-    from appliance.sim.true_maps import on_pixels
-
-    grid, mat = pixel_grid(get_layout(MONITOR_LAYOUT)), MatGrid(*LABEL_MAT_MM)
-    for subject in subjects:
-        path = Path(label_dir) / f"pmatdata-S{subject}.json"
-        try:
-            maps = json.loads(path.read_text(encoding="utf-8"))["maps"]
-        except (OSError, json.JSONDecodeError, KeyError) as exc:
-            raise DataFileInvalid(f"site labels {path}: {exc}") from None
-        for entry in maps:
-            scene = pmat_scene(pmat_dir, subject, entry["posture_file"], mat)
-            frame = scene.frames[len(scene.frames) // 2]
-            yield subject, entry["posture"], body_view(on_pixels(frame, mat.pitch_mm, grid), grid), entry["spots"]
-
-
-def labelled_points(subject: int, posture: str, view: BodyView, spots: list[dict]) -> list[LabelledPoint]:
-    """The spots of one labelled map as points in its body frame."""
-    s, u = body_coordinates(view, posture, np.array([p["along_mm"] for p in spots], float),
-                            np.array([p["across_mm"] for p in spots], float))
-    return [LabelledPoint(subject, posture, float(a), float(b), p["site"]) for a, b, p in zip(s, u, spots)]
-
-
-def fit_table(label_dir: Path, pmat_dir: Path, subjects=TRAINING_SUBJECTS) -> SiteTable:
-    """The table learned from the labels of ``subjects`` (by default the training subjects only)."""
-    points = [p for args in label_maps(label_dir, pmat_dir, subjects) for p in labelled_points(*args)]
-    return SiteTable.from_points(points)
-
-
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description="Rebuild the site table from the hand labels.")
-    parser.add_argument("--fit", type=Path, required=True, metavar="LABEL_DIR", help="tests/data/site_labels")
-    parser.add_argument("--pmat", type=Path, required=True, help="the PmatData folder the labels were given on")
-    parser.add_argument("--out", type=Path, default=TABLE_PATH)
-    args = parser.parse_args(argv)
-    table = fit_table(args.fit, args.pmat)
-    data = {"about": "hand-labelled spots of PmatData training subjects in their body frames: "
-                     "[s, u, site]; rebuilt by python -m appliance.alerts.site_table --fit LABEL_DIR",
-            "subjects": list(TRAINING_SUBJECTS), "postures": table.to_json()}
-    args.out.write_text(json.dumps(data, separators=(",", ":")) + "\n", encoding="utf-8")
-    print(f"{args.out}: {sum(len(v[1]) for v in table.points.values())} points")
-
-
-if __name__ == "__main__":
-    main()

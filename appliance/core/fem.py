@@ -21,7 +21,7 @@ scaled from z = 1e-9 to 1e0 in relative units, and the electrode voltages are
 unknowns of their own, read off without any cancellation. The last electrode is
 grounded (its unknown removed), which makes the system positive definite.
 
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> model = build_fem_model(get_layout("circular-16"))
 >>> model.kind, model.n_electrodes
 ('fem', 16)

@@ -9,7 +9,7 @@ those columns, and every reading of any protocol follows from the electrodes'
 transfer impedances.
 
 >>> import numpy as np
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> from appliance.core.protocols import default_protocol
 >>> from appliance.core.fem import build_fem_model
 >>> layout = get_layout("grid-4x4")

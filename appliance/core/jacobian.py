@@ -9,7 +9,7 @@ so the whole Jacobian costs no solve beyond the forward problem's: per element,
 the L x L products of electrode fields, then four entries per reading.
 
 >>> import numpy as np
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> from appliance.core.protocols import default_protocol
 >>> from appliance.core.network import build_network_model, network_for_layout
 >>> layout = get_layout("grid-4x4")

@@ -27,29 +27,18 @@ from pathlib import Path
 
 import numpy as np
 
-from appliance.core.layouts import DiscSheet, Layout, SectorElectrode
+from appliance.core.layouts import KTC_ELECTRODES, ktc_layout
 from appliance.core.model_cache import ModelSetup
 from appliance.core.protocols import Protocol
 from appliance.core.reconstruct import ReconstructionOptions
 from appliance.core.regularisation import NoiseModel
 from appliance.errors import DataFileInvalid
 
-TANK_RADIUS_MM = 115.0
-N_ELECTRODES = 32
-ELECTRODE_WIDTH_DEG = 5.625
-WALL_DEPTH_MM = 2.0
 CONTACT_IMPEDANCE_OHM_M2 = 2e-8
 """Near ideal: a thousandth of the sheet's resistance over an electrode face at unit conductance."""
 
 IMAGE_SIZE = 256
 LEVELS = range(1, 8)
-
-
-def ktc_layout() -> Layout:
-    """The challenge's tank: 32 wall electrodes, counter-clockwise from the top."""
-    electrodes = tuple(SectorElectrode(k + 1, (-360.0 * k / N_ELECTRODES) % 360.0, ELECTRODE_WIDTH_DEG,
-                                       WALL_DEPTH_MM) for k in range(N_ELECTRODES))
-    return Layout("ktc-32", DiscSheet(TANK_RADIUS_MM), electrodes)
 
 
 @dataclass(frozen=True)
@@ -82,7 +71,7 @@ def load_ktc(path: Path) -> KtcData:
     inj = _array(data, path, ("Inj", "Injref"))
     uel = _array(data, path, ("Uel", "Uelref")).ravel().astype(float)
     mpat = _array(data, path, ("Mpat",))
-    if inj.shape[0] != N_ELECTRODES or mpat.shape != (N_ELECTRODES, N_ELECTRODES - 1):
+    if inj.shape[0] != KTC_ELECTRODES or mpat.shape != (KTC_ELECTRODES, KTC_ELECTRODES - 1):
         raise DataFileInvalid(f"KTC data file {path}: Inj must be 32 x patterns and Mpat 32 x 31, got "
                               f"{inj.shape} and {mpat.shape}")
     if uel.size != inj.shape[1] * mpat.shape[1]:
@@ -100,7 +89,7 @@ def load_ktc(path: Path) -> KtcData:
             plus, minus = int(np.argmax(mpat[:, m])) + 1, int(np.argmin(mpat[:, m])) + 1
             rows.append((pos, neg, plus, minus))
     current = np.repeat(np.array(currents), mpat.shape[1])
-    protocol = Protocol(np.array(rows), N_ELECTRODES, name=f"ktc-{path.stem}")
+    protocol = Protocol(np.array(rows), KTC_ELECTRODES, name=f"ktc-{path.stem}")
     return KtcData(protocol, uel / current, np.array(currents))
 
 

@@ -1,6 +1,6 @@
 """Layout files: a sensor mat described in TOML, read and written.
 
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> text = layout_to_toml(get_layout("grid-4x4"))
 >>> text.splitlines()[:2]
 ['name = "grid-4x4"', 'grid = [4, 4]']
@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from appliance.core.layouts import DiscSheet, Layout, RectElectrode, RectSheet, SectorElectrode
-from appliance.core.toml_files import read_toml
+from appliance.core.toml_files import read_toml, toml_value
 from appliance.errors import LayoutInvalid
 
 
@@ -78,22 +78,24 @@ def _number(data: dict, key: str, where: str) -> float:
 
 def layout_to_toml(layout: Layout) -> str:
     """The layout as TOML text that :func:`load_layout` reads back unchanged."""
-    lines = [f'name = "{layout.name}"']
+    def pairs(**values) -> list[str]:
+        return [f"{key} = {toml_value(value)}" for key, value in values.items()]
+
+    lines = pairs(name=layout.name)
     if layout.grid_shape:
-        lines.append(f"grid = [{layout.grid_shape[0]}, {layout.grid_shape[1]}]")
-    lines.append("")
-    lines.append("[sheet]")
+        lines += pairs(grid=list(layout.grid_shape))
+    lines += ["", "[sheet]"]
     if isinstance(layout.sheet, DiscSheet):
-        lines += ['shape = "disc"', f"radius_mm = {float(layout.sheet.radius_mm)!r}"]
+        lines += pairs(shape="disc", radius_mm=float(layout.sheet.radius_mm))
     else:
-        lines += ['shape = "rectangle"', f"width_mm = {float(layout.sheet.width_mm)!r}",
-                  f"height_mm = {float(layout.sheet.height_mm)!r}"]
+        lines += pairs(shape="rectangle", width_mm=float(layout.sheet.width_mm),
+                       height_mm=float(layout.sheet.height_mm))
     for e in layout.electrodes:
-        lines += ["", "[[electrodes]]", f"number = {e.number}"]
+        lines += ["", "[[electrodes]]"] + pairs(number=e.number)
         if isinstance(e, SectorElectrode):
-            lines += ['shape = "sector"', f"angle_deg = {float(e.angle_deg)!r}", f"width_deg = {float(e.width_deg)!r}",
-                      f"depth_mm = {float(e.depth_mm)!r}"]
+            lines += pairs(shape="sector", angle_deg=float(e.angle_deg), width_deg=float(e.width_deg),
+                           depth_mm=float(e.depth_mm))
         else:
-            lines += ['shape = "rectangle"', f"x_mm = {float(e.x_mm)!r}", f"y_mm = {float(e.y_mm)!r}",
-                      f"width_mm = {float(e.width_mm)!r}", f"height_mm = {float(e.height_mm)!r}"]
+            lines += pairs(shape="rectangle", x_mm=float(e.x_mm), y_mm=float(e.y_mm), width_mm=float(e.width_mm),
+                           height_mm=float(e.height_mm))
     return "\n".join(lines) + "\n"

@@ -7,7 +7,7 @@ electrode face), numbered from 1: grids row-major from the top-left, peripheral
 layouts clockwise as seen from above, electrode 1 at the top (disc) or the
 top-left corner (square), as in the thesis's phantoms A and B.
 
->>> layout = get_layout("grid-4x4")
+>>> layout = grid_layout(4, 4, THESIS_SHEET_MM, THESIS_SHEET_MM)
 >>> layout.n_electrodes, layout.grid_shape
 (16, (4, 4))
 >>> [round(float(c), 3) for c in layout.centroids_mm()[:4, 0]]
@@ -17,9 +17,7 @@ top-left corner (square), as in the thesis's phantoms A and B.
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass
-from pathlib import Path
 from typing import cast
 
 import numpy as np
@@ -374,43 +372,17 @@ def _spread(n: int, length: float, size: float) -> np.ndarray:
 BED_MAT_MM = (900.0, 1900.0)
 """(height, width) of a bed-size mat: a standard 90 x 190 cm mattress, drawn landscape."""
 
-_GRID_NAME = re.compile(r"^grid-(\d+)x(\d+)(?:@(\d+(?:\.\d+)?)x(\d+(?:\.\d+)?))?$")
 
-BUILTIN_NAMES = ("circular-16", "square-16", "grid-4x4", "grid-8x16", "grid-16x32", "ktc-32")
+KTC_TANK_RADIUS_MM = 115.0
+KTC_ELECTRODES = 32
+KTC_ELECTRODE_WIDTH_DEG = 5.625
+KTC_WALL_DEPTH_MM = 2.0
+"""The Kuopio Tomography Challenge 2023 tank: a 230 mm disc, 32 wall electrodes 11.3 mm wide, each modelled
+as a 2 mm-deep rim sector (its data files are read by :mod:`appliance.core.ktc`)."""
 
 
-def get_layout(name: str) -> Layout:
-    """The layout called ``name``, or the one described by the TOML file ``name``.
-
-    Built-ins: ``circular-16``, ``square-16``, ``grid-4x4`` (the thesis's sensor C),
-    ``ktc-32`` (the KTC2023 tank) and ``grid-RxC`` for bed-size mats, R rows over the 900 mm side and C columns
-    over the 1900 mm side, or ``grid-RxC@HxW`` for a sheet H x W mm.
-
-    Raises
-    ------
-    LayoutInvalid
-        The name is not a built-in and no such TOML file exists.
-    """
-    if name == "circular-16":
-        return circular_layout(16)
-    if name == "square-16":
-        return square_perimeter_layout()
-    if name == "grid-4x4":
-        return grid_layout(4, 4, THESIS_SHEET_MM, THESIS_SHEET_MM, name="grid-4x4")
-    if name == "ktc-32":
-        from appliance.core.ktc import ktc_layout
-
-        return ktc_layout()
-    match = _GRID_NAME.match(name)
-    if match:
-        rows, cols = int(match[1]), int(match[2])
-        height, width = (float(match[3]), float(match[4])) if match[3] else BED_MAT_MM
-        return grid_layout(rows, cols, height, width, name=name)
-    if name.endswith(".toml"):
-        from appliance.core.layout_files import load_layout
-
-        return load_layout(Path(name))
-    raise LayoutInvalid(
-        f"unknown layout {name!r}: use one of {', '.join(BUILTIN_NAMES)}, grid-RxC, grid-RxC@HxW "
-        f"(mm) or a .toml layout file"
-    )
+def ktc_layout() -> Layout:
+    """The challenge's tank: 32 wall electrodes, counter-clockwise from the top."""
+    electrodes = tuple(SectorElectrode(k + 1, (-360.0 * k / KTC_ELECTRODES) % 360.0, KTC_ELECTRODE_WIDTH_DEG,
+                                       KTC_WALL_DEPTH_MM) for k in range(KTC_ELECTRODES))
+    return Layout("ktc-32", DiscSheet(KTC_TANK_RADIUS_MM), electrodes)

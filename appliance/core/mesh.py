@@ -7,7 +7,7 @@ by one electrode for the disc), so symmetric scenes give symmetric readings.
 Elements are finest at electrode edges, where the current density peaks, and
 grow geometrically away from them.
 
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> mesh = mesh_layout(get_layout("grid-4x4"))
 >>> mesh.n_nodes > 1000, bool(mesh.areas_mm2.min() > 0)
 (True, True)

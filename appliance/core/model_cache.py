@@ -13,7 +13,7 @@ conductance to each empty-mat reference (:mod:`appliance.core.contact_fit`) and,
 setup asks, relinearises there. Relinearised models are cached too, the newest few of
 each setup, so a restart with the same reference loads its model instead of building it.
 
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> from appliance.core.protocols import default_protocol
 >>> setup = ModelSetup(get_layout("grid-4x4"), default_protocol(get_layout("grid-4x4")))
 >>> len(setup.key())

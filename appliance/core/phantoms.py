@@ -6,7 +6,7 @@ reproduce its area exactly; otherwise the area error shrinks with the elements
 (:func:`covered_area_mm2` reports what was actually placed).
 
 >>> import numpy as np
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> from appliance.core.network import build_network_model, network_for_layout
 >>> model = build_network_model(network_for_layout(get_layout("grid-4x4")))
 >>> sigma = conductivity(model, [Inclusion("rect", 50.0, 50.0, 25.0, 25.0, 0.1)])

@@ -7,7 +7,7 @@ element takes the pixel values in proportion to the share of its area in each
 pixel, found by sampling the element on a fine barycentric (or, for squares,
 regular) lattice.
 
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> grid = pixel_grid(get_layout("grid-4x4"))
 >>> grid.shape, grid.pixel_mm
 ((16, 16), (6.25, 6.25))

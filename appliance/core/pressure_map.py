@@ -9,7 +9,7 @@ the capillary closing pressure the clinical literature uses, unless told
 otherwise). Its centre is the pressure-weighted centroid of its pixels, which
 places a load between pixel centres; its area counts whole pixels.
 
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> from appliance.core.pixels import pixel_grid
 >>> grid = pixel_grid(get_layout("grid-4x4"), 4, 4)
 >>> kpa = np.zeros((4, 4)); kpa[1, 1:3] = [6.0, 6.0]

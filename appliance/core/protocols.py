@@ -3,7 +3,7 @@
 Current enters at drive+ and leaves at drive-; a reading is V(meas+) - V(meas-).
 Electrode numbers are 1-based, as in files and on screen.
 
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> len(default_protocol(get_layout("circular-16"))), len(default_protocol(get_layout("grid-4x4")))
 (208, 448)
 """

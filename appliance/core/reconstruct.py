@@ -29,7 +29,7 @@ reconstructor, as is the noise figure it gives.
 When a reading or an electrode fails, :func:`without_readings` rebuilds R from J
 in milliseconds, keeping lambda (a factored bed model updates its factor instead, :class:`NormalForm`).
 
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> from appliance.core.protocols import default_protocol
 >>> from appliance.core.fem import build_fem_model
 >>> from appliance.core.pixels import pixel_grid

@@ -160,3 +160,20 @@ def write_png(path, values, *, vmin=None, vmax=None, palette="diverging", scale=
     rgba = colourise(v, low if vmin is None else vmin, high if vmax is None else vmax, palette)
     rgba = np.repeat(np.repeat(rgba, int(scale), axis=0), int(scale), axis=1)
     write_atomic(Path(path), encode_png(rgba))
+
+
+def write_image(path: Path, image, normalise: bool) -> None:
+    """The image as CSV (``nan`` off the sheet) or PNG; ``normalise`` maps it to 0-100 (eq. 3.4.3).
+
+    A PNG shows log(sigma / sigma_ref), which is the relative change for small changes and
+    keeps an insulator (at most -1) as visible beside a conductor (unbounded) as it deserves.
+    """
+    if normalise:
+        low, high = np.nanmin(image), np.nanmax(image)
+        image = 100.0 * (image - low) / (high - low) if high > low else np.zeros_like(image)
+    if path.suffix.lower() == ".png":
+        shown = image if normalise else np.log(np.clip(1.0 + image, 1e-6, None))
+        write_png(path, shown, palette="sequential" if normalise else "diverging", scale=16)
+    else:
+        path.write_text("\n".join(",".join("nan" if np.isnan(v) else f"{v:.6g}" for v in row) for row in image)
+                        + "\n")

@@ -1,9 +1,12 @@
-"""Reading a TOML file with an error that names the file (layouts, configuration).
+"""Reading a TOML file with an error that names the file, and writing the values of one (layouts, configuration,
+settings): the standard library reads TOML but does not write it, and one writer keeps every file we write alike.
 
 >>> read_toml("no-such-file.toml", "layout file", ValueError)
 Traceback (most recent call last):
 ...
 ValueError: layout file no-such-file.toml does not exist
+>>> print(toml_value(['a "b"', 2, 0.5, True]))
+["a \\u0022b\\u0022", 2, 0.5, true]
 """
 
 from __future__ import annotations
@@ -24,3 +27,24 @@ def read_toml(path, what: str, error: type[Exception]) -> dict:
         raise error(f"{what} {path} cannot be read ({exc.strerror or exc})") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise error(f"{what} {path} is not valid TOML: {exc}") from None
+
+
+def toml_value(value) -> str:
+    """``value`` (text, a whole number, a float, true or false, or a list of them) as TOML writes it.
+
+    Text is a basic string, its quotes, backslashes and control characters written as ``\\uXXXX`` escapes; a float
+    is Python's shortest repr, which TOML reads back to the same number (``inf`` and ``nan`` included). Anything
+    else (a table, None) raises TypeError naming it: the files we write hold tables only at their top level.
+    """
+    if isinstance(value, str):
+        escaped = "".join(f"\\u{ord(c):04x}" if c in '"\\' or ord(c) < 0x20 or ord(c) == 0x7f else c for c in value)
+        return f'"{escaped}"'
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return repr(value)
+    raise TypeError(f"TOML values here are text, numbers, true or false and lists of them, got {value!r}")

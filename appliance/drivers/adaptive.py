@@ -8,7 +8,7 @@ electrode. Readings of drives not taken keep the last frame's values, flagged
 as held (:mod:`appliance.drivers.scan`).
 
 >>> import numpy as np
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> from appliance.core.protocols import protocol_for
 >>> plan = AdaptivePlan(protocol_for(get_layout("grid-4x8"), "rows"), 4, 8)
 >>> len(plan.coarse), len(plan.fine), len(plan.drives_for([])), len(plan.drives_for([1]))

@@ -1,7 +1,7 @@
 """The front end as the scan engine sees it: select electrodes, pick a range, wait, take a sample.
 
 A :class:`FrontEnd` composes the chip drivers of one board profile (built by
-:func:`open_front_end`). Both chains (RMS converter and ADC, or AD5933) offer the
+:func:`~appliance.drivers.backend.open_front_end`). Both chains (RMS converter and ADC, or AD5933) offer the
 same operations, so the scan engine's ordering, auto-ranging and fault handling
 are written once; the parallel chain (``frontend_parallel``) reads all of a
 drive's pairs in one step instead. Electrodes are 1-based here, multiplexer channels 0-based in
@@ -293,22 +293,6 @@ class FrontEnd(ABC):
         """Leave the front end safe (no current, switches open); the board releases the buses."""
         self.stop_excitation()
         self.mux.off()
-
-
-def open_front_end(board: Board, profile: BoardProfile):
-    """The front end of ``profile`` on ``board``, its chips configured and the excitation off: a
-    :class:`FrontEnd`, or a parallel front end for the ``parallel`` chain."""
-    if profile.chain == "parallel":
-        from appliance.drivers.frontend_parallel import ParallelFrontEnd
-
-        return ParallelFrontEnd(board, profile)
-    if profile.chain == "rms":
-        from appliance.drivers.frontend_rms import RMSFrontEnd
-
-        return RMSFrontEnd(board, profile)
-    from appliance.drivers.frontend_ad5933 import AD5933FrontEnd
-
-    return AD5933FrontEnd(board, profile)
 
 
 def run_checks(checks) -> list[ChipCheck]:

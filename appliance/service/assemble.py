@@ -10,7 +10,7 @@ import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 
-from appliance.service.config import MonitorConfig
+from appliance.service.config_sections import MonitorConfig
 from appliance.service.daemon import MonitorDaemon
 from appliance.service.live import LiveChannel
 
@@ -24,7 +24,7 @@ def assemble(config: MonitorConfig, *, say: Callable[[str], None], on_event=None
              live: bool = True) -> MonitorDaemon:
     """The daemon, started (reference taken or state resumed) and ready to ``run``."""
     from appliance.service.datalock import lock_data_dir
-    from appliance.service.virtual_bed import default_data_dir
+    from appliance.service.config_sections import default_data_dir
 
     data_dir = Path(config.data_dir or default_data_dir())
     data_dir.mkdir(parents=True, exist_ok=True)
@@ -38,8 +38,8 @@ def assemble(config: MonitorConfig, *, say: Callable[[str], None], on_event=None
 
 
 def _assemble(config: MonitorConfig, lock, *, say, on_event, on_map, live: bool) -> MonitorDaemon:
-    from appliance.core.layouts import get_layout
     from appliance.core.model_cache import cached_model, default_cache_dir, default_setup
+    from appliance.core.named_layouts import get_layout
     from appliance.service import settings
     from appliance.service.engineering import engineering_commands
     from appliance.store import Store

@@ -36,9 +36,8 @@ class BoardSource:
 
     def __init__(self, board_table: dict, layout: Layout, protocol, *, frame_interval_s: float, seed: int = 0,
                  clock: FrameClock | None = None):
-        from appliance.drivers import open_board
+        from appliance.drivers.backend import open_board, open_front_end
         from appliance.drivers.emulated.sensor import ForwardSensor
-        from appliance.drivers.frontend import open_front_end
         from appliance.drivers.scan import ScanEngine
 
         self.board, profile = open_board(board_table, sensor=lambda: ForwardSensor.of_layout(layout), seed=seed)

@@ -46,7 +46,7 @@ from appliance.alerts.wardlink import WardLink
 from appliance.alerts.pipeline import AlertPipeline, FrameAlerts, technical_alarms
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.errors import ApplianceError, ConfigError, DataFileInvalid, ReconstructionError, StoreCorrupt
-from appliance.service.config import MonitorConfig
+from appliance.service.config_sections import MonitorConfig
 from appliance.service.live import LiveChannel, map_mmhg
 from appliance.service.monitor import Monitor, reference_state
 from appliance.service.systemd import SystemdNotifier

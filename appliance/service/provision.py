@@ -31,7 +31,6 @@ set again at every boot.
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import shutil
@@ -44,10 +43,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from appliance.core.toml_files import read_toml
+from appliance.accounts.users import AccountError, UserStore
+from appliance.core.toml_files import read_toml, toml_value
 from appliance.errors import ConfigError
 from appliance.files import write_atomic
-from appliance.service.config import config_from_mapping, mqtt_settings
+from appliance.service.config import config_from_mapping
+from appliance.service.config_sections import mqtt_settings
 
 SETUP_FILE = Path("/boot/firmware/appliance-setup.toml")
 CONFIG_DIR = Path("/etc/appliance")
@@ -177,14 +178,12 @@ def _write_monitor_config(setup: Setup, config_dir: Path, account: str | None) -
              "# The monitor's keys are described in appliance/service/config.py."]
     for table, values in (("monitor", mapping["monitor"]), ("notify.mqtt", mapping.get("notify", {}).get("mqtt"))):
         if values:
-            lines += ["", f"[{table}]"] + [f"{key} = {_toml_value(value)}" for key, value in values.items()]
+            lines += ["", f"[{table}]"] + [f"{key} = {toml_value(value)}" for key, value in values.items()]
     _write_readable(config_dir / "monitor.toml", "\n".join(lines) + "\n")
 
 
 def _create_admin(setup: Setup, data_dir: Path, account: str | None) -> bool:
     """The screen's first admin, unless that account exists; the screen's store is given to ``account``."""
-    from webui.users import AccountError, UserStore
-
     data_dir.mkdir(parents=True, exist_ok=True)
     path = data_dir / "webui.db"
     store = UserStore(path)
@@ -279,8 +278,3 @@ def _text(table: dict, key: str, path: Path, where: str, default: str | None = N
     if not isinstance(value, str) or not value.strip():
         raise ProvisionError(f"{path}: {where}{key} must be non-empty text, got {value!r}")
     return value
-
-
-def _toml_value(value) -> str:
-    """A TOML scalar; a JSON string is a valid TOML basic string."""
-    return str(value) if isinstance(value, int) and not isinstance(value, bool) else json.dumps(value)

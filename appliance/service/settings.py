@@ -42,11 +42,11 @@ from pathlib import Path
 
 from appliance.alerts.limits import POLICY, alert_values, check_policy, check_within_policy
 from appliance.alerts.pipeline import AlertPipeline
-from appliance.core.layouts import BUILTIN_NAMES
-from appliance.core.toml_files import read_toml
+from appliance.core.named_layouts import BUILTIN_NAMES
+from appliance.core.toml_files import read_toml, toml_value
 from appliance.errors import ConfigError
 from appliance.files import write_atomic
-from appliance.service.config import MonitorConfig, config_from_mapping
+from appliance.service.config_sections import MonitorConfig, read_sections
 
 SETTINGS_FILE = "settings.toml"
 COMMAND = "apply-settings"
@@ -87,7 +87,7 @@ def check_settings(settings: dict) -> MonitorConfig:
         extra = sorted(set(table) - set(keys))
         if extra:
             raise ConfigError(f"[{section}]: unknown key {extra[0]!r}; settings allowed: {', '.join(keys)}")
-    checked = config_from_mapping({section: dict(settings[section]) for section in SECTIONS if section in settings})
+    checked = read_sections({section: dict(settings[section]) for section in SECTIONS if section in settings})
     if "layout" in settings.get("monitor", {}) and checked.layout not in BUILTIN_NAMES:
         raise ConfigError(f"[monitor]: layout must be one of {', '.join(BUILTIN_NAMES)}, got {checked.layout!r}")
     check_within_policy(settings.get("alerts", {}), policy)
@@ -159,7 +159,7 @@ def settings_text(settings: dict) -> str:
     for section in TABLES:
         if settings.get(section):
             lines.append(f"\n[{section}]\n")
-            lines += [f"{key} = {_toml_value(value)}\n" for key, value in settings[section].items()]
+            lines += [f"{key} = {toml_value(value)}\n" for key, value in settings[section].items()]
     return "".join(lines)
 
 
@@ -208,15 +208,3 @@ def apply_settings(daemon, now: float, args: dict) -> tuple[list, str]:
 def shown(value) -> str:
     """A setting's value as a person reads it (32, not 32.0)."""
     return f"{value:g}" if isinstance(value, float) else str(value)
-
-
-def _toml_value(value) -> str:
-    """A string, integer or float as TOML writes it."""
-    if isinstance(value, str):
-        escaped = "".join(f"\\u{ord(c):04x}" if c in '"\\' or ord(c) < 0x20 or ord(c) == 0x7f else c for c in value)
-        return f'"{escaped}"'
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise TypeError(f"a setting is text, a number or a list of them, got {value!r}")
-    return repr(value)

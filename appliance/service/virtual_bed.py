@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import os
 import threading
 from collections.abc import Callable
 from importlib import resources
@@ -29,15 +28,7 @@ from appliance.service.pace import Pace
 from appliance.sim.bed import VirtualBed
 from appliance.sim.frontend import VirtualFrontEnd
 from appliance.sim.loads import placer
-from appliance.sim.scenes import Scene
-
-
-def default_data_dir() -> Path:
-    """``$APPLIANCE_DATA_DIR``, else ``$XDG_DATA_HOME/appliance``, else ``~/.local/share/appliance``."""
-    if os.environ.get("APPLIANCE_DATA_DIR"):
-        return Path(os.environ["APPLIANCE_DATA_DIR"])
-    base = os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share"
-    return Path(base) / "appliance"
+from appliance.sim.scene_base import Scene
 
 
 class VirtualBedSource:

@@ -17,7 +17,7 @@ measures both, and the detail a bed needs).
 A scene lies head to foot along its grid's y; a bed layout lies along x, so the
 field is turned to the layout when their sides are swapped.
 
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> from appliance.sim.scenes import load_scene
 >>> bed = VirtualBed(get_layout("grid-8x16"), load_scene("supine-still"), density=0.5)
 >>> z0 = bed.transfer_ohm(600.0); z1 = bed.transfer_ohm(660.0)   # lying still: one solve serves both
@@ -43,7 +43,7 @@ from appliance.core.layouts import Layout
 from appliance.errors import ModelInputInvalid
 from appliance.sim.field import PressureField
 from appliance.sim.mechanics import MatParameters, MatState, conductance_on_model, sheet_conductance
-from appliance.sim.scenes import Scene
+from appliance.sim.scene_base import Scene
 from appliance.sim.transfer import TransferSolver
 
 SOLVERS = ("block", "fields")

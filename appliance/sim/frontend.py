@@ -23,7 +23,7 @@ from appliance.drivers.scan import UNUSABLE, Flag, TechnicalCondition, saturatio
 from appliance.errors import ConfigError
 from appliance.sim.bed import VirtualBed
 from appliance.sim.chain import FrameChain
-from appliance.sim.scenes import ElectrodeFault
+from appliance.sim.scene_base import ElectrodeFault
 
 # The mat's liquid layer (7 mm at 1.25 S/m, 0.0094 S) conducts half as well as the
 # saline sheet the board's 2 mA was chosen for; 1 mA keeps an empty mat's largest

@@ -45,8 +45,9 @@ import numpy as np
 
 from appliance.core.fem import build_fem_model
 from appliance.core.forward import simulate
-from appliance.core.layouts import RectSheet, get_layout
+from appliance.core.layouts import RectSheet
 from appliance.core.merit import fractional_change, visibility
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.errors import ModelInputInvalid
 from appliance.sim.field import PressureField

@@ -16,7 +16,7 @@ import numpy as np
 from appliance.calibration import Load, MapLoad
 from appliance.sim.body import MatGrid
 from appliance.sim.field import PressureField
-from appliance.sim.scenes import Scene
+from appliance.sim.scene_base import Scene
 
 LOAD_PITCH_MM = 2.0
 CELLS_ACROSS = 90               # a bed's scenes use 10 mm cells on its 900 mm side; finer buys nothing there

@@ -52,7 +52,7 @@ from scipy.ndimage import maximum_filter, median_filter
 from appliance.errors import DataFileInvalid
 from appliance.sim.body import BED_GRID, G_M_S2, MatGrid
 from appliance.sim.field import KPA_PER_MMHG, PressureField
-from appliance.sim.scenes import ElectrodeFault, Scene
+from appliance.sim.scene_base import ElectrodeFault, Scene
 
 PMAT_SHAPE, PMAT_SENSEL_MM, PMAT_SATURATED = (64, 32), 28.5, 4095
 POPU_SHAPE, POPU_SENSEL_MM, POPU_SNAPSHOT_S = (64, 27), 31.75, 0.5

@@ -78,9 +78,9 @@ from appliance.sim.body import (BED_GRID, POSTURES, SURFACES, MatGrid, Placement
                                 check_sites)
 from appliance.sim.field import PressureField
 from appliance.sim.map_files import check_pitch_mm
-
-CHANGE_TOLERANCE_KPA = 0.01
-"""Cells whose pressure moves less than this (0.075 mmHg) do not count as changed."""
+from appliance.sim.map_scenes import map_recording
+from appliance.sim.recordings import PMAT_SENSEL_MM, RecordedScene, pmat_scene
+from appliance.sim.scene_base import ElectrodeFault, Scene
 
 DEFAULT_TRANSITION_S = {"lie-down": 10.0, "shift": 2.0, "turn": 20.0, "leave": 5.0, "return": 10.0}
 _PLACE = {"posture", "x_mm", "y_mm", "rotation_deg", "transition_s"}
@@ -99,49 +99,6 @@ PMAT_POSTURE_FILES = {"supine": 1, "right-90": 2, "left-90": 3, "right-30": 4, "
                       "left-60": 7, "fetal-right": 13, "fetal-left": 14, "inclined": 15}
 """PmatData experiment I's posture file for each posture the monitor names (file 15 is the head of the bed at
 30 degrees; 16 and 17 raise it to 45 and 60, and 8 to 12 are supine variants: star, arms crossed, knees up)."""
-
-
-@dataclass(frozen=True)
-class ElectrodeFault:
-    """From ``at_s`` on, ``electrode`` (1-based) has contact (``connected``) or has lost it."""
-
-    at_s: float
-    electrode: int
-    connected: bool
-
-
-class Scene:
-    """A timeline of pressure fields on ``grid`` lasting ``duration_s``, with the electrode faults a
-    simulated front end plays alongside."""
-
-    grid: MatGrid
-    duration_s: float
-    faults: tuple[ElectrodeFault, ...] = ()
-
-    def pressure_at(self, t_s: float) -> PressureField:
-        raise NotImplementedError
-
-    def change_box_mm(self, t0_s: float, t1_s: float) -> tuple[float, float, float, float] | None:
-        """(x0, y0, x1, y1) in mm of every cell that changed between the two times, or None."""
-        raise NotImplementedError
-
-    def changes(self, t0_s: float, t1_s: float) -> bool:
-        """Whether anything changed between ``t0_s`` and ``t1_s``."""
-        return self.change_box_mm(t0_s, t1_s) is not None
-
-    def _check_times(self, *times_s: float) -> None:
-        for t in times_s:
-            if not (math.isfinite(t) and -1e-9 <= t <= self.duration_s + 1e-9):
-                raise ModelInputInvalid(f"time {t!r} s is outside the scene (0 to {self.duration_s:g} s)")
-        if len(times_s) == 2 and times_s[1] < times_s[0]:
-            raise ModelInputInvalid(f"change interval runs backwards: {times_s[0]:g} s to {times_s[1]:g} s")
-
-    def _box(self, change_kpa: np.ndarray) -> tuple[float, float, float, float] | None:
-        rows, cols = np.nonzero(change_kpa > CHANGE_TOLERANCE_KPA)
-        if rows.size == 0:
-            return None
-        p = self.grid.pitch_mm
-        return float(cols.min() * p), float(rows.min() * p), float((cols.max() + 1) * p), float((rows.max() + 1) * p)
 
 
 @dataclass(frozen=True)
@@ -302,8 +259,6 @@ def _check_fault_times(faults: tuple[ElectrodeFault, ...], duration_s: float) ->
 
 def _recorded_scene(head: dict, segments, faults: tuple[ElectrodeFault, ...], folder: Path) -> Scene:
     """Recorded segments (PmatData, map files) played one after another on the [scene] grid."""
-    from appliance.sim.recordings import RecordedScene    # recordings builds on this module
-
     _only(head, RECORDED_SCENE_FIELDS, "[scene]")
     try:
         grid = _grid(head)
@@ -339,8 +294,6 @@ def _recorded_scene(head: dict, segments, faults: tuple[ElectrodeFault, ...], fo
 
 def _pmat_segment(segment: dict, where: str, folder: Path, grid: MatGrid):
     """A PmatData recording on ``grid`` and how long its last frame is held."""
-    from appliance.sim.recordings import PMAT_SENSEL_MM, pmat_scene
-
     if not isinstance(segment.get("dir"), str):
         raise ConfigError(f"{where}: dir must be the path of the PmatData folder, got {segment.get('dir')!r}")
     data_dir = folder / segment["dir"]
@@ -369,8 +322,6 @@ def _pmat_segment(segment: dict, where: str, folder: Path, grid: MatGrid):
 
 def _map_segment(segment: dict, where: str, folder: Path, grid: MatGrid):
     """Pressure map files played in order on ``grid``, and how long the last is held."""
-    from appliance.sim.map_scenes import map_recording
-
     files = segment.get("files")
     if not isinstance(files, list) or not files or not all(isinstance(f, str) for f in files):
         raise ConfigError(f"{where}: files must be a list of pressure map files (CSV in mmHg), got {files!r}")

@@ -15,7 +15,7 @@ scaled to a unit diagonal first, as :mod:`appliance.core.linsolve` does.
 >>> import numpy as np
 >>> from appliance.core.fem import build_fem_model
 >>> from appliance.core.forward import solve_electrodes
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> model = build_fem_model(get_layout("grid-4x4"), density=0.5)
 >>> sigma = np.random.default_rng(1).uniform(1e-3, 1e-2, model.n_elements)
 >>> z = TransferSolver(model).transfer(sigma)

@@ -6,7 +6,7 @@ each of the same pixels (force kept), as a perfect mat on the same grid would
 read it. Replaying true maps straight into the alert layer
 (``appliance sim replay``) checks the alert logic apart from the sensor.
 
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> from appliance.core.pixels import pixel_grid
 >>> from appliance.sim.scenes import load_scene
 >>> m = true_map(load_scene("supine-still"), 600.0, pixel_grid(get_layout("grid-16x32")))
@@ -22,7 +22,7 @@ from appliance.core.pixels import PixelGrid
 from appliance.core.pressure import KPA_PER_MMHG  # noqa: F401  (the doctest speaks mmHg)
 from appliance.core.pressure_map import PressureMap, loaded_regions
 from appliance.sim.recordings import area_shares
-from appliance.sim.scenes import Scene
+from appliance.sim.scene_base import Scene
 
 
 def on_pixels(pressure_kpa: np.ndarray, pitch_mm: float, grid: PixelGrid) -> np.ndarray:

@@ -27,6 +27,7 @@ import os
 import sqlite3
 import time
 from collections.abc import Iterable, Mapping
+from pathlib import Path
 from typing import Self
 
 import numpy as np
@@ -97,12 +98,14 @@ def _event_row(event) -> tuple:
 
 
 class Store:
-    """One open store file; build it with ``Store.open``. Not thread-safe: one owner, the monitor loop."""
+    """One open store file; build it with ``Store.open``, or ``Store.open_read_only`` to look only. Not
+    thread-safe: one owner, the monitor loop or one request of the screen."""
 
     def __init__(self, db: sqlite3.Connection, path: str, *, history_interval_s: float, history_days: float,
-                 event_days: float, max_bytes: int):
+                 event_days: float, max_bytes: int, read_only: bool = False):
         self._db: sqlite3.Connection | None = db
         self.path = path
+        self.read_only = read_only
         self.history_interval_s = history_interval_s
         self.history_days = history_days
         self.event_days = event_days
@@ -139,6 +142,37 @@ class Store:
             db.close()
             raise
 
+    @classmethod
+    def open_read_only(cls, path) -> Store:
+        """Open the file at ``path`` to read alone: no schema change and no write lock (SQLite's ``mode=ro`` and
+        ``query_only``), so the screen's page views neither wait for the monitor's writes nor hold them up.
+
+        The file must exist with this software's schema, as the monitor leaves it; a write raises StoreError.
+        """
+        path = os.fspath(path)
+        uri = Path(path).resolve().as_uri() + "?mode=ro"
+        try:
+            db = sqlite3.connect(uri, uri=True, timeout=BUSY_TIMEOUT_S, isolation_level=None)
+        except sqlite3.Error as exc:
+            raise StoreError(f"cannot open store {path} to read: {exc}") from exc
+        try:
+            db.execute("PRAGMA query_only=ON")
+            db.execute(f"PRAGMA busy_timeout={int(BUSY_TIMEOUT_S * 1000)}")
+            has_table = db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'schema_version'"
+                                   ).fetchone()
+            version = db.execute("SELECT max(version) FROM schema_version").fetchone()[0] if has_table else 0
+            if version != SCHEMA_VERSION:
+                raise StoreError(f"store {path} has schema version {version}, not {SCHEMA_VERSION}: the monitor "
+                                 f"brings it up to date when it starts")
+            return cls(db, path, history_interval_s=60.0, history_days=30.0, event_days=365.0,
+                       max_bytes=512 * 1024 * 1024, read_only=True)
+        except sqlite3.DatabaseError as exc:
+            db.close()
+            raise _damage(path, exc) from exc
+        except BaseException:
+            db.close()
+            raise
+
     def close(self) -> None:
         """Checkpoint the WAL into the file if this connection wrote, and close; later calls raise
         ``StoreClosed``. A reader (the screen opens the store per request) leaves the WAL alone, so that
@@ -164,6 +198,8 @@ class Store:
     def _transaction(self, synchronous: str):
         """One all-or-nothing write; ``synchronous`` is FULL for what must survive a power cut."""
         db = self._conn()
+        if self.read_only:
+            raise StoreError(f"store {self.path} is open read-only: it takes no writes")
         db.execute(f"PRAGMA synchronous={synchronous}")
         db.execute("BEGIN IMMEDIATE")
         self._wrote = True

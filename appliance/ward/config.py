@@ -26,7 +26,7 @@ from urllib.parse import quote
 
 from appliance.core.toml_files import read_toml
 from appliance.errors import ConfigError
-from appliance.service.config import MqttSettings, _number, _only, _section, _text, mqtt_settings
+from appliance.service.config_sections import MqttSettings, _number, _only, _section, _text, mqtt_settings
 
 
 @dataclass(frozen=True)

@@ -45,21 +45,17 @@ POWERED_BEFORE_OPEN_S = 1.0     # the board is powered a while before software o
 class EmulatedBoard(Board):
     """``profile``'s front end over emulated chips measuring ``sensor``; ``seed`` fixes errors and noise.
 
-    A profile whose chain is ``parallel`` gets the parallel board
-    (:mod:`appliance.drivers.emulated.parallel_board`), built the same way.
+    The serial chains' board; :func:`appliance.drivers.backend.emulated_board` chooses between it and the
+    parallel board (:mod:`appliance.drivers.emulated.parallel_board`) by the profile's chain.
     """
 
     clock: SimulatedClock
 
-    def __new__(cls, profile: BoardProfile, *args, **kwargs):
-        if cls is EmulatedBoard and profile.chain == "parallel":
-            from appliance.drivers.emulated.parallel_board import EmulatedParallelBoard
-
-            cls = EmulatedParallelBoard
-        return super().__new__(cls)
-
     def __init__(self, profile: BoardProfile, sensor: SensorModel, *, seed: int = 0,
                  temperature_c: float = 24.0, system: System | None = None):
+        if profile.chain == "parallel" and type(self) is EmulatedBoard:
+            raise ConfigError(f"profile {profile.name!r} is the parallel front end: its emulated board is "
+                              "EmulatedParallelBoard (appliance.drivers.backend.emulated_board chooses it)")
         super().__init__()
         self.profile, self.sensor = profile, sensor
         self.system = system or SYSTEMS[profile.system]

@@ -1,6 +1,6 @@
 """The emulated board of the parallel front end: its chips as emulators, wired to the parallel analogue chain.
 
-Built by :class:`~appliance.drivers.emulated.board.EmulatedBoard` when the
+Built by :func:`~appliance.drivers.backend.emulated_board` when the
 profile's chain is ``parallel``: AD9833, MCP4017 and MCP9808 as on the other
 boards, the ADG1414 chain on its chip select (refusing any state the drive
 matrix forbids), and one AD7606 per channel tile behind the chip-select

@@ -5,7 +5,7 @@ The sheet's conductance defaults to the thesis's tanks: saline of 1 S/m
 of the 100 mm grid at 45 to 80 ohm, as Table 3.2.2.1 measured. The virtual bed
 replaces this with a mat that changes under a patient.
 
->>> from appliance.core.layouts import get_layout
+>>> from appliance.core.named_layouts import get_layout
 >>> sensor = ForwardSensor.of_layout(get_layout("grid-4x4"))
 >>> sensor.n_electrodes, sensor.transfer_ohm(0.0).shape
 (16, (16, 16))

@@ -7,7 +7,7 @@ accounts. Every acknowledgement and settings change is appended to the audit log
 with who did it and when; its entries are bounded in size, so a request cannot
 fill the disk through it. Each account has a generation, raised whenever its
 password is set, that ends every session opened before (:mod:`webui.sessions`).
-The file is readable by its owner alone (:mod:`webui.private`).
+The file is readable by its owner alone (:mod:`appliance.accounts.private`).
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from pathlib import Path
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError
 
-from webui import passwords
-from webui.private import narrow, private_file
+from appliance.accounts import passwords
+from appliance.accounts.private import narrow, private_file
 
 ROLES = ("nurse", "engineer", "admin")
 MIN_PASSWORD_LENGTH = passwords.MIN_LENGTH

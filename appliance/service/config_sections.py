@@ -1,0 +1,320 @@
+"""The configuration file's sections read and checked: every key's type and range, with the section named.
+
+What needs no front end and no simulator, so the screen reads and checks settings with it alone; the board's
+profile and the virtual bed's scenario are checked against the drivers' and the simulator's own data by
+:mod:`appliance.service.config`, which the monitor reads its configuration through.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import socket
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from appliance.alerts.dose import BUILT_IN as BUILT_IN_CURVES
+from appliance.alerts.dose import RECOVERY_MODES, custom_curve
+from appliance.alerts.limits import check_curve, check_safe
+from appliance.alerts.pipeline import AlertSettings
+from appliance.core.pressure import KPA_PER_MMHG
+from appliance.core.toml_files import read_toml
+from appliance.errors import ConfigError, CurveInvalid
+
+SOURCES = ("virtual", "emulated", "hardware")
+FRAME_INTERVAL_RANGE_S = (0.05, 3600.0)
+"""Seconds between frames, here and for the command line's --interval, which overrides it."""
+SPEED_RANGE = (0.0, 1e6)
+"""The virtual bed's scene seconds per wall-clock second, here and for --speed (0: as fast as it goes)."""
+
+
+@dataclass(frozen=True)
+class StoreSettings:
+    history_interval_s: float = 60.0
+    history_days: float = 30.0
+    event_days: float = 365.0
+    max_mb: float = 512.0
+
+
+@dataclass(frozen=True)
+class MqttSettings:
+    """The ward's broker; ``username`` with the password kept in ``password_file`` (readable by the service
+    alone, never in this file), and TLS verified against ``ca_file`` when it is given."""
+
+    host: str
+    port: int = 1883
+    topic_prefix: str = "appliance"
+    keepalive_s: int = 30
+    username: str | None = None
+    password_file: Path | None = None
+    ca_file: Path | None = None
+
+    def password(self) -> str | None:
+        """The password file's first line; a missing or unreadable file is a ConfigError naming it."""
+        if self.password_file is None:
+            return None
+        try:
+            return self.password_file.read_text(encoding="utf-8").splitlines()[0]
+        except (OSError, IndexError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"[notify.mqtt] password_file {self.password_file}: cannot read a password "
+                              f"({exc or 'the file is empty'})") from None
+
+
+@dataclass(frozen=True)
+class ConfirmSettings:
+    """End-to-end confirmation of the ward link: ``confirm`` off counts the broker's acknowledgement as delivery
+    (a broker with no ward station behind it); either way a technical alarm comes after ``timeout_s``."""
+
+    confirm: bool = True
+    timeout_s: float = 10.0
+
+
+@dataclass(frozen=True)
+class WebhookSettings:
+    url: str
+    timeout_s: float = 5.0
+
+
+@dataclass(frozen=True)
+class GpioSettings:
+    """Roles in the board profile's ``[gpio]`` table (not pins), so a board that moved a pin needs no change here."""
+
+    buzzer: str = "buzzer"
+    led: str = "status_led"
+
+
+@dataclass(frozen=True)
+class MonitorConfig:
+    """Everything the daemon is told: built by :func:`read_sections`, checked whole by
+    :mod:`appliance.service.config`."""
+
+    layout: str = "grid-16x32"
+    source: str = "virtual"
+    frame_interval_s: float = 1.0
+    bed_id: str = field(default_factory=socket.gethostname)
+    data_dir: Path | None = None
+    calibration: Path | None = None
+    cache_dir: Path | None = None
+    scenario: str = "turn-schedule"
+    speed: float = 1.0
+    seed: int = 0
+    board: dict = field(default_factory=dict)
+    alerts: AlertSettings = AlertSettings()
+    store: StoreSettings = StoreSettings()
+    mqtt: MqttSettings | None = None
+    confirmation: ConfirmSettings = ConfirmSettings()
+    webhook: WebhookSettings | None = None
+    gpio: GpioSettings | None = None
+
+
+def default_data_dir() -> Path:
+    """``$APPLIANCE_DATA_DIR``, else ``$XDG_DATA_HOME/appliance``, else ``~/.local/share/appliance``."""
+    if os.environ.get("APPLIANCE_DATA_DIR"):
+        return Path(os.environ["APPLIANCE_DATA_DIR"])
+    base = os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share"
+    return Path(base) / "appliance"
+
+
+def read_config(path) -> MonitorConfig:
+    """The configuration in TOML file ``path``, its sections checked as :func:`read_sections` does; paths in it
+    are taken relative to the file's folder."""
+    data = read_toml(path, "configuration file", ConfigError)
+    try:
+        return read_sections(data, base=Path(path).resolve().parent)
+    except ConfigError as exc:
+        raise ConfigError(f"configuration file {path}: {exc}") from None
+
+
+def read_sections(data: dict, base: Path | None = None) -> MonitorConfig:
+    """Build the configuration from parsed TOML, every bad section, key and value named; the [board] table and
+    the [virtual] scenario are kept as written, for :func:`appliance.service.config.config_from_mapping` to check
+    against the board profiles and the scenarios."""
+    _only(data, {"monitor", "virtual", "board", "alerts", "store", "notify"}, "the configuration")
+    monitor = _section(data, "monitor")
+    _only(monitor, {"layout", "source", "frame_interval_s", "bed_id", "data_dir", "calibration", "cache_dir"},
+          "[monitor]")
+    virtual = _section(data, "virtual")
+    _only(virtual, {"scenario", "speed", "seed"}, "[virtual]")
+    source = _choice(monitor, "source", SOURCES, "virtual", "[monitor]")
+    if virtual and source != "virtual":
+        raise ConfigError(f"[virtual] is only for source = \"virtual\", but [monitor] source = {source!r}")
+    notify = _section(data, "notify")
+    _only(notify, {"mqtt", "webhook", "gpio"}, "[notify]")
+    gpio = _gpio(_section(notify, "gpio", "notify.gpio")) if "gpio" in notify else None
+    if gpio is not None and source == "virtual":
+        raise ConfigError("[notify.gpio] needs a board: the virtual bed has no buzzer or LED lines")
+    mqtt = dict(_section(notify, "mqtt", "notify.mqtt"))
+    confirming = {key: mqtt.pop(key) for key in ("confirm", "confirm_timeout_s") if key in mqtt}
+    if confirming and not mqtt:
+        raise ConfigError("[notify.mqtt] is missing 'host'")
+    confirmation = _confirmation(confirming)
+    board = _section(data, "board")
+    return MonitorConfig(
+        layout=_text(monitor, "layout", "grid-16x32", "[monitor]"),
+        source=source,
+        frame_interval_s=_number(monitor, "frame_interval_s", 1.0, "[monitor]", *FRAME_INTERVAL_RANGE_S),
+        bed_id=_bed_id(monitor),
+        data_dir=_path(monitor, "data_dir", base),
+        calibration=_path(monitor, "calibration", base),
+        cache_dir=_path(monitor, "cache_dir", base),
+        scenario=_text(virtual, "scenario", "turn-schedule", "[virtual]"),
+        speed=_number(virtual, "speed", 1.0, "[virtual]", *SPEED_RANGE),
+        seed=int(_number(virtual, "seed", 0, "[virtual]", low=0, high=2**32 - 1, integer=True)),
+        board=board,
+        alerts=_alerts(_section(data, "alerts")),
+        store=_store(_section(data, "store")),
+        mqtt=mqtt_settings(mqtt, base),
+        confirmation=confirmation,
+        webhook=_webhook(_section(notify, "webhook", "notify.webhook")),
+        gpio=gpio,
+    )
+
+
+def _alerts(table: dict) -> AlertSettings:
+    where = "[alerts]"
+    _only(table, {"threshold_mmhg", "curve", "curve_points", "alarm_dose", "recovery", "relief_min",
+                  "turn_interval_min", "turn_grace_min", "reminder_repeat_min", "escalate_after_min",
+                  "escalation_channel"}, where)
+    if "curve" in table and "curve_points" in table:
+        raise ConfigError(f"{where}: give curve or curve_points, not both")
+    points = None
+    if "curve_points" in table:
+        try:
+            curve = custom_curve(table["curve_points"])
+        except (CurveInvalid, TypeError) as exc:
+            raise ConfigError(f"{where} curve_points: {exc}") from None
+        check_curve(curve, f"{where} curve_points")
+        points = tuple((float(m), float(p)) for m, p in table["curve_points"])
+        name = curve.name
+    else:
+        name = _choice(table, "curve", tuple(BUILT_IN_CURVES), "reswick-rogers", where)
+    d = AlertSettings()                                  # the one definition of each clinical default
+
+    def safe(key: str, default: float) -> float:
+        """``key`` (its default when absent) inside its safe range (alerts/limits.py)."""
+        return check_safe(key, table.get(key, default), where)
+
+    return AlertSettings(
+        threshold_kpa=safe("threshold_mmhg", d.threshold_kpa / KPA_PER_MMHG) * KPA_PER_MMHG,
+        curve=name, curve_points=points,
+        alarm_dose=safe("alarm_dose", d.alarm_dose),
+        recovery=_choice(table, "recovery", RECOVERY_MODES, d.recovery, where),
+        relief_s=60.0 * safe("relief_min", d.relief_s / 60.0),
+        turn_interval_s=60.0 * safe("turn_interval_min", d.turn_interval_s / 60.0),
+        turn_grace_s=60.0 * safe("turn_grace_min", d.turn_grace_s / 60.0),
+        reminder_repeat_s=60.0 * safe("reminder_repeat_min", d.reminder_repeat_s / 60.0),
+        escalate_after_s=60.0 * safe("escalate_after_min", d.escalate_after_s / 60.0),
+        escalation_channel=_text(table, "escalation_channel", d.escalation_channel, where))
+
+
+def _store(table: dict) -> StoreSettings:
+    where = "[store]"
+    _only(table, {"history_interval_s", "history_days", "event_days", "max_mb"}, where)
+    return StoreSettings(_number(table, "history_interval_s", 60.0, where, low=0.0, high=86400.0),
+                         _number(table, "history_days", 30.0, where, low=0.01, high=3650.0),
+                         _number(table, "event_days", 365.0, where, low=1.0, high=36500.0),
+                         _number(table, "max_mb", 512.0, where, low=1.0, high=1e6))
+
+
+def mqtt_settings(table: dict, base: Path | None, where: str = "[notify.mqtt]") -> MqttSettings | None:
+    """The broker table ``where`` (a bed's ``[notify.mqtt]``, the ward station's ``[broker]``); None if empty."""
+    if not table:
+        return None
+    _only(table, {"host", "port", "topic_prefix", "keepalive_s", "username", "password_file", "ca_file"}, where)
+    if "host" not in table:
+        raise ConfigError(f"{where} is missing 'host'")
+    prefix = _text(table, "topic_prefix", "appliance", where)
+    if any(c in prefix for c in "#+") or prefix.startswith("/") or prefix.endswith("/"):
+        raise ConfigError(f"{where}: topic_prefix must not hold wildcards or start or end with '/', got {prefix!r}")
+    if "password_file" in table and "username" not in table:
+        raise ConfigError(f"{where}: password_file needs a username")
+    files = {key: _path(table, key, base, where) for key in ("password_file", "ca_file")}
+    for key, path in files.items():
+        if path is not None and not path.is_file():
+            raise ConfigError(f"{where} {key}: no file {path}")
+    return MqttSettings(_text(table, "host", None, where),
+                        int(_number(table, "port", 1883, where, low=1, high=65535, integer=True)), prefix,
+                        int(_number(table, "keepalive_s", 30, where, low=5, high=3600, integer=True)),
+                        _text(table, "username", None, where) if "username" in table else None, **files)
+
+
+def _confirmation(table: dict) -> ConfirmSettings:
+    where = "[notify.mqtt]"
+    confirm = table.get("confirm", True)
+    if not isinstance(confirm, bool):
+        raise ConfigError(f"{where}: confirm must be true or false, got {confirm!r}")
+    return ConfirmSettings(confirm, _number(table, "confirm_timeout_s", 10.0, where, low=1.0, high=600.0))
+
+
+def _webhook(table: dict) -> WebhookSettings | None:
+    if not table:
+        return None
+    where = "[notify.webhook]"
+    _only(table, {"url", "timeout_s"}, where)
+    url = _text(table, "url", None, where)
+    if not url.startswith(("http://", "https://")):
+        raise ConfigError(f"{where}: url must start with http:// or https://, got {url!r}")
+    return WebhookSettings(url, _number(table, "timeout_s", 5.0, where, low=0.1, high=60.0))
+
+
+def _gpio(table: dict) -> GpioSettings:
+    where = "[notify.gpio]"
+    _only(table, {"buzzer", "led"}, where)
+    return GpioSettings(_text(table, "buzzer", "buzzer", where), _text(table, "led", "status_led", where))
+
+
+def _bed_id(monitor: dict) -> str:
+    bed = _text(monitor, "bed_id", socket.gethostname(), "[monitor]")
+    if not bed or any(c in bed for c in "#+/ ") or len(bed) > 64:
+        raise ConfigError(f"[monitor] bed_id must be 1-64 characters without spaces, '/', '#' or '+', got {bed!r}")
+    return bed
+
+
+def _section(data: dict, name: str, label: str | None = None) -> dict:
+    table = data.get(name, {})
+    if not isinstance(table, dict):
+        raise ConfigError(f"[{label or name}] must be a table, got {table!r}")
+    return dict(table)
+
+
+def _only(table: dict, allowed: set, where: str) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key {unknown[0]!r}; allowed: {', '.join(sorted(allowed))}")
+
+
+def _text(table: dict, key: str, default: str | None, where: str) -> str:
+    if key not in table:
+        if default is None:
+            raise ConfigError(f"{where} is missing {key!r}")
+        return default
+    value = table[key]
+    if not isinstance(value, str) or not value.strip():
+        raise ConfigError(f"{where}: {key} must be non-empty text, got {value!r}")
+    return value
+
+
+def _choice(table: dict, key: str, allowed: tuple, default: str, where: str) -> str:
+    value = table.get(key, default)
+    if value not in allowed:
+        raise ConfigError(f"{where}: {key} must be one of {', '.join(allowed)}, got {value!r}")
+    return value
+
+
+def _number(table: dict, key: str, default: float, where: str, low: float, high: float, *,
+            integer: bool = False) -> float:
+    value = table.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(f"{where}: {key} must be a number, got {value!r}")
+    if integer and value != int(value):
+        raise ConfigError(f"{where}: {key} must be a whole number, got {value!r}")
+    if not low <= value <= high:
+        raise ConfigError(f"{where}: {key} must be from {low:g} to {high:g}, got {value:g}")
+    return float(value)
+
+
+def _path(table: dict, key: str, base: Path | None, where: str = "[monitor]") -> Path | None:
+    if key not in table:
+        return None
+    path = Path(_text(table, key, None, where))
+    return path if base is None or path.is_absolute() else base / path
