@@ -6,7 +6,7 @@ import re
 import pytest
 from webui_client import client_as
 
-from appliance.service.config import MqttSettings
+from appliance.service.config_sections import MqttSettings
 from appliance.service.daemon import ward_summary
 from appliance.service.live import LiveChannel
 from appliance.ward.config import WardConfig
