@@ -19,7 +19,7 @@ from appliance.store import Store
 from webui.users import UserStore
 
 pytestmark = pytest.mark.slow
-NURSE_PAGES = ("/", "/alarms", "/patient", "/history", "/settings", "/account/password")
+NURSE_PAGES = ("/", "/alarms", "/patient", "/history", "/history/summary", "/settings", "/account/password")
 ROWS, COLUMNS, PITCH_MM = 8, 16, (125.0, 112.5)          # a bed mat lying along x, as grid-8x16
 HIGH = {"alarm_id": 1, "key": "pressure:sacrum", "priority": "high", "category": "clinical",
         "message": "Pressure at the sacrum", "raised_s": 3000.0}
@@ -97,6 +97,18 @@ def shown(driver, css: str) -> str:
     """The text of the elements ``css`` selects, read in one script: the live view redraws between two reads."""
     return driver.execute_script("return Array.from(document.querySelectorAll(arguments[0]), e => e.innerText)"
                                  ".join(' ');", css)
+
+
+def tap(driver, css: str) -> None:
+    """A touch screen's tap (touch start and end, no mouse) at the middle of the element ``css`` selects."""
+    x, y = driver.execute_script("const r = document.querySelector(arguments[0]).getBoundingClientRect();"
+                                 "return [r.x + r.width / 2, r.y + r.height / 2];", css)
+    driver.execute_cdp_cmd("Emulation.setTouchEmulationEnabled", {"enabled": True, "maxTouchPoints": 1})
+    try:
+        for kind, points in (("touchStart", [{"x": x, "y": y}]), ("touchEnd", [])):
+            driver.execute_cdp_cmd("Input.dispatchTouchEvent", {"type": kind, "touchPoints": points})
+    finally:
+        driver.execute_cdp_cmd("Emulation.setTouchEmulationEnabled", {"enabled": False})
 
 
 CONTROLS = """return Array.from(document.querySelectorAll('a, button, input, select, textarea, header nav strong'))
@@ -184,8 +196,12 @@ def test_only_an_alarm_neither_acknowledged_nor_paused_sounds_and_only_after_sou
     assert nurse.execute_script("return sound.enabled;") is False                 # no touch yet: silent
     button = nurse.find_element(By.ID, "sound-on")
     assert button.is_displayed() and "until you press Sound on" in shown(nurse, "#sound-state")
-    button.click()
+    nurse.execute_script("window.failures = []; window.addEventListener('error', e => failures.push(e.message));"
+                         "window.addEventListener('unhandledrejection', e => failures.push(String(e.reason)));")
+    tap(nurse, "#sound-on")                                                       # a touch is gesture enough
     wait_for(lambda: nurse.execute_script("return sound.enabled;"), 5, "the sound to be switched on")
+    nurse.execute_script("sound.play(toneSchedule('low'));")                      # the pulses build and start
+    assert nurse.execute_script("return failures;") == []
     assert not button.is_displayed() and shown(nurse, "#sound-state") == "Alarm sound on."
 
 
@@ -230,7 +246,7 @@ def test_a_nurse_acknowledges_an_alarm_from_the_live_view(screen, nurse):
     wait_for(lambda: "acknowledged by nurse.bedside" in shown(nurse, '.alarm[data-alarm-id="1"]'), 10,
              "the alarm shown acknowledged")
     assert nurse.find_elements(By.CSS_SELECTOR, '.alarm[data-alarm-id="1"] button') == []
-    nurse.find_element(By.CSS_SELECTOR, '.alarm[data-alarm-id="2"] button.pause').click()
+    tap(nurse, '.alarm[data-alarm-id="2"] button.pause')                       # a finger, not a mouse
     wait_for(lambda: "sound pause sent" in shown(nurse, '.alarm[data-alarm-id="2"]'), 10, "the pause sent")
     with Store.open(data_dir / "appliance.db") as store:
         assert store.pending_commands()[-1]["args"] == {"duration_s": 120.0, "alarm_id": 2}

@@ -40,9 +40,13 @@ class AlarmSound {
 
   get enabled() { return this.context !== null && this.context.state === "running"; }
 
+  // Switches sound on (from a user gesture) and starts the current priority's burst at once.
   enable() {
     this.context = this.context || new AudioContext();
-    return this.context.resume();
+    return this.context.resume().then(() => {
+      clearTimeout(this.timer);
+      if (this.priority) this.burst();
+    });
   }
 
   set(priority) {
