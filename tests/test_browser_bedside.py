@@ -14,6 +14,7 @@ import pytest
 from test_browser import _answers, browser, free_port, png_size, screenshot, text, viewport, wait_for  # noqa: F401
 from webui_client import PASSWORD
 
+from appliance.alerts.tones import tone_schedule
 from appliance.service.live import LiveChannel
 from appliance.store import Store
 from webui.users import UserStore
@@ -178,6 +179,11 @@ def test_the_tone_for_each_priority_is_timed_as_the_standard_says(nurse):
     assert 2500 <= schedules["high"]["restMs"] <= 15000
     assert len(schedules["medium"]["pulses"]) == 3 and 2500 <= schedules["medium"]["restMs"] <= 30000
     assert 1 <= len(schedules["low"]["pulses"]) <= 2 and schedules["low"]["restMs"] > 15000
+    for priority, s in schedules.items():                      # the same schedule as the bedside buzzer's
+        buzzer = tone_schedule(priority)
+        assert [(p["startMs"], p["lengthMs"]) for p in s["pulses"]] == \
+            [(round(start * 1000), round(length * 1000)) for start, length in buzzer.pulses]
+        assert (s["restMs"], s["periodMs"]) == (round(buzzer.rest_s * 1000), round(buzzer.period_s * 1000))
     with pytest.raises(Exception, match="no alarm tone for priority"):
         nurse.execute_script("return toneSchedule('loud');")
 

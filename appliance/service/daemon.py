@@ -329,7 +329,7 @@ class MonitorDaemon:
             if self.on_event is not None:
                 self.on_event(event)
         if self.gpio is not None:
-            self.gpio.show(self.pipeline.engine.audible(now), now)
+            self.gpio.show(self.pipeline.engine.audible(now))
 
     def _prune_when_due(self, now: float) -> None:
         """Retention: at the first frame and every ``PRUNE_EVERY_S`` after (a clock step counts as due), so the

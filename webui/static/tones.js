@@ -3,7 +3,8 @@
 // High: a burst of 10 pulses in groups of 3 + 2 + 3 + 2, repeated; medium: 3 pulses; low: 2 pulses, repeated
 // only after more than 15 s. Each pulse is a fundamental in 150-1000 Hz with four harmonics (300-4000 Hz), so
 // it can be located and heard over ward noise, and ramps in and out so it does not click.
-// toneSchedule() is pure, so a test can check the timing against the standard's ranges.
+// toneSchedule() is pure, so a test can check the timing against the standard's ranges and against the bedside
+// buzzer's schedule (appliance/alerts/tones.py), which has the same numbers.
 "use strict";
 
 const TONES = {
