@@ -1,6 +1,7 @@
 """Notifiers against a local HTTP server and emulated GPIO lines (the ward link: tests/test_ward_link.py)."""
 
 import json
+import time
 import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
@@ -131,27 +132,52 @@ def test_webhook_dead_letters_after_max_attempts_with_the_reason(webhook, tmp_pa
     assert "HTTP 500" in record["reason"] and record["event"]["alarm_id"] == 5
 
 
-def test_gpio_buzzer_and_led_follow_the_audible_priority():
+def gpio_signals(**options):
     bank = GPIOBank(SimulatedClock(), ["GPIO20", "GPIO21"], [])
     lines = EmulatedGPIOLines(bank, GpioNotifier.request("GPIO20", "GPIO21"), "alarm-signal", BusTiming())
-    gpio = GpioNotifier(lines, buzzer="GPIO20", led="GPIO21")
+    return lines, GpioNotifier(lines, buzzer="GPIO20", led="GPIO21", **options)
+
+
+def test_gpio_buzzer_sounds_the_tone_schedule_and_the_led_flashes_at_the_priority_rate():
+    now = [100.0]
+    lines, gpio = gpio_signals(clock=lambda: now[0], tick_s=None)
     assert lines.get_values() == {"GPIO20": 0, "GPIO21": 0}
 
-    def led_over(priority, times):
+    def over(priority, times):
+        """(buzzer, LED) at each time after ``priority`` began."""
+        now[0] = 100.0
+        gpio.show(None)
+        gpio.show(priority)
         values = []
         for t in times:
-            gpio.show(priority, t)
-            assert lines.get_values(["GPIO20"]) == {"GPIO20": 1}
-            values.append(lines.get_values(["GPIO21"])["GPIO21"])
+            now[0] = 100.0 + t
+            gpio.drive()
+            got = lines.get_values()
+            values.append((got["GPIO20"], got["GPIO21"]))
         return values
 
-    assert led_over("high", [0.0, 0.25, 0.5, 0.75]) == [1, 0, 1, 0]       # 2 Hz
-    assert led_over("medium", [0.0, 0.5, 1.0, 1.5, 2.0]) == [1, 1, 0, 0, 1]  # 0.5 Hz
-    assert led_over("low", [0.0, 0.3, 1.1]) == [1, 1, 1]                   # steady
-    gpio.show(None, 3.0)
-    assert lines.get_values() == {"GPIO20": 0, "GPIO21": 0}
-    gpio.show("high", 0.0)
+    # high: pulses at 0, 0.25, 0.5 s (150 ms each), the 4th after an extra 350 ms; LED at 2 Hz
+    assert over("high", [0.0, 0.2, 0.25, 0.6, 0.8, 1.15, 4.0, 8.85]) == [
+        (1, 1), (0, 1), (1, 0), (1, 1), (0, 0), (1, 1), (0, 1), (1, 0)]
+    # medium: 3 pulses of 200 ms every 400 ms, then quiet until the burst repeats at 11 s; LED at 0.5 Hz
+    assert over("medium", [0.1, 0.3, 0.9, 1.1, 11.1]) == [(1, 1), (0, 1), (1, 1), (0, 0), (1, 0)]
+    assert over("low", [0.1, 0.5, 1.0, 20.7]) == [(1, 1), (1, 1), (0, 1), (1, 1)]          # 2 pulses, LED steady
+    gpio.show("high")
     gpio.close()
     assert lines.get_values() == {"GPIO20": 0, "GPIO21": 0}
     with pytest.raises(ValueError):
-        gpio.show("urgent", 0.0)
+        gpio.show("urgent")
+
+
+def test_gpio_signal_thread_sounds_the_buzzer_between_frames_and_is_quiet_once_closed():
+    """The monitor calls show() once a frame; the notifier's own thread plays the pulses in between."""
+    lines, gpio = gpio_signals(tick_s=0.005)
+    gpio.show("high")
+    seen = set()
+    deadline = time.monotonic() + 5.0
+    while len(seen) < 2 and time.monotonic() < deadline:        # on in a pulse, off between two
+        seen.add(lines.get_values(["GPIO20"])["GPIO20"])
+        time.sleep(0.01)
+    gpio.close()
+    assert seen == {0, 1}
+    assert lines.get_values() == {"GPIO20": 0, "GPIO21": 0}

@@ -4,7 +4,9 @@ The screen does not touch the alarm engine: it queues a command in the monitor's
 store (``appliance.db``), which the monitor applies at its next frame and logs
 with the events it causes. A request for an alarm that is not open, or a pause
 outside what the standard allows, is refused with the reason and queues nothing;
-every request that is queued is also in the screen's audit log.
+every request that is queued is also in the screen's audit log. The live view
+sends the same forms with ``fetch`` and asks for JSON: it gets the message and
+the command's id instead of a redirect, and stays on the page.
 """
 
 from __future__ import annotations
@@ -21,6 +23,11 @@ from webui.live import snapshot
 
 bp = Blueprint("alarms", __name__)
 HISTORY_S = 24 * 3600.0
+
+
+def wants_json() -> bool:
+    """Whether the request came from a script asking for JSON rather than from a form."""
+    return request.is_json or request.accept_mimetypes.best == "application/json"
 
 
 def store() -> Store:
@@ -59,30 +66,45 @@ def page():
 def acknowledge(alarm_id: int):
     open_alarms = {a["alarm_id"]: a for a in snapshot().get("alarms", [])}
     if alarm_id not in open_alarms:
-        flash(f"alarm {alarm_id} is not open: nothing was acknowledged", "error")
-        return redirect(url_for("alarms.page")), 303
+        return _answer(f"alarm {alarm_id} is not open: nothing was acknowledged", 409)
     with store() as s:
         command = s.queue_command("acknowledge", {"alarm_id": alarm_id}, g.user.name)
     current_app.extensions["users"].audit(g.user.name, "acknowledged alarm",
                                           f"{alarm_id} {open_alarms[alarm_id]['key']} (command {command})")
-    flash(f"alarm {alarm_id} acknowledged; the monitor applies it at its next frame", "info")
-    return redirect(url_for("alarms.page")), 303
+    return _answer(f"alarm {alarm_id} acknowledged; the monitor applies it at its next frame", 202, command)
 
 
 @bp.route("/alarms/pause-audio", methods=["POST"])
 def pause_audio():
+    """Pause every alarm's sound, or with ``alarm_id`` only that open alarm's, for ``minutes``."""
     try:
         minutes = float(request.form.get("minutes", ""))
     except ValueError:
         minutes = float("nan")
     if not 0 < minutes <= DEFAULT_MAX_AUDIO_PAUSE_S / 60:
-        flash(f"an audio pause lasts more than 0 and at most {DEFAULT_MAX_AUDIO_PAUSE_S / 60:g} minutes "
-              f"(IEC 60601-1-8); got {request.form.get('minutes', '')!r}", "error")
-        return redirect(url_for("alarms.page")), 303
+        return _answer(f"an audio pause lasts more than 0 and at most {DEFAULT_MAX_AUDIO_PAUSE_S / 60:g} minutes "
+                       f"(IEC 60601-1-8); got {request.form.get('minutes', '')!r}", 400)
+    args: dict = {"duration_s": minutes * 60}
+    which = "alarm audio"
+    if request.form.get("alarm_id"):
+        open_ids = {a["alarm_id"] for a in snapshot().get("alarms", [])}
+        alarm_id = request.form["alarm_id"]
+        if not alarm_id.isdigit() or int(alarm_id) not in open_ids:
+            return _answer(f"alarm {alarm_id!r} is not open: no sound was paused", 409)
+        args["alarm_id"] = int(alarm_id)
+        which = f"alarm {alarm_id}'s audio"
     with store() as s:
-        command = s.queue_command("pause-audio", {"duration_s": minutes * 60}, g.user.name)
-    current_app.extensions["users"].audit(g.user.name, "paused alarm audio", f"{minutes:g} min (command {command})")
-    flash(f"alarm audio paused for {minutes:g} min", "info")
+        command = s.queue_command("pause-audio", args, g.user.name)
+    current_app.extensions["users"].audit(g.user.name, "paused alarm audio",
+                                          f"{which}, {minutes:g} min (command {command})")
+    return _answer(f"{which} paused for {minutes:g} min", 202, command)
+
+
+def _answer(message: str, status: int, command: int | None = None):
+    """A JSON answer for the live view's ``fetch``; for a form, the message flashed on the Alarms page."""
+    if wants_json():
+        return jsonify({"message": message, "command_id": command}), status
+    flash(message, "info" if command is not None else "error")
     return redirect(url_for("alarms.page")), 303
 
 

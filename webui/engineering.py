@@ -33,7 +33,7 @@ from appliance.errors import ApplianceError
 from appliance.files import write_atomic
 from appliance.service.config_sections import read_config
 from appliance.service.engineering_tasks import ENGINEERING_DIR, TASKS, checked_args, engineering_file
-from webui.alarms import reader, store
+from webui.alarms import reader, store, wants_json
 from webui.security import requires
 
 bp = Blueprint("engineering", __name__)
@@ -50,10 +50,6 @@ class Refused(Exception):
 
 def folder() -> Path:
     return Path(current_app.config["STORE_PATH"]).parent / ENGINEERING_DIR
-
-
-def wants_json() -> bool:
-    return request.is_json or request.accept_mimetypes.best == "application/json"
 
 
 def files() -> list[dict]:

@@ -16,6 +16,7 @@ import time
 
 from flask import Blueprint, current_app, jsonify, render_template
 
+from appliance.alerts.alarms import DEFAULT_MAX_AUDIO_PAUSE_S
 from appliance.service.live import read_live
 from webui.streams import event_stream
 
@@ -63,9 +64,24 @@ def simulated_banner() -> str | None:
     return SIMULATED.get(((data or {}).get("status") or {}).get("source"))
 
 
+@bp.app_context_processor
+def header_patient() -> dict:
+    """``header_patient``: the admitted patient every page's header names, so no screen is read as another bed's.
+
+    Read from ``live.json`` like the SIMULATED banner (one small file per page); None before a frame, or
+    when none is admitted, or when the file cannot be read (the live view says why).
+    """
+    path = current_app.config.get("LIVE_PATH")
+    try:
+        data = read_live(path) if path is not None else None
+    except ValueError:
+        return {"header_patient": None}
+    return {"header_patient": (data or {}).get("patient")}
+
+
 @bp.route("/")
 def page():
-    return render_template("live.html")
+    return render_template("live.html", max_pause_min=DEFAULT_MAX_AUDIO_PAUSE_S / 60)
 
 
 @bp.route("/api/live")

@@ -30,6 +30,7 @@ from pathlib import Path
 
 from appliance.alerts.alarms import PRIORITIES
 from appliance.alerts.events import Event
+from appliance.alerts.tones import tone_schedule
 from appliance.supervise import Supervised
 from appliance.drivers.bus import GPIOLines, LineRequest
 
@@ -205,35 +206,64 @@ class WebhookNotifier(Notifier):
 # Flash rates of IEC 60601-1-8 visual alarm signals: high 1.4 to 2.8 Hz, medium
 # 0.4 to 0.8 Hz, low constant. None: steady on.
 BLINK_HZ = {"high": 2.0, "medium": 0.5, "low": None}
+SIGNAL_TICK_S = 0.01
+"""How often the signal thread sets the lines: fine enough for the tones' 100 ms silences between pulses."""
 
 
 class GpioNotifier:
     """Drives the bedside buzzer and LED from the alarm engine's audible priority.
 
-    Not queued like the others: setting two lines is as fast as the monitor's
-    own GPIO work. The LED flashes only as finely as :meth:`show` is called, so
-    call it at least four times a second for the 2 Hz high-priority flash.
+    The buzzer sounds the priority's pulse bursts (:mod:`appliance.alerts.tones`)
+    and the LED flashes at its rate, both timed on the notifier's own ``clock``
+    from the moment that priority began. Frames come far too seldom for 150 ms
+    pulses, so a thread of its own sets the lines every ``tick_s``; with
+    ``tick_s=None`` there is none and the caller calls :meth:`drive`.
     """
 
-    def __init__(self, lines: GPIOLines, *, buzzer: str, led: str):
-        self.lines, self.buzzer, self.led = lines, buzzer, led
+    def __init__(self, lines: GPIOLines, *, buzzer: str, led: str, clock=time.monotonic,
+                 tick_s: float | None = SIGNAL_TICK_S):
+        self.lines, self.buzzer, self.led, self.clock = lines, buzzer, led, clock
+        self._priority: str | None = None
+        self._since = 0.0
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._worker = None if tick_s is None else Supervised("alarm signals", lambda: self._run(tick_s)).start()
 
     @staticmethod
     def request(buzzer: str, led: str) -> LineRequest:
         """The lines to ask the board for: both outputs, both off until the first alarm."""
         return LineRequest(outputs={buzzer: 0, led: 0}, inputs={})
 
-    def show(self, priority: str | None, now_s: float) -> None:
-        """Sound and flash for ``priority`` (``AlarmEngine.audible(now_s)``) at ``now_s``; None is quiet and dark."""
-        if priority is None:
-            self.lines.set_values({self.buzzer: 0, self.led: 0})
-            return
-        if priority not in PRIORITIES:
+    def show(self, priority: str | None) -> None:
+        """Sound and flash for ``priority`` (``AlarmEngine.audible(now)``) from now on; None is quiet and dark."""
+        if priority is not None and priority not in PRIORITIES:
             raise ValueError(f"priority must be one of {PRIORITIES} or None, got {priority!r}")
-        hz = BLINK_HZ[priority]
-        led = 1 if hz is None else int((now_s * hz) % 1.0 < 0.5)
-        self.lines.set_values({self.buzzer: 1, self.led: led})
+        with self._lock:
+            if priority != self._priority:
+                self._priority, self._since = priority, self.clock()
+        self.drive()
+
+    def drive(self) -> None:
+        """Set both lines as the current priority's tone and flash are at the clock's time now."""
+        with self._lock:                    # held while writing, so the last write after close() is the dark one
+            if self._priority is None:
+                self.lines.set_values({self.buzzer: 0, self.led: 0})
+                return
+            t = self.clock() - self._since
+            hz = BLINK_HZ[self._priority]
+            led = 1 if hz is None else int((t * hz) % 1.0 < 0.5)
+            self.lines.set_values({self.buzzer: int(tone_schedule(self._priority).sounding(t)), self.led: led})
+
+    def _run(self, tick_s: float) -> None:
+        while not self._stopping.wait(tick_s):
+            self.drive()
+            if self._worker is not None:
+                self._worker.ok()
 
     def close(self) -> None:
-        """Silence and darken before the lines are given back."""
-        self.show(None, 0.0)
+        """Stop the signal thread, then silence and darken before the lines are given back."""
+        self._stopping.set()
+        if self._worker is not None:
+            self._worker.stop()
+            self._worker.join()
+        self.show(None)

@@ -299,7 +299,9 @@ class MonitorDaemon:
         return done, f"{len(done)} event(s)"
 
     def _pause_audio(self, now: float, args: dict, user: str, _id: int) -> tuple[list[Event], str]:
-        done = [self.pipeline.record(e) for e in self.pipeline.engine.pause_audio(now, user, float(args["duration_s"]))]
+        alarm_id = None if args.get("alarm_id") is None else int(args["alarm_id"])       # None: every alarm
+        done = [self.pipeline.record(e)
+                for e in self.pipeline.engine.pause_audio(now, user, float(args["duration_s"]), alarm_id)]
         return done, f"{len(done)} event(s)"
 
     def _record_turn(self, now: float, args: dict, user: str, _id: int) -> tuple[list[Event], str]:
@@ -327,7 +329,7 @@ class MonitorDaemon:
             if self.on_event is not None:
                 self.on_event(event)
         if self.gpio is not None:
-            self.gpio.show(self.pipeline.engine.audible(now), now)
+            self.gpio.show(self.pipeline.engine.audible(now))
 
     def _prune_when_due(self, now: float) -> None:
         """Retention: at the first frame and every ``PRUNE_EVERY_S`` after (a clock step counts as due), so the
