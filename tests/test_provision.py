@@ -96,12 +96,12 @@ def test_the_hostname_can_be_left_alone_for_a_chroot(card):
 
 @pytest.mark.parametrize("text, complaint", [
     (SETUP.replace("ward3-bed12", "Ward 3"), "hostname must be"),
-    (SETUP.replace('source = "virtual"', 'sorce = "virtual"'), "unknown key 'sorce' in the top level"),
+    (SETUP.replace('source = "virtual"', 'sorce = "virtual"'), "the top level: unknown key 'sorce'"),
     (SETUP.replace('name = "sister"\n', ""), "[admin] name is missing"),
     (SETUP.replace('password = "correct horse battery"', 'password = "short"'), "[admin]: a password needs at least"),
     (SETUP + BROKER.replace("port = 8883", "port = 0"), "[broker]: port must be from 1 to 65535"),
     (SETUP + BROKER.replace("ward-ca.crt", "missing.crt"), "[broker] ca_file: no file"),
-    (SETUP + BROKER.replace("password =", "pasword ="), "unknown key 'pasword' in [broker]"),
+    (SETUP + BROKER.replace("password =", "pasword ="), "[broker]: unknown key 'pasword'"),
     (SETUP.replace('"virtual"', '"emulated"'), 'source must be "hardware" or "virtual"'),
     (SETUP.replace('hostname = "ward3-bed12"', 'hostname = "ward3-bed12"\nbed_id = "bed/12"'), "bed_id"),
     ("hostname = ", "is not valid TOML"),

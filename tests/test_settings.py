@@ -167,7 +167,7 @@ def test_the_file_survives_a_reload_and_overlays_only_what_it_holds(tmp_path):
 @pytest.mark.parametrize("text, message", [
     ("[alerts]\nthreshold_mmhg = [", "is not valid TOML"),
     ("[alerts]\nthreshold_mmhg = 5\n", "[alerts]: threshold_mmhg must be from 20 to 60 mmHg (its safe range), got 5"),
-    ("[alerts]\ncurve_points = [[60, 100]]\n", "[alerts]: unknown key 'curve_points'; settings allowed"),
+    ("[alerts]\ncurve_points = [[60, 100]]\n", "[alerts]: unknown key 'curve_points'; allowed"),
     ("[board]\nname = \"x\"\n", "unknown table [board]"),
     ("alerts = 3\n", "[alerts] must be a table, got 3"),
 ])

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 from appliance.alerts.pipeline import AlertSettings
 from appliance.core.pressure import KPA_PER_MMHG
+from appliance.core.toml_files import check_keys
 from appliance.errors import ConfigError
 
 
@@ -125,9 +126,8 @@ def check_policy(table) -> dict[str, tuple[float, float]]:
     if not isinstance(table, dict):
         raise ConfigError(f"[{POLICY}] must be a table, got {table!r}")
     policy = default_policy()
+    check_keys(table, SAFE_RANGES, f"[{POLICY}]", ConfigError)
     for key, span in table.items():
-        if key not in SAFE_RANGES:
-            raise ConfigError(f"[{POLICY}]: unknown key {key!r}; a policy bounds {', '.join(SAFE_RANGES)}")
         if not isinstance(span, (list, tuple)) or len(span) != 2 or any(
                 isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) for v in span):
             raise ConfigError(f"[{POLICY}]: {key} must be a pair of numbers [low, high], got {span!r}")

@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from appliance.core.layouts import DiscSheet, Layout, RectElectrode, RectSheet, SectorElectrode
-from appliance.core.toml_files import read_toml, toml_value
+from appliance.core.toml_files import check_keys, read_toml, toml_value
 from appliance.errors import LayoutInvalid
 
 
@@ -26,9 +26,7 @@ def load_layout(path: Path) -> Layout:
 
 def layout_from_mapping(data: dict) -> Layout:
     """Build a layout from parsed TOML (a dict); every missing or mistyped key is named."""
-    unknown = sorted(set(data) - {"name", "grid", "sheet", "electrodes"})
-    if unknown:
-        raise LayoutInvalid(f"unknown key {unknown[0]!r} in the layout: use name, grid, [sheet] and [[electrodes]]")
+    check_keys(data, {"name", "grid", "sheet", "electrodes"}, "the layout", LayoutInvalid)
     name = _field(data, "name", str, "the layout")
     sheet_data = _field(data, "sheet", dict, "the layout")
     shape = _field(sheet_data, "shape", str, "[sheet]")

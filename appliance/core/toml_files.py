@@ -1,10 +1,15 @@
-"""Reading a TOML file with an error that names the file, and writing the values of one (layouts, configuration,
-settings): the standard library reads TOML but does not write it, and one writer keeps every file we write alike.
+"""Reading a TOML file with an error that names the file, refusing keys a table does not take, and writing the
+values of one (layouts, configuration, settings, scenarios, provisioning): the standard library reads TOML but
+does not write it, and one reader, key check and writer keep every file alike.
 
 >>> read_toml("no-such-file.toml", "layout file", ValueError)
 Traceback (most recent call last):
 ...
 ValueError: layout file no-such-file.toml does not exist
+>>> check_keys({"layuot": 1}, {"layout"}, "[monitor]", ValueError)
+Traceback (most recent call last):
+...
+ValueError: [monitor]: unknown key 'layuot'; allowed: layout
 >>> print(toml_value(['a "b"', 2, 0.5, True]))
 ["a \\u0022b\\u0022", 2, 0.5, true]
 """
@@ -27,6 +32,14 @@ def read_toml(path, what: str, error: type[Exception]) -> dict:
         raise error(f"{what} {path} cannot be read ({exc.strerror or exc})") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise error(f"{what} {path} is not valid TOML: {exc}") from None
+
+
+def check_keys(table, allowed, where: str, error: type[Exception], *, noun: str = "key") -> None:
+    """Refuse a table with a key not in ``allowed``, naming the first (so a typo cannot silently keep a default)."""
+    unknown = sorted(set(table) - set(allowed))
+    if unknown:
+        known = f"; allowed: {', '.join(sorted(allowed))}" if allowed else ""
+        raise error(f"{where}: unknown {noun} {unknown[0]!r}{known}")
 
 
 def toml_value(value) -> str:

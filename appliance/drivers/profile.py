@@ -29,7 +29,7 @@ from importlib import resources
 from types import MappingProxyType
 from typing import Any
 
-from appliance.core.toml_files import read_toml
+from appliance.core.toml_files import check_keys, read_toml
 from appliance.drivers.boards import DEFAULT_SYSTEM, HOST_BOARDS, SYSTEMS
 from appliance.errors import ConfigError
 
@@ -261,8 +261,7 @@ def _profile_from_mapping(data: dict) -> BoardProfile:
     unknown = [board for board in boards if board not in HOST_BOARDS]
     if unknown:
         raise ConfigError(f"{where} boards: {unknown[0]!r} is not one of {tuple(HOST_BOARDS)}")
-    if data:
-        raise ConfigError(f"{where}: unknown key {sorted(data)[0]!r}")
+    check_keys(data, (), where, ConfigError)
     roles = ROLES_BY_CHAIN[chain]
     _require(spi, roles["spi"] + MULTIPLEXERS[multiplexer], "[board.spi]")
     _require(i2c, roles["i2c"], "[board.i2c]")
@@ -305,8 +304,7 @@ def _supply(values: Mapping) -> Supply:
     headroom = _take(values, "source_headroom_v", float, where)
     if headroom < 0:
         raise ConfigError(f"{where} source_headroom_v must not be negative, got {headroom!r}")
-    if values:
-        raise ConfigError(f"{where}: unknown key {sorted(values)[0]!r}")
+    check_keys(values, (), where, ConfigError)
     return Supply(**rails, source_headroom_v=headroom)
 
 
@@ -398,8 +396,7 @@ def _section(cls, values: Mapping, where: str):
         if kind is int and value < 0:
             raise ConfigError(f"{where} {f.name} must not be negative, got {value!r}")
         kwargs[f.name] = value
-    if values:
-        raise ConfigError(f"{where}: unknown key {sorted(values)[0]!r}")
+    check_keys(values, (), where, ConfigError)
     return cls(**kwargs)
 
 

@@ -18,7 +18,7 @@ from appliance.alerts.dose import RECOVERY_MODES, custom_curve
 from appliance.alerts.limits import check_curve, check_safe
 from appliance.alerts.pipeline import AlertSettings
 from appliance.core.pressure import KPA_PER_MMHG
-from appliance.core.toml_files import read_toml
+from appliance.core.toml_files import check_keys, read_toml
 from appliance.errors import ConfigError, CurveInvalid
 
 SOURCES = ("virtual", "emulated", "hardware")
@@ -278,9 +278,7 @@ def _section(data: dict, name: str, label: str | None = None) -> dict:
 
 
 def _only(table: dict, allowed: set, where: str) -> None:
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise ConfigError(f"{where}: unknown key {unknown[0]!r}; allowed: {', '.join(sorted(allowed))}")
+    check_keys(table, allowed, where, ConfigError)
 
 
 def _text(table: dict, key: str, default: str | None, where: str) -> str:

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from appliance.accounts.users import AccountError, UserStore
-from appliance.core.toml_files import read_toml, toml_value
+from appliance.core.toml_files import check_keys, read_toml, toml_value
 from appliance.errors import ConfigError
 from appliance.files import write_atomic
 from appliance.service.config import config_from_mapping
@@ -260,9 +260,7 @@ def _beside(setup_path: Path, name: str) -> Path:
 
 
 def _only(table: dict, allowed: set, path: Path, where: str) -> None:
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise ProvisionError(f"{path}: unknown key {unknown[0]!r} in {where}; allowed: {', '.join(sorted(allowed))}")
+    check_keys(table, allowed, f"{path}, {where}", ProvisionError)
 
 
 def _table(data: dict, key: str, path: Path) -> dict:

@@ -43,7 +43,7 @@ from pathlib import Path
 from appliance.alerts.limits import POLICY, alert_values, check_policy, check_within_policy
 from appliance.alerts.pipeline import AlertPipeline
 from appliance.core.named_layouts import BUILTIN_NAMES
-from appliance.core.toml_files import read_toml, toml_value
+from appliance.core.toml_files import check_keys, read_toml, toml_value
 from appliance.errors import ConfigError
 from appliance.files import write_atomic
 from appliance.service.config_sections import MonitorConfig, read_sections
@@ -84,9 +84,7 @@ def check_settings(settings: dict) -> MonitorConfig:
         table = settings.get(section, {})
         if not isinstance(table, dict):
             raise ConfigError(f"[{section}] must be a table, got {table!r}")
-        extra = sorted(set(table) - set(keys))
-        if extra:
-            raise ConfigError(f"[{section}]: unknown key {extra[0]!r}; settings allowed: {', '.join(keys)}")
+        check_keys(table, keys, f"[{section}]", ConfigError)
     checked = read_sections({section: dict(settings[section]) for section in SECTIONS if section in settings})
     if "layout" in settings.get("monitor", {}) and checked.layout not in BUILTIN_NAMES:
         raise ConfigError(f"[monitor]: layout must be one of {', '.join(BUILTIN_NAMES)}, got {checked.layout!r}")

@@ -72,7 +72,7 @@ from pathlib import Path
 
 import numpy as np
 
-from appliance.core.toml_files import read_toml
+from appliance.core.toml_files import check_keys, read_toml
 from appliance.errors import ConfigError, DataFileInvalid, ModelInputInvalid
 from appliance.sim.body import (BED_GRID, POSTURES, SURFACES, MatGrid, Placement, Subject, is_number, body_field,
                                 check_sites)
@@ -399,9 +399,7 @@ def _check_fits(placement: Placement, where: str, grid: MatGrid, subject: Subjec
 
 
 def _only(table: dict, allowed: set, where: str) -> None:
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise ConfigError(f"{where}: unknown field {unknown[0]!r}; allowed: {', '.join(sorted(allowed))}")
+    check_keys(table, allowed, where, ConfigError, noun="field")
 
 
 def _number(table: dict, key: str, where: str, default: float | None) -> float:
