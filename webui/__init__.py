@@ -20,7 +20,7 @@ from pathlib import Path
 from flask import Flask, current_app, g, redirect, url_for
 
 from appliance.alerts.wording import alarm_words, setting_words
-from webui import accounts, alarms, auth, engineering, history, live, patient, settings, ward
+from webui import accounts, alarms, auth, engineering, fhir, history, live, patient, settings, ward
 from webui.headers import add_security_headers
 from webui.limiter import LoginLimiter
 from webui.private import private_file
@@ -29,7 +29,8 @@ from webui.sessions import SessionStore
 from webui.users import UserStore
 
 SESSION_HOURS = 12          # one shift
-BLUEPRINTS = (auth.bp, accounts.bp, live.bp, alarms.bp, patient.bp, history.bp, settings.bp, engineering.bp)
+BLUEPRINTS = (auth.bp, accounts.bp, live.bp, alarms.bp, patient.bp, history.bp, settings.bp, engineering.bp,
+              fhir.bp)
 WARD_BLUEPRINTS = (auth.bp, accounts.bp, ward.bp)
 PAGES = (("ward.page", "Ward", "nurse"), ("live.page", "Live", "nurse"), ("alarms.page", "Alarms", "nurse"),
          ("patient.page", "Patient", "nurse"), ("history.page", "History", "nurse"),

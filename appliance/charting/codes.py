@@ -12,7 +12,13 @@ from __future__ import annotations
 from appliance.alerts.anatomy import POSTURE_WORDS, site_words
 
 SYSTEM = "99PSM"
-"""The local coding system's name (HL7 v2 CWE-3 / FHIR Coding.system suffix)."""
+"""The local coding system's name in HL7 v2 (CWE-3)."""
+
+FHIR_SYSTEM = "urn:appliance:codes:99PSM"
+"""The same local system as a FHIR ``Coding.system`` (a URI; no registry names these codes)."""
+
+PATIENT_ID_SYSTEM = "urn:appliance:patient-id"
+"""The identifier system of the hospital's patient id (MRN) the nurse entered at admission."""
 
 UNIT_MMHG = ("mm[Hg]", "millimetre of mercury", "UCUM")
 
