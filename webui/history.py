@@ -21,7 +21,7 @@ import math
 from dataclasses import dataclass
 from datetime import datetime
 
-from flask import Blueprint, abort, jsonify, render_template, request
+from flask import Blueprint, Response, abort, jsonify, render_template, request
 
 from appliance.alerts.alarms import PRIORITIES
 from appliance.alerts.pipeline import AlertSettings
@@ -29,6 +29,7 @@ from appliance.alerts.anatomy import SITES, SMALL_MAT_SITE, UNIDENTIFIED_SITE, s
 from appliance.alerts.turns import TURN_KINDS as TURN_EVENT_KINDS
 from appliance.alerts.wording import alarm_words
 from appliance.core.pressure import KPA_PER_MMHG
+from appliance.store import Store
 from webui.alarms import clock, store
 from webui.live import snapshot
 
@@ -84,13 +85,18 @@ class History:
 def load_history(hours: float) -> History | None:
     """The last ``hours`` up to the store's newest record; None when it has recorded nothing."""
     with store() as s:
-        end = s.last_time()
-        if end is None:
-            return None
-        start = end - hours * 3600.0
-        map_times = [t for t, _ in s.history_between(start, end)]
-        regions = s.regions_between(start, end)
-        events = [e for e in s.events_since(start) if e["time_s"] <= end]
+        return read_history(s, hours)
+
+
+def read_history(s: Store, hours: float) -> History | None:
+    """:func:`load_history` from an open store (the command line's shift report has no app)."""
+    end = s.last_time()
+    if end is None:
+        return None
+    start = end - hours * 3600.0
+    map_times = [t for t, _ in s.history_between(start, end)]
+    regions = s.regions_between(start, end)
+    events = [e for e in s.events_since(start) if e["time_s"] <= end]
     turns = [e for e in events if is_turn(e)]
     alarms = [e for e in events if not is_turn(e)]
     first = min(map_times[:1] + [e["time_s"] for e in events[:1]], default=start)
@@ -383,3 +389,21 @@ def summary():
     result = None if history is None else summarise(history, threshold_mmhg(live))
     return render_template("shift_summary.html", hours=hours, summary=result, bed_id=live.get("bed_id"),
                            clock=clock, duration=duration, no_history=NO_HISTORY)
+
+
+@bp.route("/history/report.<kind>")
+def report(kind: str):
+    """The shift report as a PDF or the period's events as a CSV, downloaded as ``shift-<bed>.<kind>``."""
+    from webui.report import report_csv, report_pdf, shift_report
+
+    if kind not in ("pdf", "csv"):
+        abort(404, description=f"a shift report is report.pdf or report.csv, not report.{kind}")
+    hours = requested_hours()
+    live = snapshot()
+    with store() as s:
+        made = shift_report(s, hours, live, threshold_mmhg(live))
+    if made is None:
+        abort(404, description=NO_HISTORY)
+    body = report_pdf(made) if kind == "pdf" else report_csv(made).encode()
+    return Response(body, mimetype="application/pdf" if kind == "pdf" else "text/csv",
+                    headers={"Content-Disposition": f'attachment; filename="shift-{made.bed_id}.{kind}"'})
