@@ -7,8 +7,6 @@ import sys
 import time
 from pathlib import Path
 
-TOKENS_FILE = "api-tokens.db"
-
 
 def add_parsers(sub) -> None:
     add_report_parser(sub)
@@ -23,7 +21,7 @@ def add_parsers(sub) -> None:
 
 def _fhir_token(args) -> int:
     from appliance.errors import ConfigError
-    from appliance.store.api_tokens import ApiTokens
+    from appliance.store.api_tokens import TOKENS_FILE, ApiTokens
 
     if not args.data_dir.is_dir():
         raise ConfigError(f"--data-dir {args.data_dir}: no such folder")

@@ -19,8 +19,7 @@ import math
 from flask import Blueprint, Response, current_app, request
 
 from appliance.charting import fhir
-from appliance.cli_charting import TOKENS_FILE
-from appliance.store.api_tokens import ApiTokens
+from appliance.store.api_tokens import TOKENS_FILE, ApiTokens
 from webui.alarms import store
 from webui.live import snapshot
 

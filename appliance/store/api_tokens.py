@@ -16,6 +16,8 @@ from pathlib import Path
 
 from appliance.errors import ConfigError
 
+TOKENS_FILE = "api-tokens.db"
+"""The tokens' file in the monitor's data folder, beside the screen's accounts."""
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 SCHEMA = "CREATE TABLE IF NOT EXISTS tokens (name TEXT PRIMARY KEY, hash TEXT NOT NULL UNIQUE, made_at REAL NOT NULL)"
 
