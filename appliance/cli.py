@@ -106,6 +106,7 @@ def _parser() -> argparse.ArgumentParser:
     p.set_defaults(run=_reconstruct)
 
     from appliance.cli_calibrate import add_parsers as add_calibrate_parsers
+    from appliance.cli_charting import add_parsers as add_charting_parsers
     from appliance.cli_frontend import add_parsers as add_frontend_parsers
     from appliance.cli_provision import add_parsers as add_provision_parsers
     from appliance.cli_run import add_parsers as add_run_parsers
@@ -118,6 +119,7 @@ def _parser() -> argparse.ArgumentParser:
     add_calibrate_parsers(sub)
     add_ward_parsers(sub)
     add_provision_parsers(sub)
+    add_charting_parsers(sub)
     return parser
 
 

@@ -29,6 +29,7 @@ from appliance.alerts.anatomy import SITES, SMALL_MAT_SITE, UNIDENTIFIED_SITE, s
 from appliance.alerts.turns import TURN_KINDS as TURN_EVENT_KINDS
 from appliance.alerts.wording import alarm_words
 from appliance.core.pressure import KPA_PER_MMHG
+from appliance.store import Store
 from webui.alarms import clock, reader
 from webui.live import snapshot
 
@@ -84,13 +85,18 @@ class History:
 def load_history(hours: float) -> History | None:
     """The last ``hours`` up to the store's newest record; None when it has recorded nothing."""
     with reader() as s:
-        end = s.last_time()
-        if end is None:
-            return None
-        start = end - hours * 3600.0
-        map_times = [t for t, _ in s.history_between(start, end)]
-        regions = s.regions_between(start, end)
-        events = [e for e in s.events_since(start) if e["time_s"] <= end]
+        return read_history(s, hours)
+
+
+def read_history(s: Store, hours: float) -> History | None:
+    """:func:`load_history` from an open store (the command line's shift report has no app)."""
+    end = s.last_time()
+    if end is None:
+        return None
+    start = end - hours * 3600.0
+    map_times = [t for t, _ in s.history_between(start, end)]
+    regions = s.regions_between(start, end)
+    events = [e for e in s.events_since(start) if e["time_s"] <= end]
     turns = [e for e in events if is_turn(e)]
     alarms = [e for e in events if not is_turn(e)]
     first = min(map_times[:1] + [e["time_s"] for e in events[:1]], default=start)

@@ -17,6 +17,7 @@ TECHNICAL_WORDS = {
     "live-view": "the bedside screen's data", "notifier": "notification", "ward-link": "link to the ward station",
     "ward-confirm": "confirmations from the ward station", "ward-outbox": "messages kept for the ward station",
     "ward-link-sender": "sending to the ward station", "calibration": "pressure calibration",
+    "charting": "charting to the hospital record", "charting-queue": "messages kept for the hospital record",
 }
 """The part a technical alarm is about; the key's further parts (an electrode's number) follow in words."""
 

@@ -18,6 +18,7 @@ LIVE_FILE = "live.json"
 STORE_FILE = "appliance.db"
 DEAD_LETTER_FILE = "dead-letters.jsonl"
 OUTBOX_FILE = "ward-outbox.db"
+CHARTING_FILE = "charting-queue.db"
 
 
 def assemble(config: MonitorConfig, *, say: Callable[[str], None], on_event=None, on_map=None,
@@ -38,6 +39,7 @@ def assemble(config: MonitorConfig, *, say: Callable[[str], None], on_event=None
 
 
 def _assemble(config: MonitorConfig, lock, *, say, on_event, on_map, live: bool) -> MonitorDaemon:
+    from appliance.charting.link import ChartingLink
     from appliance.core.model_cache import cached_model, default_cache_dir, default_setup
     from appliance.core.named_layouts import get_layout
     from appliance.service import settings
@@ -65,6 +67,9 @@ def _assemble(config: MonitorConfig, lock, *, say, on_event, on_map, live: bool)
                                gpio=_gpio(config, source), live=LiveChannel(data_dir / LIVE_FILE) if live else None,
                                on_event=on_event, on_map=on_map, say=say, lock=lock)
         settings.attach(daemon)
+        for notifier in notifiers:
+            if isinstance(notifier, ChartingLink):  # it names the admitted patient in its messages
+                notifier.patient = lambda: daemon.pipeline.episode
         daemon.add_commands(engineering_commands(daemon))
         daemon.start()
     except BaseException:
@@ -115,12 +120,16 @@ def virtual_calibration_path(cache_dir: Path, model) -> Path:
 
 
 def _notifiers(config: MonitorConfig, data_dir: Path, closers: list) -> list:
-    """The ward link (with its outbox) and the webhook, each added to ``closers`` as soon as it is made."""
+    """The ward link (with its outbox), the webhook and the charting link (with its queue), each added to
+    ``closers`` as soon as it is made."""
     from appliance.alerts.notifiers import WebhookNotifier
     from appliance.alerts.wardlink import WardLink
+    from appliance.charting.chartqueue import ChartQueue
+    from appliance.charting.hl7 import Parties
+    from appliance.charting.link import ChartingLink
     from appliance.store.outbox import Outbox
 
-    notifiers: list[WardLink | WebhookNotifier] = []
+    notifiers: list[WardLink | WebhookNotifier | ChartingLink] = []
     if config.mqtt is not None:
         m, c = config.mqtt, config.confirmation
         outbox = Outbox(data_dir / OUTBOX_FILE)
@@ -137,6 +146,20 @@ def _notifiers(config: MonitorConfig, data_dir: Path, closers: list) -> list:
         notifiers.append(WebhookNotifier(config.webhook.url, timeout_s=config.webhook.timeout_s,
                                          dead_letter_path=data_dir / DEAD_LETTER_FILE))
         closers.append(notifiers[-1].close)
+    if config.hl7 is not None:
+        h = config.hl7
+        queue = ChartQueue(data_dir / CHARTING_FILE)
+        try:
+            charting = ChartingLink(h.host, h.port, Parties(h.sending_application, h.sending_facility,
+                                                            h.receiving_application, h.receiving_facility,
+                                                            config.bed_id), queue,
+                                    ack_timeout_s=h.ack_timeout_s, undelivered_alarm_s=h.undelivered_alarm_s,
+                                    observation_interval_s=h.observation_interval_s)
+        except BaseException:
+            queue.close()
+            raise
+        notifiers.append(charting)
+        closers.append(charting.close)              # closes the queue too
     return notifiers
 
 

@@ -55,6 +55,17 @@ runs, not after it silently ignored it::
     [notify.gpio]                 # the board's buzzer and LED (roles in [board]'s gpio table)
     buzzer = "buzzer"
     led = "status_led"
+
+    [charting.hl7]                # HL7 v2 ORU^R01 over MLLP to the hospital's interface engine
+    host = "engine.hospital"
+    port = 2575
+    sending_facility = "WARD3"
+    receiving_application = "EHR"
+    receiving_facility = "HOSPITAL"
+    sending_application = "APPLIANCE"
+    ack_timeout_s = 10
+    undelivered_alarm_s = 300     # a message unacknowledged this long: a technical alarm at the bed
+    observation_interval_s = 600  # peak pressure per site and posture charted this often
 """
 
 from __future__ import annotations

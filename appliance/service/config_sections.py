@@ -76,6 +76,21 @@ class WebhookSettings:
 
 
 @dataclass(frozen=True)
+class Hl7Settings:
+    """The hospital's interface engine for charting (``appliance.charting.link``)."""
+
+    host: str
+    port: int
+    sending_facility: str
+    receiving_application: str
+    receiving_facility: str = ""
+    sending_application: str = "APPLIANCE"
+    ack_timeout_s: float = 10.0
+    undelivered_alarm_s: float = 300.0
+    observation_interval_s: float = 600.0
+
+
+@dataclass(frozen=True)
 class GpioSettings:
     """Roles in the board profile's ``[gpio]`` table (not pins), so a board that moved a pin needs no change here."""
 
@@ -105,6 +120,7 @@ class MonitorConfig:
     confirmation: ConfirmSettings = ConfirmSettings()
     webhook: WebhookSettings | None = None
     gpio: GpioSettings | None = None
+    hl7: Hl7Settings | None = None
 
 
 def default_data_dir() -> Path:
@@ -129,7 +145,7 @@ def read_sections(data: dict, base: Path | None = None) -> MonitorConfig:
     """Build the configuration from parsed TOML, every bad section, key and value named; the [board] table and
     the [virtual] scenario are kept as written, for :func:`appliance.service.config.config_from_mapping` to check
     against the board profiles and the scenarios."""
-    _only(data, {"monitor", "virtual", "board", "alerts", "store", "notify"}, "the configuration")
+    _only(data, {"monitor", "virtual", "board", "alerts", "store", "notify", "charting"}, "the configuration")
     monitor = _section(data, "monitor")
     _only(monitor, {"layout", "source", "frame_interval_s", "bed_id", "data_dir", "calibration", "cache_dir"},
           "[monitor]")
@@ -167,6 +183,7 @@ def read_sections(data: dict, base: Path | None = None) -> MonitorConfig:
         confirmation=confirmation,
         webhook=_webhook(_section(notify, "webhook", "notify.webhook")),
         gpio=gpio,
+        hl7=_hl7(_section(data, "charting")),
     )
 
 
@@ -255,6 +272,30 @@ def _webhook(table: dict) -> WebhookSettings | None:
     if not url.startswith(("http://", "https://")):
         raise ConfigError(f"{where}: url must start with http:// or https://, got {url!r}")
     return WebhookSettings(url, _number(table, "timeout_s", 5.0, where, low=0.1, high=60.0))
+
+
+def _hl7(charting: dict) -> Hl7Settings | None:
+    _only(charting, {"hl7"}, "[charting]")
+    table = _section(charting, "hl7", "charting.hl7")
+    if not table:
+        return None
+    where = "[charting.hl7]"
+    _only(table, {"host", "port", "sending_facility", "sending_application", "receiving_application",
+                  "receiving_facility", "ack_timeout_s", "undelivered_alarm_s", "observation_interval_s"}, where)
+    if "port" not in table:
+        raise ConfigError(f"{where} is missing 'port'")
+    names = {key: _text(table, key, default, where) for key, default in (
+        ("sending_facility", None), ("receiving_application", None), ("receiving_facility", ""),
+        ("sending_application", "APPLIANCE"))}
+    bad = [key for key, value in names.items() if any(c in value for c in "|^~\\&\r\n")]
+    if bad:
+        raise ConfigError(f"{where}: {bad[0]} must not hold HL7's delimiters | ^ ~ \\ & or line breaks")
+    return Hl7Settings(_text(table, "host", None, where),
+                       int(_number(table, "port", 2575, where, low=1, high=65535, integer=True)), **names,
+                       ack_timeout_s=_number(table, "ack_timeout_s", 10.0, where, low=0.5, high=300.0),
+                       undelivered_alarm_s=_number(table, "undelivered_alarm_s", 300.0, where, low=10.0, high=86400.0),
+                       observation_interval_s=_number(table, "observation_interval_s", 600.0, where, low=10.0,
+                                                      high=86400.0))
 
 
 def _gpio(table: dict) -> GpioSettings:

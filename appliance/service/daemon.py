@@ -265,8 +265,10 @@ class MonitorDaemon:
             self.on_map(pressure_map)
         if self.live is not None:
             self.live.publish(snapshot)
-        if self.ward_link is not None:
-            self.ward_link.summarise(ward_summary(snapshot))
+        summary = ward_summary(snapshot)
+        for notifier in self.notifiers:
+            if hasattr(notifier, "summarise"):          # the ward link, and the charting link's observations
+                notifier.summarise(summary)
         if not self._ready and pressure_map is not None:
             self._ready = True
             self.systemd.ready(f"monitoring {self.config.bed_id}")
@@ -368,8 +370,9 @@ class MonitorDaemon:
             if (fault := getattr(notifier, "fault", None)) is not None:
                 faults[f"technical:notifier:{notifier.name}"] = f"the {notifier.name} notifier is failing " \
                                                                  f"(restarting): {fault}"
-        if self.ward_link is not None:
-            faults.update(self.ward_link.conditions())
+        for notifier in self.notifiers:
+            if hasattr(notifier, "conditions"):         # the ward link's and the charting link's own alarms
+                faults.update(notifier.conditions())
         return faults
 
     def _snapshot(self, now: float, pressure_map, alerts: FrameAlerts) -> dict:

@@ -1,0 +1,200 @@
+"""The shift report as files: a PDF for the bed's paper record and a CSV of the same events for a spreadsheet.
+
+The PDF has what a handover reads on the screen's shift summary (turns, the
+alarms and who acknowledged them how fast, minutes at or above the threshold
+per region) and a chart of the peak pressure at each site over the period; the
+CSV lists every event the store logged in the period, one a row. Both come
+from the store and the live view alone, so the screen and ``appliance report``
+make the same files. PDFs are written with fpdf2's built-in Helvetica, which
+holds Latin-1 only: other characters are shown as "?".
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from dataclasses import dataclass
+from datetime import UTC, datetime
+
+from flask import Blueprint, Response, abort
+from fpdf import FPDF
+from fpdf.enums import XPos, YPos
+
+from appliance.alerts.anatomy import site_words
+from appliance.alerts.wording import alarm_words
+from appliance.store import Store
+from webui.alarms import clock, reader
+from webui.history import (NO_HISTORY, History, ShiftSummary, duration, read_history, requested_hours, summarise,
+                           threshold_mmhg)
+from webui.live import snapshot
+
+CSV_COLUMNS = ("time_utc", "time_s", "type", "kind", "priority", "category", "key", "alarm", "site", "posture",
+               "message", "user", "patient")
+CHART_W_MM, CHART_H_MM = 180.0, 60.0
+SITE_COLOURS = ((31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14), (23, 190, 207),
+                (140, 86, 75), (227, 119, 194))
+
+
+@dataclass(frozen=True)
+class ShiftReport:
+    """One bed's period: its history and summary, every event logged in it, and the patient in the bed."""
+
+    bed_id: str
+    patient: str
+    history: History
+    summary: ShiftSummary
+    events: list[dict]
+
+
+def shift_report(s: Store, hours: float, live: dict, threshold: float) -> ShiftReport | None:
+    """The last ``hours`` of store ``s`` (None if it recorded nothing); ``live`` is the live view's snapshot."""
+    history = read_history(s, hours)
+    if history is None:
+        return None
+    admitted = [e for e in s.episodes() if e["time_s"] <= history.end_s]
+    patient_id = admitted[-1]["patient"] if admitted and admitted[-1]["kind"] == "admitted" else None
+    named = live.get("patient") or {}
+    name = named.get("name") if named.get("patient_id") == patient_id else None
+    patient = "no patient admitted" if patient_id is None else f"{name} ({patient_id})" if name else patient_id
+    events = [e for e in s.events_since(history.start_s) if e["time_s"] <= history.end_s]
+    return ShiftReport(live.get("bed_id") or "unknown", patient, history, summarise(history, threshold), events)
+
+
+def wall_time(time_s: float) -> str:
+    """An ISO 8601 UTC time for wall-clock times; a simulated bed's seconds stay as they are."""
+    return datetime.fromtimestamp(time_s, UTC).isoformat(timespec="seconds") if time_s > 1e9 else ""
+
+
+def report_csv(report: ShiftReport) -> str:
+    out = io.StringIO()
+    writer = csv.DictWriter(out, CSV_COLUMNS, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for e in report.events:
+        writer.writerow({**e, "time_utc": wall_time(e["time_s"]), "time_s": repr(e["time_s"]),
+                         "alarm": alarm_words(e.get("key")) if e.get("type") == "alarm" else ""})
+    return out.getvalue()
+
+
+def latin1(text: str) -> str:
+    return text.encode("latin-1", "replace").decode("latin-1")
+
+
+def report_pdf(report: ShiftReport) -> bytes:
+    s = report.summary
+    pdf = FPDF(format="A4")
+    pdf.set_title(latin1(f"Shift report, bed {report.bed_id}"))
+    pdf.add_page()
+    pdf.set_font("Helvetica", "B", 16)
+    line(pdf, f"Shift report, bed {report.bed_id}", 9)
+    pdf.set_font("Helvetica", size=10)
+    line(pdf, f"Patient: {report.patient}")
+    line(pdf, f"Period {clock(s.start_s)} to {clock(s.end_s)} ({duration(s.end_s - s.start_s)})")
+    heading(pdf, "Turns")
+    line(pdf, f"{s.turns} turn(s); longest time without a turn {duration(s.longest_without_turn_s)}; "
+              f"{s.turn_reminders} turn reminder(s)")
+    turns = [e for e in report.history.turns if e["kind"] in ("repositioned", "recorded")]
+    table(pdf, ("Time", "Turn", "By"), [(clock(e["time_s"]), e.get("message") or e["kind"], e.get("user") or "")
+                                        for e in turns], (35, 115, 40))
+    heading(pdf, f"Time at risk (at or above {s.threshold_mmhg:.0f} mmHg)")
+    table(pdf, ("Region", "Peak mmHg", "Max dose", "Minutes at risk"),
+          [(r.label, f"{r.peak_mmhg:.0f}", "-" if r.max_dose is None else f"{r.max_dose:.2f}",
+            f"{r.minutes_above:.0f}") for r in s.regions], (80, 35, 35, 40))
+    for title, alarms in (("Clinical alarms", s.clinical), ("Technical alarms", s.technical)):
+        heading(pdf, title)
+        table(pdf, ("Raised", "Priority", "Alarm", "Acknowledged by", "After", "Ended"),
+              [(clock(a.raised_s), a.highest_priority, a.message or alarm_words(a.key),
+                a.acknowledged_by or "not acknowledged", duration(a.acknowledge_delay_s),
+                "-" if a.ended_s is None else clock(a.ended_s)) for a in alarms], (30, 18, 72, 30, 20, 20))
+    heading(pdf, "Peak pressure by site (mmHg)")
+    pressure_chart(pdf, report)
+    return bytes(pdf.output())
+
+
+def line(pdf: FPDF, text: str, height: float = 6) -> None:
+    pdf.cell(0, height, latin1(text), new_x=XPos.LMARGIN, new_y=YPos.NEXT)
+
+
+def heading(pdf: FPDF, text: str) -> None:
+    pdf.ln(3)
+    pdf.set_font("Helvetica", "B", 12)
+    line(pdf, text, 8)
+    pdf.set_font("Helvetica", size=9)
+
+
+def table(pdf: FPDF, header: tuple[str, ...], rows: list[tuple[str, ...]], widths: tuple[int, ...]) -> None:
+    if not rows:
+        line(pdf, "None in this period.")
+        return
+    with pdf.table(col_widths=widths, width=sum(widths), align="LEFT", line_height=5) as t:
+        for cells in (header, *rows):
+            row = t.row()
+            for cell in cells:
+                row.cell(latin1(cell))
+
+
+def pressure_chart(pdf: FPDF, report: ShiftReport) -> None:
+    """The highest peak per site at each kept map, a line per site, with the threshold dashed."""
+    history, threshold = report.history, report.summary.threshold_mmhg
+    series: dict[str, list[tuple[float, float]]] = {}
+    for row in history.regions:
+        if row["zone"]:
+            points = series.setdefault(row["zone"], [])
+            if points and points[-1][0] == row["time_s"]:
+                points[-1] = (row["time_s"], max(points[-1][1], row["peak_mmhg"]))
+            else:
+                points.append((row["time_s"], row["peak_mmhg"]))
+    if not series:
+        line(pdf, "No site was loaded in this period.")
+        return
+    if pdf.get_y() + CHART_H_MM + 30 > pdf.h - pdf.b_margin:
+        pdf.add_page()
+    x0, y0 = pdf.l_margin + 10, pdf.get_y() + 2
+    span = max(history.end_s - history.start_s, 1.0)
+    top = 20.0 * -(-max(threshold * 1.25, *(p for pts in series.values() for _, p in pts)) // 20.0)
+
+    def at(t: float, p: float) -> tuple[float, float]:
+        return x0 + (t - history.start_s) / span * CHART_W_MM, y0 + CHART_H_MM - p / top * CHART_H_MM
+
+    pdf.set_draw_color(0, 0, 0)
+    pdf.set_line_width(0.2)
+    pdf.rect(x0, y0, CHART_W_MM, CHART_H_MM)
+    pdf.set_font("Helvetica", size=7)
+    for value in (0.0, top / 2, top):
+        pdf.text(pdf.l_margin, at(history.start_s, value)[1] + 1, f"{value:.0f}")
+    pdf.text(x0, y0 + CHART_H_MM + 4, latin1(clock(history.start_s)))
+    pdf.text(x0 + CHART_W_MM - 25, y0 + CHART_H_MM + 4, latin1(clock(history.end_s)))
+    with pdf.local_context(dash_pattern={"dash": 1, "gap": 1}):
+        pdf.line(*at(history.start_s, threshold), *at(history.end_s, threshold))
+    pdf.set_line_width(0.5)
+    legend_y = y0 + CHART_H_MM + 9
+    for n, (site, points) in enumerate(sorted(series.items())):
+        colour = SITE_COLOURS[n % len(SITE_COLOURS)]
+        pdf.set_draw_color(*colour)
+        if len(points) > 1:
+            pdf.polyline([at(t, p) for t, p in points])
+        else:
+            pdf.circle(*at(*points[0]), 1.0)
+        pdf.set_text_color(*colour)
+        pdf.text(x0 + (n % 4) * 45, legend_y + (n // 4) * 4, latin1(site_words(site)))
+    pdf.set_text_color(0, 0, 0)
+    pdf.set_draw_color(0, 0, 0)
+    pdf.set_y(legend_y + 4 * (len(series) // 4 + 1))
+
+
+bp = Blueprint("report", __name__)
+
+
+@bp.route("/history/report.<kind>")
+def download(kind: str):
+    """The shift report as a PDF or the period's events as a CSV, downloaded as ``shift-<bed>.<kind>``."""
+    if kind not in ("pdf", "csv"):
+        abort(404, description=f"a shift report is report.pdf or report.csv, not report.{kind}")
+    hours = requested_hours()
+    live = snapshot()
+    with reader() as s:
+        made = shift_report(s, hours, live, threshold_mmhg(live))
+    if made is None:
+        abort(404, description=NO_HISTORY)
+    body = report_pdf(made) if kind == "pdf" else report_csv(made).encode()
+    return Response(body, mimetype="application/pdf" if kind == "pdf" else "text/csv",
+                    headers={"Content-Disposition": f'attachment; filename="shift-{made.bed_id}.{kind}"'})
