@@ -243,7 +243,7 @@ def measure_way(name: str, make, r, drop: np.ndarray, frame: np.ndarray, referen
 
 
 def main() -> None:
-    from appliance.core.layouts import get_layout
+    from appliance.core.named_layouts import get_layout
     from appliance.core.model_cache import DROPPED_KEPT_BYTES, cached_model, default_setup
 
     with tempfile.TemporaryDirectory(prefix="memory-") as folder:

@@ -17,7 +17,7 @@ from webui_client import PASSWORD
 from appliance.alerts.tones import tone_schedule
 from appliance.service.live import LiveChannel
 from appliance.store import Store
-from webui.users import UserStore
+from appliance.accounts.users import UserStore
 
 pytestmark = pytest.mark.slow
 NURSE_PAGES = ("/", "/alarms", "/patient", "/history", "/history/summary", "/settings", "/account/password")

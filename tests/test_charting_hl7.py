@@ -17,7 +17,7 @@ from appliance.charting.chartqueue import ChartQueue
 from appliance.charting.hl7 import Parties, acknowledgement, oru_r01
 from appliance.charting.link import ChartingLink
 from appliance.charting.mllp import END, START
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.errors import ConfigError
 from appliance.service.config import config_from_mapping

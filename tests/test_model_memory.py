@@ -9,7 +9,7 @@ import pytest
 
 import appliance.core.model_cache as model_cache
 import appliance.core.reconstruct as reconstruct
-from appliance.core.layouts import get_layout
+from appliance.core.named_layouts import get_layout
 from appliance.core.model_cache import ModelSetup, build_model, kept_bytes, return_freed_memory
 from appliance.core.protocols import default_protocol
 from appliance.core.reconstruct import ReconstructionOptions, readings_using, without_readings
