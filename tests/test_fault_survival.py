@@ -111,7 +111,7 @@ def test_a_damaged_saved_alert_state_starts_afresh_under_a_technical_alarm(tmp_p
     assert len(raised) == 1 and "started afresh" in raised[0]["message"] and "appliance.db" in raised[0]["message"]
 
 
-def test_a_damaged_live_view_shows_the_screen_stale_naming_the_file(tmp_path):
+def test_a_damaged_live_view_shows_the_screen_stale_and_logs_the_file(tmp_path, caplog):
     from webui import create_app
     from webui.live import snapshot
 
@@ -119,7 +119,9 @@ def test_a_damaged_live_view_shows_the_screen_stale_naming_the_file(tmp_path):
     app = create_app(tmp_path, secure_cookies=False)
     with app.app_context():
         shown = snapshot()
-    assert shown["stale"] and str(tmp_path / "live.json") in shown["message"]
+    assert shown["stale"] and "cannot be read" in shown["message"]
+    assert str(tmp_path) not in shown["message"]                  # no server path on a nurse's screen...
+    assert str(tmp_path / "live.json") in caplog.text             # ...but in the screen's log for the engineer
 
 
 # Supervised helper threads.

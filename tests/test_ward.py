@@ -108,7 +108,8 @@ def test_a_beds_summary_and_alarms_reach_the_station_in_order(station, beds):
     assert wait_until(lambda: (bed(station, "bed7") or {}).get("summary") is not None, 5)
     seen = bed(station, "bed7")
     assert seen["online"] and seen["status"] == "online"
-    assert seen["summary"]["peak_mmhg"] == 41.5 and seen["summary"]["status"] == {"maps": 7, "faults": 0}
+    assert seen["summary"]["peak_mmhg"] == 41.5 and seen["summary"]["status"] == {"maps": 7, "faults": 0,
+                                                                                          "source": "hardware"}
     assert isinstance(seen["summary"]["written_at"], float)                  # stamped when it was written
     assert [(a["alarm_id"], a["priority"]) for a in seen["alarms"]] == [(1, "medium")]
 

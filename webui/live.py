@@ -36,7 +36,7 @@ def snapshot() -> dict:
     try:
         data = read_live(path)
     except ValueError as exc:           # damaged (a disk fault): shown as stale until the monitor rewrites it
-        current_app.logger.warning("the live view cannot be read: %s", exc)
+        current_app.logger.warning("the live view %s cannot be read: %s", path, exc)
         return {"stale": True, "age_s": None,
                 "message": "the monitor's newest frame cannot be read: it is written again at the next frame"}
     if data is None:

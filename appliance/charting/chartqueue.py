@@ -18,14 +18,13 @@ writes here while the monitor loop owns the store.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import sqlite3
 import threading
 from dataclasses import dataclass
 
-from appliance.errors import StoreCorrupt, StoreError
+from appliance.store.outbox import identity, open_durable
 
 KEEP_DELIVERED = 1000
 """Delivered records kept (to recognise a record handed in again); older ones are deleted."""
@@ -46,10 +45,6 @@ class Queued:
     answer: str | None = None
 
 
-def identity(record: dict) -> str:
-    return hashlib.sha256(json.dumps(record, sort_keys=True, allow_nan=False).encode()).hexdigest()
-
-
 class ChartQueue:
     """The queue in SQLite file ``path``; safe to use from several threads (one lock)."""
 
@@ -58,21 +53,8 @@ class ChartQueue:
         self._lock = threading.Lock()
         self._unwritten: list[tuple[dict, float]] = []
         self.write_failure: str | None = None
-        try:
-            self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=5.0)
-        except sqlite3.Error as exc:
-            raise StoreError(f"cannot open the charting queue {self.path}: {exc}") from exc
-        try:
-            if self._db.execute("PRAGMA journal_mode=WAL").fetchone()[0] != "wal":
-                raise StoreError(f"the charting queue {self.path}: cannot switch to WAL journal mode")
-            self._db.execute("PRAGMA synchronous=FULL")
-            self._db.execute(SCHEMA)
-        except sqlite3.DatabaseError as exc:
-            self._db.close()
-            if getattr(exc, "sqlite_errorcode", None) in (sqlite3.SQLITE_NOTADB, sqlite3.SQLITE_CORRUPT):
-                raise StoreCorrupt(f"the charting queue {self.path} is damaged ({exc}); move it aside to start an "
-                                   f"empty one (messages in it would not be sent)") from exc
-            raise StoreError(f"cannot read the charting queue {self.path}: {exc}") from exc
+        self._db = open_durable(self.path, "the charting queue", "messages in it would not be sent",
+                                lambda db: db.execute(SCHEMA))
 
     def close(self) -> None:
         with self._lock:

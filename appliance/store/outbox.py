@@ -59,29 +59,42 @@ def identity(event: dict) -> str:
     return hashlib.sha256(json.dumps(event, sort_keys=True, allow_nan=False).encode()).hexdigest()
 
 
+def open_durable(path: str, what: str, lost: str, prepare) -> sqlite3.Connection:
+    """SQLite file ``path`` in WAL mode with every commit synced, for records that must outlive a crash;
+    ``prepare(db)`` makes its schema and reads it. A damaged file is refused naming ``what`` and what moving it
+    aside would ``lose``."""
+    try:
+        db = sqlite3.connect(path, isolation_level=None, check_same_thread=False, timeout=5.0)
+    except sqlite3.Error as exc:
+        raise StoreError(f"cannot open {what} {path}: {exc}") from exc
+    try:
+        if db.execute("PRAGMA journal_mode=WAL").fetchone()[0] != "wal":
+            raise StoreError(f"{what} {path}: cannot switch to WAL journal mode")
+        db.execute("PRAGMA synchronous=FULL")
+        prepare(db)
+    except sqlite3.DatabaseError as exc:
+        db.close()
+        if getattr(exc, "sqlite_errorcode", None) in (sqlite3.SQLITE_NOTADB, sqlite3.SQLITE_CORRUPT):
+            raise StoreCorrupt(f"{what} {path} is damaged ({exc}); move it aside to start an empty one ({lost})") \
+                from exc
+        raise StoreError(f"cannot read {what} {path}: {exc}") from exc
+    except StoreError:
+        db.close()
+        raise
+    return db
+
+
 class Outbox:
     """The outbox in SQLite file ``path``; safe to use from several threads (one lock)."""
 
     def __init__(self, path):
         self.path = os.fspath(path)
         self._lock = threading.Lock()
-        try:
-            self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=5.0)
-        except sqlite3.Error as exc:
-            raise StoreError(f"cannot open the ward outbox {self.path}: {exc}") from exc
-        try:
-            self._open()
-        except sqlite3.DatabaseError as exc:
-            self._db.close()
-            if getattr(exc, "sqlite_errorcode", None) in (sqlite3.SQLITE_NOTADB, sqlite3.SQLITE_CORRUPT):
-                raise StoreCorrupt(f"the ward outbox {self.path} is damaged ({exc}); move it aside to start an "
-                                   f"empty one (unconfirmed events in it would not be resent)") from exc
-            raise StoreError(f"cannot read the ward outbox {self.path}: {exc}") from exc
+        self._db = open_durable(self.path, "the ward outbox", "unconfirmed events in it would not be resent",
+                                self._open)
 
-    def _open(self) -> None:
-        db = self._db
-        if db.execute("PRAGMA journal_mode=WAL").fetchone()[0] != "wal":
-            raise StoreError(f"the ward outbox {self.path}: cannot switch to WAL journal mode")
+    def _open(self, db: sqlite3.Connection) -> None:
+        self._db = db
         problems = [row[0] for row in db.execute("PRAGMA quick_check(1)")]
         if problems != ["ok"]:
             raise sqlite3.DatabaseError(f"quick_check: {problems[0]}")
