@@ -100,6 +100,24 @@ def test_the_virtual_mat_takes_the_shipped_calibration_that_fits_it(bed, tmp_pat
     assert not stiffer.fits(made, model), "another mat's calibration does not fit"
 
 
+def test_a_newer_shipped_calibration_replaces_the_copy_an_earlier_version_left(bed, tmp_path, monkeypatch):
+    import dataclasses
+
+    import appliance.service.virtual_bed as virtual_bed
+
+    model, source = bed
+    shipped = source.stamped(pressure_calibration(source.acquire, source.place, model,
+                                                  pmat_map_loads(PMAT, [1], postures=(1,))), model)
+    earlier = dataclasses.replace(shipped, notes={**shipped.notes, "maps": ["an earlier package's"]})
+    save_pressure_calibration(tmp_path / "virtual.json", earlier)      # the mat's key fits: only its maps differ
+    monkeypatch.setattr(virtual_bed, "shipped_calibration", lambda name: shipped if name == BED.name else None)
+    calibration, fresh = source.calibration(model, tmp_path / "virtual.json")
+    assert not fresh and calibration.notes["maps"] == shipped.notes["maps"]
+    assert load_pressure_calibration(tmp_path / "virtual.json").notes["maps"] == shipped.notes["maps"]
+    monkeypatch.setattr(virtual_bed, "shipped_calibration", lambda name: None)    # none shipped: the mat's own
+    assert source.calibration(model, tmp_path / "virtual.json")[0].notes["maps"] == shipped.notes["maps"]
+
+
 def test_the_shipped_bed_calibration_was_made_on_the_default_bed_mat():
     """The package's calibration is keyed on what the virtual bed's readings follow from: a change to the bed
     mat's mechanics (or to how they are described) would leave it unused and the bed calibrated anew."""

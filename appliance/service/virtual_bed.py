@@ -110,32 +110,37 @@ class VirtualBedSource:
 
     def calibration(self, model: ReconstructionModel, path: Path, *,
                     progress: Callable | None = None) -> tuple[PressureCalibration, bool]:
-        """The calibration at ``path`` if it was made on this virtual mat for ``model``; else the one the
-        package ships for them (:data:`SHIPPED_CALIBRATIONS`: made from people's pressure maps, which a
-        bed mat needs and a fresh appliance does not have); else one made now from weights on the empty
-        mat. Either of the last two is saved at ``path``.
+        """The calibration the package ships for this virtual mat and ``model`` (:data:`SHIPPED_CALIBRATIONS`:
+        made from people's pressure maps, which a bed mat needs and a fresh appliance does not have); else the
+        one at ``path`` if it was made on this virtual mat for ``model``; else one made now from weights on the
+        empty mat. The shipped one comes first, so a package that ships a new calibration is not overruled by
+        the copy an earlier version left at ``path``. What is returned is saved at ``path``.
 
         Returns it and whether it was made now.
         """
-        if path.exists():
-            try:
-                calibration = load_pressure_calibration(path)
-                if self.fits(calibration, model):
-                    return calibration, False
-            except DataFileInvalid:
-                pass                    # the virtual mat's own file, damaged: made again
         shipped = shipped_calibration(model.setup.layout.name)
-        made = shipped is None or not self.fits(shipped, model)
-        if shipped is not None and not made:
-            calibration = shipped
+        if shipped is not None and self.fits(shipped, model):
+            calibration, made = shipped, False
+        elif (own := self._fitting_file(path, model)) is not None:
+            return own, False
         else:
-            calibration = self.stamped(pressure_calibration(self.acquire, self.place, model,
-                                                            calibration_loads(model.setup.layout),
-                                                            progress=progress), model)
+            calibration, made = self.stamped(pressure_calibration(self.acquire, self.place, model,
+                                                                  calibration_loads(model.setup.layout),
+                                                                  progress=progress), model), True
             self.start_scene()
         path.parent.mkdir(parents=True, exist_ok=True)
         save_pressure_calibration(path, calibration)
         return calibration, made
+
+    def _fitting_file(self, path: Path, model: ReconstructionModel) -> PressureCalibration | None:
+        """The calibration in ``path`` if it is there, readable and made on this virtual mat for ``model``."""
+        if not path.exists():
+            return None
+        try:
+            calibration = load_pressure_calibration(path)
+        except DataFileInvalid:
+            return None                 # the virtual mat's own file, damaged: made again
+        return calibration if self.fits(calibration, model) else None
 
 
 SHIPPED_CALIBRATIONS = "calibrations"
