@@ -48,6 +48,9 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("layouts", help="list the built-in sensor-mat layouts")
     p.set_defaults(run=_layouts)
 
+    p = sub.add_parser("scenarios", help="list the built-in scenarios of the virtual bed, a line each")
+    p.set_defaults(run=_scenarios)
+
     p = sub.add_parser("layout", help="print a layout as TOML (a starting point for a custom mat)")
     p.add_argument("--layout", required=True, help="layout name or .toml file")
     p.set_defaults(run=_layout)
@@ -133,6 +136,14 @@ def _layouts(args) -> int:
         kind = f"{shape[0]} x {shape[1]} grid" if shape is not None else "around the edge"
         print(f"{name:12s} {w:g} x {h:g} mm, {layout.n_electrodes} electrodes {kind}")
     print("grid-RxC     R x C grid over a 900 x 1900 mm bed mat (grid-RxC@HxW for another size)")
+    return 0
+
+
+def _scenarios(args) -> int:
+    from appliance.sim.scenes import builtin_descriptions
+
+    for name, description in builtin_descriptions().items():
+        print(f"{name:16s} {description}")
     return 0
 
 

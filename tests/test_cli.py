@@ -85,6 +85,18 @@ def test_layouts_and_layout_commands(capsys):
     assert code == 0 and out.startswith('name = "square-16"') and out.count("[[electrodes]]") == 16
 
 
+def test_scenarios_lists_every_built_in_scenario_a_line_each_that_run_accepts(capsys):
+    from appliance.sim.scenes import builtin_scenes, load_scene
+
+    code, out, _ = run(capsys, "scenarios")
+    lines = out.splitlines()
+    assert code == 0 and [line.split()[0] for line in lines] == list(builtin_scenes())
+    assert all(len(line.split(None, 1)) == 2 for line in lines), "each with its description"
+    assert "restless" in out and "turn-schedule" in out
+    for name in builtin_scenes():
+        load_scene(name)                        # each name listed is one --scenario takes
+
+
 @pytest.fixture
 def frames(tmp_path, capsys):
     """A reference and a frame with a pressed square, simulated on a finer mesh than the model's."""

@@ -163,6 +163,13 @@ def builtin_scenes() -> tuple[str, ...]:
     return tuple(sorted(f.name[:-5] for f in folder.iterdir() if f.name.endswith(".toml")))
 
 
+def builtin_descriptions() -> dict[str, str]:
+    """Each built-in scenario's ``[scene] description``, by name ("" where a file gives none)."""
+    folder = resources.files("appliance.sim").joinpath("scenarios")
+    return {name: str(tomllib.loads(folder.joinpath(f"{name}.toml").read_text(encoding="utf-8"))
+                      .get("scene", {}).get("description", "")) for name in builtin_scenes()}
+
+
 def load_scene(path) -> Scene:
     """The scene in TOML file ``path``, or the built-in scenario of that name."""
     if str(path) in builtin_scenes():
