@@ -24,7 +24,7 @@ import sqlite3
 import threading
 from dataclasses import dataclass
 
-from appliance.store.outbox import identity, open_durable
+from appliance.store.outbox import identity, open_durable, write_held
 
 KEEP_DELIVERED = 1000
 """Delivered records kept (to recognise a record handed in again); older ones are deleted."""
@@ -100,22 +100,13 @@ class ChartQueue:
                                  " WHERE state = 'delivered' ORDER BY seq DESC LIMIT 1 OFFSET ?)", (KEEP_DELIVERED,))
 
     def _write_unwritten(self) -> None:
-        db = self._db
-        try:
-            db.execute("BEGIN IMMEDIATE")
-            try:
-                for record, now in self._unwritten:
-                    key = identity(record)
-                    if db.execute("SELECT 1 FROM messages WHERE identity = ?", (key,)).fetchone() is None:
-                        db.execute("INSERT INTO messages (identity, record, queued_at) VALUES (?, ?, ?)",
-                                   (key, json.dumps(record, allow_nan=False), now))
-                db.execute("COMMIT")
-            except BaseException:
-                if db.in_transaction:
-                    db.execute("ROLLBACK")
-                raise
-        except sqlite3.Error as exc:
-            self.write_failure = f"{type(exc).__name__}: {exc}"
-            return
-        self._unwritten.clear()
-        self.write_failure = None
+        def insert(db: sqlite3.Connection, held: tuple[dict, float]) -> None:
+            record, now = held
+            key = identity(record)
+            if db.execute("SELECT 1 FROM messages WHERE identity = ?", (key,)).fetchone() is None:
+                db.execute("INSERT INTO messages (identity, record, queued_at) VALUES (?, ?, ?)",
+                           (key, json.dumps(record, allow_nan=False), now))
+
+        self.write_failure = write_held(self._db, self._unwritten, insert)
+        if self.write_failure is None:
+            self._unwritten.clear()

@@ -59,6 +59,25 @@ def identity(event: dict) -> str:
     return hashlib.sha256(json.dumps(event, sort_keys=True, allow_nan=False).encode()).hexdigest()
 
 
+def write_held(db: sqlite3.Connection, held: list, write) -> str | None:
+    """Write the records held in memory while the disk refused them, all or none, in one synced transaction
+    (``write(db, record)`` each); what failed, in words, or None once they are on disk."""
+    try:
+        db.execute("PRAGMA synchronous=FULL")
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            for record in held:
+                write(db, record)
+            db.execute("COMMIT")
+        except BaseException:
+            if db.in_transaction:
+                db.execute("ROLLBACK")
+            raise
+    except sqlite3.Error as exc:
+        return f"{type(exc).__name__}: {exc}"
+    return None
+
+
 def open_durable(path: str, what: str, lost: str, prepare) -> sqlite3.Connection:
     """SQLite file ``path`` in WAL mode with every commit synced, for records that must outlive a crash;
     ``prepare(db)`` makes its schema and reads it. A damaged file is refused naming ``what`` and what moving it
@@ -208,26 +227,15 @@ class Outbox:
         self._reserved = up_to
 
     def _write_unwritten(self) -> None:
-        db = self._db
-        try:
-            db.execute("PRAGMA synchronous=FULL")
-            db.execute("BEGIN IMMEDIATE")
-            try:
-                for entry, ident in self._unwritten:
-                    db.execute("INSERT OR IGNORE INTO outbox (seq, identity, event, queued_at, confirmed_at, "
-                               "confirmed_by) VALUES (?, ?, ?, ?, ?, ?)",
-                               (entry.seq, ident, json.dumps(entry.event, allow_nan=False), entry.queued_at,
-                                entry.confirmed_at, entry.confirmed_by))
-                db.execute("COMMIT")
-            except BaseException:
-                if db.in_transaction:
-                    db.execute("ROLLBACK")
-                raise
-        except sqlite3.Error as exc:
-            self.write_failure = f"{type(exc).__name__}: {exc}"
-            return
-        self._unwritten.clear()
-        self.write_failure = None
+        def insert(db: sqlite3.Connection, held: tuple[Entry, str]) -> None:
+            entry, ident = held
+            db.execute("INSERT OR IGNORE INTO outbox (seq, identity, event, queued_at, confirmed_at, confirmed_by) "
+                       "VALUES (?, ?, ?, ?, ?, ?)", (entry.seq, ident, json.dumps(entry.event, allow_nan=False),
+                                                     entry.queued_at, entry.confirmed_at, entry.confirmed_by))
+
+        self.write_failure = write_held(self._db, self._unwritten, insert)
+        if self.write_failure is None:
+            self._unwritten.clear()
 
     def _forget_oldest_confirmed(self) -> None:
         cut = sorted(self._confirmed)[:len(self._confirmed) - KEEP_CONFIRMED]
