@@ -362,3 +362,36 @@ def tiles(driver) -> list[dict]:
     return driver.execute_script(
         "return Array.from(document.querySelectorAll('article.bed')).map(t => ({bed: t.dataset.bed, "
         "class: t.className, text: t.innerText, link: (t.querySelector('h2 a') || {}).href || null}));")
+
+
+def test_the_live_page_shows_the_start_up_progress_until_the_first_map(tmp_path, browser):
+    """A start-up snapshot shows its phase and a progress bar; the first frame's snapshot takes their place."""
+    from selenium.webdriver.common.by import By
+
+    from appliance.service.live import LiveChannel
+
+    port = free_port()
+    live = LiveChannel(tmp_path / "live.json")
+    live.publish({"starting": {"phase": "building the reconstruction model", "step": "meshing", "share": 0.4}})
+    with open(tmp_path / "screen.log", "w") as log:
+        screen = subprocess.Popen([sys.executable, "-m", "webui", "--data-dir", str(tmp_path), "--port", str(port),
+                                   "--plain-http"], stdout=log, stderr=subprocess.STDOUT)
+        try:
+            wait_for(lambda: _answers(f"http://127.0.0.1:{port}/login"), 30, "the screen to listen")
+            browser.get(f"http://127.0.0.1:{port}/")
+            fill(browser, "form", name="admin.ward3", password=PASSWORD, confirm=PASSWORD)
+            browser.get(f"http://127.0.0.1:{port}/")
+            starting = browser.find_element(By.ID, "starting")
+            wait_for(starting.is_displayed, 30, "the start-up progress")
+            bar = browser.find_element(By.ID, "starting-bar")
+            assert bar.tag_name == "progress" and float(bar.get_attribute("value")) == pytest.approx(0.4)
+            assert text(browser, "#starting-phase") == "building the reconstruction model: meshing (40 %)"
+            live.publish({"bed_id": "bed-4", "time_s": 0.0, "sequence": 1, "frame_interval_s": 1.0,
+                          "map": {"mmhg": [[0.0, 40.0]], "pixel_mm": [56, 56], "peak_kpa": 5.3}, "regions": [],
+                          "alarms": [], "status": {"faults": 0, "source": "virtual"}, "turn": {"due_in_s": 7000.0}})
+            wait_for(lambda: not starting.is_displayed(), 30, "the progress to give way to the first map")
+            assert "frame 1" in text(browser, "#status")
+        finally:
+            live.close()
+            screen.terminate()
+            screen.wait(timeout=30)

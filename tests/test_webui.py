@@ -187,6 +187,20 @@ def test_the_live_view_serves_the_monitors_snapshot_and_says_when_it_is_stale(ap
     assert client.get("/api/live").get_json()["stale"] is True
 
 
+def test_before_the_first_map_the_live_view_shows_the_start_up_phase_with_a_progress_bar(app, tmp_path):
+    client = app.test_client()
+    set_up(client)
+    live = LiveChannel(tmp_path / "live.json")
+    live.publish({"starting": {"phase": "building the reconstruction model", "step": "meshing", "share": 0.4}})
+    live.close()
+    snapshot = client.get("/api/live").get_json()
+    assert snapshot["starting"] == {"phase": "building the reconstruction model", "step": "meshing", "share": 0.4}
+    assert snapshot["message"] == "the monitor is starting: building the reconstruction model"
+    assert snapshot["stale"] is True and "map" not in snapshot           # no patient is monitored yet
+    page = client.get("/").get_data(as_text=True)
+    assert re.search(r'<progress id="starting-bar" max="1" value="0"></progress>', page)
+
+
 def test_the_stream_sends_each_new_snapshot(app, tmp_path):
     client = app.test_client()
     set_up(client)

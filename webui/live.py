@@ -8,6 +8,8 @@ the file five times a second and sends each new snapshot once
 as if it were live. Its age is the larger of the wall clock's (``written_at``)
 and how long this process has seen the same snapshot on the monotonic clock: a
 wall clock set back makes the first negative, and the second still grows.
+Before its first frame the monitor writes start-up snapshots (``starting``: the
+phase and the share done), which the page shows as a progress bar.
 """
 
 from __future__ import annotations
@@ -41,6 +43,10 @@ def snapshot() -> dict:
                 "message": "the monitor's newest frame cannot be read: it is written again at the next frame"}
     if data is None:
         return {"stale": True, "age_s": None, "message": "the monitor has not written a frame yet"}
+    if "starting" in data:              # no map yet: how far its start-up is, for the page's progress bar
+        starting = data["starting"]
+        return {"stale": True, "age_s": max(wall() - data["written_at"], 0.0), "starting": starting,
+                "message": f"the monitor is starting: {starting['phase']}"}
     identity = (data.get("sequence"), data["written_at"])
     if _first_seen.get(path, (None,))[0] != identity:
         _first_seen[path] = (identity, monotonic())

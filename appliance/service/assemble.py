@@ -13,6 +13,7 @@ from pathlib import Path
 from appliance.service.config_sections import MonitorConfig
 from appliance.service.daemon import MonitorDaemon
 from appliance.service.live import LiveChannel
+from appliance.service.starting import StartingReport
 
 LIVE_FILE = "live.json"
 STORE_FILE = "appliance.db"
@@ -52,25 +53,35 @@ def _assemble(config: MonitorConfig, lock, *, say, on_event, on_map, live: bool)
     layout = get_layout(config.layout)
     setup = default_setup(layout)
     protocol = setup.protocol
-    model, _ = cached_model(setup, config.cache_dir or default_cache_dir(),
-                            lambda step, share: say(f"building the reconstruction model: {step} ({share:.0%})"))
-    source = _source(config, layout, protocol)
-    closers = [source.close] if hasattr(source, "close") else []
+    channel = LiveChannel(data_dir / LIVE_FILE) if live else None   # the screen shows the start-up on it
+    starting = StartingReport(channel, say)
+    closers = [channel.close] if channel is not None else []
     try:
-        calibration = _calibration(config, source, model, config.cache_dir or default_cache_dir(), say)
+        model, _ = cached_model(setup, config.cache_dir or default_cache_dir(),
+                                lambda step, share: starting("model", share, step))
+        source = _source(config, layout, protocol)
+    except BaseException:
+        for close in closers:
+            close()
+        raise
+    if hasattr(source, "close"):
+        closers.append(source.close)
+    try:
+        calibration = _calibration(config, source, model, config.cache_dir or default_cache_dir(), say, starting)
         store = Store.open(data_dir / STORE_FILE, history_interval_s=config.store.history_interval_s,
                            history_days=config.store.history_days, event_days=config.store.event_days,
                            max_bytes=int(config.store.max_mb * 1024 * 1024), check=True)
         closers.append(store.close)
         notifiers = _notifiers(config, data_dir, closers)
         daemon = MonitorDaemon(config, source, model, calibration, store, notifiers=notifiers,
-                               gpio=_gpio(config, source), live=LiveChannel(data_dir / LIVE_FILE) if live else None,
+                               gpio=_gpio(config, source), live=channel,
                                on_event=on_event, on_map=on_map, say=say, lock=lock)
         settings.attach(daemon)
         for notifier in notifiers:
             if isinstance(notifier, ChartingLink):  # it names the admitted patient in its messages
                 notifier.patient = lambda: daemon.pipeline.episode
         daemon.add_commands(engineering_commands(daemon))
+        starting("reference", 0.0)
         daemon.start()
     except BaseException:
         for close in reversed(closers):
@@ -91,12 +102,13 @@ def _source(config: MonitorConfig, layout, protocol):
     return BoardSource(config.board, layout, protocol, frame_interval_s=config.frame_interval_s, seed=config.seed)
 
 
-def _calibration(config: MonitorConfig, source, model, cache_dir: Path, say):
+def _calibration(config: MonitorConfig, source, model, cache_dir: Path, say, starting: StartingReport):
     """The configured calibration; on the virtual bed, its own: made once and kept with the built models,
     since like them it follows from the simulated mat alone."""
     from appliance.core.pressure import check_plausible, load_pressure_calibration
     from appliance.errors import ConfigError
 
+    starting("calibration", 0.0)
     if config.calibration is not None:
         calibration = load_pressure_calibration(config.calibration)
         check_plausible(calibration, f"[monitor] calibration {config.calibration}")
@@ -106,8 +118,8 @@ def _calibration(config: MonitorConfig, source, model, cache_dir: Path, say):
                           "pressure --source hardware`")
     path = virtual_calibration_path(cache_dir, model)
     calibration, made = source.calibration(
-        model, path, progress=lambda k, n, load: say(f"calibrating the virtual mat: load {k}/{n}") if k % 10 == 1
-        else None)
+        model, path, progress=lambda k, n, load: starting("calibration", k / n, f"virtual mat load {k}/{n}")
+        if k % 10 == 1 else None)
     say(f"pressure calibration {'made and saved to' if made else 'loaded from'} {path}")
     return calibration
 

@@ -66,6 +66,7 @@ function draw(snapshot) {
   showAlarms(snapshot);
   sound.set(soundFor(snapshot));
   const status = document.getElementById("status");
+  showStarting(snapshot.starting);
   if (!snapshot.map) { status.textContent = snapshot.message || "no map yet"; return; }
   const sides = mapSides(snapshot.map);
   for (const side of Object.keys(sides)) document.getElementById("side-" + side).textContent = sides[side];
@@ -112,6 +113,15 @@ function draw(snapshot) {
   if (link) document.getElementById("ward").textContent = wardWords(link);
   status.textContent = `bed ${snapshot.bed_id}, frame ${snapshot.sequence}, ${snapshot.status.faults} fault(s), ` +
                        `updated ${clockTime(snapshot, snapshot.time_s, true)} (${Math.round(snapshot.age_s)} s ago)`;
+}
+
+// The start-up's progress bar and phase in words, shown until the first map replaces the start-up snapshot.
+function showStarting(starting) {
+  document.getElementById("starting").hidden = !starting;
+  if (!starting) return;
+  document.getElementById("starting-bar").value = starting.share;
+  document.getElementById("starting-phase").textContent =
+    `${starting.phase}${starting.step ? ": " + starting.step : ""} (${Math.round(100 * starting.share)} %)`;
 }
 
 // One row per open alarm: its priority in colour, flash rate and text, patient or equipment, and its controls.
