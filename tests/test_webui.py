@@ -18,6 +18,7 @@ from appliance.service.live import LiveChannel, read_live
 from appliance.store import Store
 from appliance.ward.config import WardConfig
 from appliance.ward.station import WardStation
+import webui.live
 from webui import create_app, create_ward_app
 from webui.limiter import ADDRESS_ATTEMPTS, LoginLimiter
 
@@ -196,9 +197,13 @@ def test_before_the_first_map_the_live_view_shows_the_start_up_phase_with_a_prog
     snapshot = client.get("/api/live").get_json()
     assert snapshot["starting"] == {"phase": "building the reconstruction model", "step": "meshing", "share": 0.4}
     assert snapshot["message"] == "the monitor is starting: building the reconstruction model"
-    assert snapshot["stale"] is True and "map" not in snapshot           # no patient is monitored yet
+    assert snapshot["stale"] is False and "map" not in snapshot     # starting as it should: no stale-data alarm
     page = client.get("/").get_data(as_text=True)
     assert re.search(r'<progress id="starting-bar" max="1" value="0"></progress>', page)
+    data = json.loads((tmp_path / "live.json").read_text())
+    data["written_at"] = time.time() - webui.live.STARTING_QUIET_S - 5   # no step of progress for too long
+    (tmp_path / "live.json").write_text(json.dumps(data))
+    assert client.get("/api/live").get_json()["stale"] is True
 
 
 def test_the_stream_sends_each_new_snapshot(app, tmp_path):

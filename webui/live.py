@@ -27,6 +27,9 @@ SIMULATED: dict[str | None, str] = {"virtual": "SIMULATED: the virtual bed, not 
                                      "emulated": "SIMULATED: an emulated front end, not a patient's mat"}
 """The banner every page shows, by the monitor's ``source``; a real front end ("hardware") shows none."""
 STALE_AFTER_FRAMES = 3
+STARTING_QUIET_S = 120.0
+"""Start-up without a step of progress for this long is shown stale (an alarm): a cold model build's steps
+come seconds apart (benchmarks/first_start.md), so a normal start never sounds the stale-data tone."""
 POLL_S = 0.2
 wall, monotonic = time.time, time.monotonic             # the clocks, replaceable by a test
 _first_seen: dict = {}                                   # live file -> (its snapshot's identity, monotonic time)
@@ -44,8 +47,8 @@ def snapshot() -> dict:
     if data is None:
         return {"stale": True, "age_s": None, "message": "the monitor has not written a frame yet"}
     if "starting" in data:              # no map yet: how far its start-up is, for the page's progress bar
-        starting = data["starting"]
-        return {"stale": True, "age_s": max(wall() - data["written_at"], 0.0), "starting": starting,
+        starting, age = data["starting"], max(wall() - data["written_at"], 0.0)
+        return {"stale": age > STARTING_QUIET_S, "age_s": age, "starting": starting,
                 "message": f"the monitor is starting: {starting['phase']}"}
     identity = (data.get("sequence"), data["written_at"])
     if _first_seen.get(path, (None,))[0] != identity:
