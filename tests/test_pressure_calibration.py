@@ -135,7 +135,7 @@ def test_the_shipped_calibration_is_plausible_and_a_flat_or_scaled_away_one_is_n
     import dataclasses
     from pathlib import Path
 
-    from appliance.core.pressure import check_plausible, implausible
+    from appliance.core.pressure import KPA_PER_MMHG, check_plausible, implausible
 
     shipped = load_pressure_calibration(Path(__file__).parents[1] / "appliance/sim/calibrations/grid-16x32.json")
     assert implausible(shipped) is None
@@ -143,6 +143,10 @@ def test_the_shipped_calibration_is_plausible_and_a_flat_or_scaled_away_one_is_n
     flat = dataclasses.replace(shipped, curve=PressureCurve(change, np.zeros_like(pressure)))
     assert implausible(flat) == "the curve is constant: it reads every change as 0 kPa"
     tiny = dataclasses.replace(shipped, curve=PressureCurve(change, pressure / 30))   # 100 mmHg read as about 3
-    assert implausible(tiny).startswith("the curve reads a change of 1 (the liquid film's whole conductance) as 4.94")
+    said = implausible(tiny)
+    assert said.startswith("the curve reads a change of 1 (the liquid film's whole conductance) as ")
+    read_mmhg = float(said.split(" as ")[1].split(" mmHg")[0])
+    assert read_mmhg == pytest.approx(np.interp(1.0, change, pressure) / 30 / KPA_PER_MMHG, abs=0.01)
+    assert read_mmhg < 40                                                   # below what a mat's curve reads
     with pytest.raises(ConfigError, match="bench.json is implausible: the curve reads a change of 1"):
         check_plausible(tiny, "bench.json")
