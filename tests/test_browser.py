@@ -11,6 +11,7 @@ and sees the map change with the turn. Screenshots at the bedside screen's 800 x
 station's 1920 x 1080 are written to ``docs/screenshots`` (or ``$SCREENSHOT_DIR``).
 """
 
+import json
 import os
 import shutil
 import signal
@@ -83,6 +84,14 @@ def ward_station():
         broker.stop()
 
 
+def _live(path):
+    """The monitor's live view, or None while it is not there or mid-replace (a start-up snapshot has no map)."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (FileNotFoundError, ValueError):
+        return None
+
+
 @pytest.fixture(scope="module")
 def appliance(tmp_path_factory, bed_monitoring, model_cache, ward_station):
     """The monitor (`appliance run`, reporting to the ward station) and the screen (`python -m webui`, waitress)
@@ -116,7 +125,7 @@ def appliance(tmp_path_factory, bed_monitoring, model_cache, ward_station):
     screen = subprocess.Popen([sys.executable, "-m", "webui", "--data-dir", str(folder / "data"), "--port", str(port),
                                "--plain-http"], stdout=logs[1], stderr=subprocess.STDOUT)
     try:
-        wait_for(lambda: (folder / "data" / "live.json").exists(), 120, "the monitor's first frame")
+        wait_for(lambda: "map" in (_live(folder / "data" / "live.json") or {}), 120, "the monitor's first frame")
         wait_for(lambda: _answers(f"http://127.0.0.1:{port}/login"), 30, "the screen to listen")
         yield f"http://127.0.0.1:{port}", folder, monitor
     finally:
