@@ -34,6 +34,16 @@ def read_toml(path, what: str, error: type[Exception]) -> dict:
         raise error(f"{what} {path} is not valid TOML: {exc}") from None
 
 
+def read_toml_as(path, what: str, error: type[Exception], build):
+    """``build(data, folder)`` of TOML file ``path`` (paths in it relative to its ``folder``); what is wrong in
+    the file is raised as ``error`` naming ``what`` and the path."""
+    data = read_toml(path, what, error)
+    try:
+        return build(data, Path(path).resolve().parent)
+    except error as exc:
+        raise error(f"{what} {path}: {exc}") from None
+
+
 def check_keys(table, allowed, where: str, error: type[Exception], *, noun: str = "key") -> None:
     """Refuse a table with a key not in ``allowed``, naming the first (so a typo cannot silently keep a default)."""
     unknown = sorted(set(table) - set(allowed))

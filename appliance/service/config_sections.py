@@ -18,7 +18,7 @@ from appliance.alerts.dose import RECOVERY_MODES, custom_curve
 from appliance.alerts.limits import check_curve, check_safe
 from appliance.alerts.pipeline import AlertSettings
 from appliance.core.pressure import KPA_PER_MMHG
-from appliance.core.toml_files import check_keys, read_toml
+from appliance.core.toml_files import check_keys, read_toml_as
 from appliance.errors import ConfigError, CurveInvalid
 
 SOURCES = ("virtual", "emulated", "hardware")
@@ -134,11 +134,7 @@ def default_data_dir() -> Path:
 def read_config(path) -> MonitorConfig:
     """The configuration in TOML file ``path``, its sections checked as :func:`read_sections` does; paths in it
     are taken relative to the file's folder."""
-    data = read_toml(path, "configuration file", ConfigError)
-    try:
-        return read_sections(data, base=Path(path).resolve().parent)
-    except ConfigError as exc:
-        raise ConfigError(f"configuration file {path}: {exc}") from None
+    return read_toml_as(path, "configuration file", ConfigError, read_sections)
 
 
 def read_sections(data: dict, base: Path | None = None) -> MonitorConfig:

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import quote
 
-from appliance.core.toml_files import read_toml
+from appliance.core.toml_files import read_toml_as
 from appliance.errors import ConfigError
 from appliance.service.config_sections import MqttSettings, _number, _only, _section, _text, mqtt_settings
 
@@ -43,11 +43,7 @@ class WardConfig:
 
 def load_ward_config(path) -> WardConfig:
     """The station's configuration in TOML file ``path``; paths in it are relative to the file's folder."""
-    data = read_toml(path, "ward station configuration", ConfigError)
-    try:
-        return ward_config_from_mapping(data, base=Path(path).resolve().parent)
-    except ConfigError as exc:
-        raise ConfigError(f"ward station configuration {path}: {exc}") from None
+    return read_toml_as(path, "ward station configuration", ConfigError, ward_config_from_mapping)
 
 
 def ward_config_from_mapping(data: dict, base: Path | None = None) -> WardConfig:
