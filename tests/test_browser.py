@@ -244,6 +244,7 @@ def test_a_nurse_acknowledges_the_alarm_finds_it_in_the_history_and_sees_the_pat
     assert "Accounts" not in text(driver, "header nav")                      # not for a nurse
 
     wait_for(lambda: "frame" in text(driver, "#status"), 30, "the live map")
+    wait_for(lambda: live_time_s(driver) >= 180, 30, "the patient lying still (the first frames see them lie down)")
     assert text(driver, "#simulated") == "SIMULATED: the virtual bed, not a patient"     # on every page
     supine = driver.execute_script(MAP_PIXELS)
     wait_for(lambda: "sacrum" in text(driver, "#alarms"), 60, "the sacral alarm on the live view")

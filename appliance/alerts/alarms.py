@@ -201,7 +201,8 @@ class AlarmEngine:
     def assess(self, now_s: float, active: Mapping[str, tuple[AlarmCondition, str | None]]) -> list[AlarmEvent]:
         """Report the full set of true conditions at ``now_s``; conditions absent from ``active`` have cleared."""
         events = self._advance(now_s)
-        for key, (condition, detail) in active.items():
+        for key, (condition, detail) in sorted(active.items()):     # simultaneous alarms in one order, after a
+            # restart too (the sites' order in the restored state need not be the order they were first loaded)
             if not isinstance(condition, AlarmCondition) or condition.key != key:
                 raise ConfigError(f"active condition {key!r} must map to an AlarmCondition with that key")
             alarm_id = self._by_key.get(key)
