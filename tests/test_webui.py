@@ -10,7 +10,7 @@ import time
 import pytest
 from flask import url_for
 from mqtt_broker import free_port
-from webui_client import PASSWORD, client_as, log_in, set_up, token
+from webui_client import nurse_beside_a_monitor, PASSWORD, client_as, log_in, set_up, token
 
 from appliance.accounts.users import AccountError, UserStore
 from appliance.service.config_sections import MqttSettings
@@ -245,14 +245,7 @@ def test_session_cookies_are_httponly_strict_and_secure_by_default(tmp_path):
 def test_a_nurse_acknowledges_an_alarm_of_the_running_monitor_and_sees_it_in_the_history(small_mat_calibration,
                                                                                           tmp_path):
     """The monitor daemon and the screen share a data directory, as on the appliance."""
-    from test_daemon import FlakySource, small_daemon
-
-    daemon, events = small_daemon(small_mat_calibration, tmp_path, FlakySource(failing=()), alarm_dose=0.05)
-    app = create_app(tmp_path, secure_cookies=False, TESTING=True)
-    set_up(app.test_client())
-    app.extensions["users"].create("nurse.jones", PASSWORD, "nurse", by="admin.ward3")
-    client = app.test_client()
-    log_in(client, "nurse.jones")
+    daemon, events, app, client = nurse_beside_a_monitor(small_mat_calibration, tmp_path)
     daemon.run(8)
     daemon.live.close()
     daemon.live = LiveChannel(tmp_path / "live.json")

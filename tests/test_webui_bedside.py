@@ -4,7 +4,7 @@ sent from the live view with fetch (JSON answers, the CSRF token from the page's
 import re
 
 import pytest
-from webui_client import PASSWORD, client_as, log_in, set_up
+from webui_client import nurse_beside_a_monitor, client_as
 
 from appliance.service.live import LiveChannel
 from appliance.store import Store
@@ -93,14 +93,7 @@ def test_one_alarms_sound_is_paused_from_the_live_view_within_the_standards_limi
 
 def test_the_monitor_pauses_only_the_named_alarms_sound(small_mat_calibration, tmp_path):
     """The per-alarm pause through the running monitor: that alarm goes quiet, the engine's others would not."""
-    from test_daemon import FlakySource, small_daemon
-
-    daemon, events = small_daemon(small_mat_calibration, tmp_path, FlakySource(failing=()), alarm_dose=0.05)
-    app = create_app(tmp_path, secure_cookies=False, TESTING=True)
-    set_up(app.test_client())
-    app.extensions["users"].create("nurse.jones", PASSWORD, "nurse", by="admin.ward3")
-    client = app.test_client()
-    log_in(client, "nurse.jones")
+    daemon, events, app, client = nurse_beside_a_monitor(small_mat_calibration, tmp_path)
     daemon.run(8)
     alarm = next(e for e in events if e.kind == "raised" and e.key.startswith("pressure:"))
     headers = {"X-CSRF-Token": meta_token(client), "Accept": "application/json"}

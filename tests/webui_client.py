@@ -31,3 +31,18 @@ def client_as(app, role, name=None):
     client = app.test_client()
     log_in(client, name)
     return client
+
+
+def nurse_beside_a_monitor(calibration, data_dir):
+    """A small monitor daemon (alarms at dose 0.05) and its screen on one data folder, with nurse.jones logged
+    in: (daemon, the events it records, the app, the nurse's client)."""
+    from test_daemon import FlakySource, small_daemon
+    from webui import create_app
+
+    daemon, events = small_daemon(calibration, data_dir, FlakySource(failing=()), alarm_dose=0.05)
+    app = create_app(data_dir, secure_cookies=False, TESTING=True)
+    set_up(app.test_client())
+    app.extensions["users"].create("nurse.jones", PASSWORD, "nurse", by="admin.ward3")
+    client = app.test_client()
+    log_in(client, "nurse.jones")
+    return daemon, events, app, client
