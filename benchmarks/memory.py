@@ -43,6 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
+from appliance.core.reconstruct import times
+
 sys.path.insert(0, str(Path(__file__).parent))
 from report import machine, median_seconds, table
 
@@ -154,7 +156,7 @@ def bed_frame(model, electrode: int, rng) -> tuple[np.ndarray, np.ndarray]:
     centre = model.setup.layout.centroids_mm()[electrode - 1]
     spot = np.where(np.linalg.norm(grid.centres_mm[grid.inside_index] - centre, axis=1) <= 30.0, -0.3, 0.0)
     noise = r.options.noise.std(reference) * rng.normal(size=len(reference))
-    return reference + r.linear.jacobian @ spot + noise, reference
+    return reference + times(r.linear.jacobian, spot) + noise, reference
 
 
 def own_factor(r, drop: np.ndarray):
@@ -190,7 +192,7 @@ def rebuilt(r, drop: np.ndarray):
     usable = r.usable & ~drop
     std = np.where(usable, r.options.noise.std(r.linear.reference), 0.0)
     target = _centre_target(r.grid)
-    signal = np.where(std > 0, jacobian @ target, 0.0)
+    signal = np.where(std > 0, times(jacobian, target), 0.0)
     a_inv_n = form.solve(normal)
     image, variance = a_inv_n @ target, np.diag(form.solve(a_inv_n.T))
     areas = r.linear.areas_mm2

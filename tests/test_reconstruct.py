@@ -233,3 +233,32 @@ def test_the_factored_form_of_a_large_mat_images_as_the_matrix_does(product, tru
     dense = build_reconstructor(linear, options, factored.usable, lam=1e-2 / c)
     assert factored.achieved_noise_figure == pytest.approx(dense.achieved_noise_figure, rel=1e-6)
     assert np.allclose(factored.pixels(v, truth[1]), dense.pixels(v, truth[1]), rtol=1e-7, atol=1e-10)
+
+
+def test_a_jacobian_kept_in_single_precision_moves_the_images_by_a_thousandth_of_the_noise(
+        product, truth, monkeypatch):
+    """A bed-size J is kept in float32 (half the memory and half the bytes a frame reads); on this mat,
+    made to keep it so, the factored images, noise figure and a set of missing readings move by rounding
+    only: under a thousandth of what the readings' noise (1e-3) moves them."""
+    import appliance.core.reconstruct as reconstruct
+    from appliance.core.reconstruct import LinearModel
+
+    double = product.reconstructor.linear
+    assert double.jacobian.dtype == np.float64                   # a small mat keeps double precision
+    monkeypatch.setattr(reconstruct, "DENSE_LIMIT", 0)
+    monkeypatch.setattr(reconstruct, "SINGLE_PRECISION_LIMIT", 0)
+    single = LinearModel(double.protocol, double.grid, double.jacobian, double.reference, double.areas_mm2,
+                         double.mapping)
+    assert single.jacobian.dtype == np.float32
+    options = ReconstructionOptions(algorithm="greit", noise=NoiseModel(1e-2, 1e-3))
+    exact, rounded = (build_reconstructor(linear, options, lam=1e-2) for linear in (double, single))
+    assert rounded.achieved_noise_figure == pytest.approx(exact.achieved_noise_figure, rel=1e-5)
+    clean, noisy = load_frame(truth, [(30, 70)]), load_frame(truth, [(30, 70)], np.random.default_rng(3))
+    for drop in (None, readings_using(PROTOCOL, [6])):
+        if drop is not None:
+            clean[drop] = noisy[drop] = np.nan
+            exact, rounded = (without_readings(r, drop) for r in (exact, rounded))
+        image = exact.pixels(noisy, truth[1])
+        noise = np.max(np.abs(image - exact.pixels(clean, truth[1])))
+        rounding = np.max(np.abs(rounded.pixels(noisy, truth[1]) - image))
+        assert 0 < rounding <= 1e-3 * noise

@@ -80,7 +80,8 @@ def _reading_selector(protocol: Protocol, n_electrodes: int) -> sp.csc_matrix:
 
 
 def pixel_jacobian(model: ForwardModel, sigma, protocol: Protocol, mapping: sp.spmatrix,
-                   fields: ElectrodeFields | None = None, relative: bool = False) -> np.ndarray:
+                   fields: ElectrodeFields | None = None, relative: bool = False,
+                   dtype: type = np.float64) -> np.ndarray:
     """The Jacobian summed onto pixels, ``jacobian(...) @ mapping``, without the per-element Jacobian.
 
     :func:`jacobian` forms every element's L x L electrode products, which on a
@@ -100,7 +101,7 @@ def pixel_jacobian(model: ForwardModel, sigma, protocol: Protocol, mapping: sp.s
 
     Returns
     -------
-    ndarray, shape (n_readings, n_pixels)
+    ndarray, shape (n_readings, n_pixels), of ``dtype`` (each column computed in double precision)
     """
     sigma = check_conductivity(model, sigma)
     fields = fields or solve_electrodes(model, sigma)
@@ -112,7 +113,7 @@ def pixel_jacobian(model: ForwardModel, sigma, protocol: Protocol, mapping: sp.s
     factors = _square_roots(model.element_matrices)                    # (n_el, m, m): k_e = F^T F
     node_map = sp.csr_matrix(model.node_map)        # each pixel's node potentials taken as it comes, not all at once
     a, b, c, d = (protocol.readings - 1).T
-    out = np.empty((len(protocol), mapping.shape[1]))
+    out = np.empty((len(protocol), mapping.shape[1]), dtype=dtype)
     for k in range(mapping.shape[1]):
         rows = slice(mapping.indptr[k], mapping.indptr[k + 1])
         elements, share = mapping.indices[rows], mapping.data[rows] * weight[mapping.indices[rows]]

@@ -80,6 +80,8 @@ class LinearModel:
         Sheet area each imaged pixel stands for.
     mapping : sparse matrix, shape (n_elements, n_pixels)
         Share of each forward element's area in each pixel.
+
+    A J of more than ``SINGLE_PRECISION_LIMIT`` entries is kept in single precision (see there).
     """
 
     protocol: Protocol
@@ -89,13 +91,43 @@ class LinearModel:
     areas_mm2: np.ndarray
     mapping: sp.csr_matrix
 
+    def __post_init__(self):
+        dtype = jacobian_dtype(self.jacobian.size)
+        if self.jacobian.dtype != dtype:                      # e.g. a model cached before this rule
+            object.__setattr__(self, "jacobian", self.jacobian.astype(dtype))
+
+
+SINGLE_PRECISION_LIMIT = 6_000_000
+"""Readings x pixels beyond which J is kept in single precision. A bed mat's J (14,786 x 1,920) is then
+114 MB rather than 227, and the product with it that every frame makes reads half the bytes, which is most
+of a frame's time. Rounding J to 24 bits moves it by 6e-8 of itself, far below the model's own error
+(the mat is not the model to better than a per cent) and the readings' noise; the matrices built from
+it (J^T W J and what follows) are formed in double precision, and benchmarks/frame_cost.md measures
+how far the images move."""
+
+
+def jacobian_dtype(size: int) -> type:
+    """The precision a Jacobian of ``size`` entries is kept in (``SINGLE_PRECISION_LIMIT``)."""
+    return np.float32 if size > SINGLE_PRECISION_LIMIT else np.float64
+
+
+def times_transpose(jacobian: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """J^T v in double precision, reading J in the precision it is kept in (no double copy of it)."""
+    return (jacobian.T @ v.astype(jacobian.dtype, copy=False)).astype(np.float64, copy=False)
+
+
+def times(jacobian: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """J x in double precision, as :func:`times_transpose`."""
+    return (jacobian @ x.astype(jacobian.dtype, copy=False)).astype(np.float64, copy=False)
+
 
 def linear_model(model: ForwardModel, protocol: Protocol, grid: PixelGrid) -> LinearModel:
     """Linearise ``model`` at unit conductivity onto the pixels of ``grid``."""
     sigma = np.ones(model.n_elements)
     fields = solve_electrodes(model, sigma)
     mapping = element_pixel_map(model, grid)
-    j = pixel_jacobian(model, sigma, protocol, mapping, fields, relative=True)
+    dtype = jacobian_dtype(len(protocol) * mapping.shape[1])
+    j = pixel_jacobian(model, sigma, protocol, mapping, fields, relative=True, dtype=dtype)
     return LinearModel(protocol, grid, j, fields.readings(protocol), pixel_areas_mm2(model, mapping), mapping)
 
 
@@ -203,7 +235,7 @@ class NormalForm:
 
     def apply(self, jacobian: np.ndarray, delta: np.ndarray) -> np.ndarray:
         """The image of reading changes ``delta`` (zero on unusable readings), before scaling."""
-        x = self.solve(jacobian.T @ (self.weights * delta))
+        x = self.solve(times_transpose(jacobian, self.weights * delta))
         return x if self.left is None else self.left @ x
 
     def noise_figure(self, jacobian: np.ndarray, noise_std: np.ndarray, target: np.ndarray,
@@ -211,9 +243,9 @@ class NormalForm:
         """As :func:`appliance.core.regularisation.noise_figure`, without forming R: with W = S^-1 the
         image noise R S R^T is L A^-1 N A^-1 L^T = L (A^-1 - lambda A^-1 P A^-1) L^T (A = N + lambda P),
         of which only the diagonal is needed, NOISE_BLOCK pixels at a time, with the sparse P."""
-        signal = np.where(noise_std > 0, jacobian @ target, 0.0)          # unusable readings: std 0
+        signal = np.where(noise_std > 0, times(jacobian, target), 0.0)   # unusable readings: std 0
         snr_in = np.linalg.norm(signal) / np.sqrt(np.sum(noise_std**2))
-        image = self.solve(jacobian.T @ (self.weights * signal))
+        image = self.solve(times_transpose(jacobian, self.weights * signal))
         n = len(target)
         variance = np.empty(n)
         for start in range(0, n, NOISE_BLOCK):
@@ -237,7 +269,7 @@ class NormalForm:
         if self.base is not None:
             return self.base.without(jacobian, np.asarray(drop, dtype=bool) | (self.weights == 0))
         drop = np.asarray(drop, dtype=bool) & (self.weights > 0)
-        removed = (jacobian[drop] * np.sqrt(self.weights[drop])[:, None]).T          # B, (pixels, k)
+        removed = (jacobian[drop] * np.sqrt(self.weights[drop])[:, None]).T          # B, (pixels, k), double
         weights = np.where(drop, 0.0, self.weights)
         n, k = removed.shape
         update = None
@@ -413,7 +445,7 @@ def _normal_form_reconstructor(linear, options, usable, weights, used_std, lam) 
     j = linear.jacobian
     normal = np.zeros((j.shape[1], j.shape[1]))
     for start in range(0, len(j), NORMAL_BLOCK):              # J^T W J without a copy of J
-        part = j[start:start + NORMAL_BLOCK]
+        part = j[start:start + NORMAL_BLOCK].astype(np.float64)
         normal += (part.T * weights[start:start + NORMAL_BLOCK]) @ part
     algorithm = options.algorithm
     prior = prior_matrix(algorithm[3:] if algorithm.startswith("gn-") else "tikhonov", normal, linear.grid)
