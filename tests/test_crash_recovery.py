@@ -6,6 +6,7 @@ import os
 import signal
 import subprocess
 import time
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -22,6 +23,18 @@ def night(data_dir):
     with Store.open(data_dir / "appliance.db") as store:
         events = [(e["kind"], e["key"], e["time_s"]) for e in store.events_since(0.0)]
         return events, store.load_state("alerts")
+
+
+def occurrences(events):
+    """Each event's time by (kind, key, n), the n-th event of that kind for that key: what a night must hold
+    once each, whatever the order of events a minute apart (a killed frame may move a dose crossing by one
+    frame, and two heels crossing a minute apart may then cross in the other order)."""
+    seen: Counter = Counter()
+    out = {}
+    for kind, key, time_s in events:
+        seen[kind, key] += 1
+        out[kind, key, seen[kind, key]] = time_s
+    return out
 
 
 def last_time(data_dir):
@@ -62,8 +75,11 @@ def test_sigkill_at_20_random_moments_loses_and_repeats_nothing(tmp_path, uninte
 
     assert all(0 <= t < NIGHT_S for t in progress) and progress == sorted(set(progress)), \
         f"every kill must land mid-night, each life having monitored; store times {progress}"
-    assert [(kind, key) for kind, key, _ in events] == [(kind, key) for kind, key, _ in expected]
-    assert all(abs(t - t0) <= MINUTE for (_, _, t), (_, _, t0) in zip(events, expected))
+    got, want = occurrences(events), occurrences(expected)
+    assert got.keys() == want.keys(), \
+        f"lost {sorted(want.keys() - got.keys())}, repeated or added {sorted(got.keys() - want.keys())}"
+    assert all(abs(got[k] - want[k]) <= MINUTE for k in want), \
+        [(k, got[k], want[k]) for k in want if abs(got[k] - want[k]) > MINUTE]
     assert state["last_time_s"] == expected_state["last_time_s"] == NIGHT_S
     assert state["dose"]["sites"] == expected_state["dose"]["sites"]
     dose, dose0 = (np.array(s["dose"]["cells"]["dose"], dtype=float) for s in (state, expected_state))
