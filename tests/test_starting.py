@@ -1,5 +1,7 @@
 """The monitor's start-up progress: lines and start-up snapshots in the live view until the first map."""
 
+import json
+
 import pytest
 
 from appliance.service.config import config_from_mapping
@@ -57,3 +59,21 @@ def test_start_up_steps_never_go_back_and_a_bad_step_is_refused():
         report("warming", 0.5)
     with pytest.raises(ValueError, match="from 0 to 1, got 1.5"):
         report("model", 1.5)
+
+
+def test_a_start_up_that_fails_says_so_on_the_live_channel_at_once(tmp_path, model_cache):
+    """A scenario file that cannot be read stops the start-up after the model is loaded: the live view then
+    holds the step it stopped at, marked failed, rather than a start-up that seems still under way."""
+    from appliance.errors import ApplianceError
+    from appliance.service.assemble import assemble
+
+    scenario = tmp_path / "damaged.toml"
+    scenario.write_text("[scene\nwidth_mm = 100\n")
+    config = config_from_mapping({"virtual": {"speed": 0.0, "scenario": str(scenario)},
+                                  "monitor": {"layout": "grid-4x4", "data_dir": str(tmp_path / "data"),
+                                              "cache_dir": str(model_cache)}})
+    with pytest.raises(ApplianceError, match="damaged.toml"):
+        assemble(config, say=lambda line: None)
+    starting = json.loads((tmp_path / "data" / "live.json").read_text())["starting"]
+    assert starting["failed"] is True and starting["phase"] == PHASES["model"][0]
+    assert starting["share"] == PHASES["model"][2]                  # the model was done; the scenario was next

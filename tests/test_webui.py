@@ -206,6 +206,19 @@ def test_before_the_first_map_the_live_view_shows_the_start_up_phase_with_a_prog
     assert client.get("/api/live").get_json()["stale"] is True
 
 
+def test_a_failed_start_up_is_shown_stale_at_once_in_plain_words(app, tmp_path):
+    client = app.test_client()
+    set_up(client)
+    live = LiveChannel(tmp_path / "live.json")
+    live.publish({"starting": {"phase": "building the reconstruction model", "step": "done", "share": 0.8,
+                               "failed": True}})
+    live.close()
+    snapshot = client.get("/api/live").get_json()
+    assert snapshot["stale"] is True
+    assert snapshot["message"] == ("the monitor could not start (building the reconstruction model): call the "
+                                   "clinical engineer")
+
+
 def test_the_stream_sends_each_new_snapshot(app, tmp_path):
     client = app.test_client()
     set_up(client)

@@ -48,6 +48,9 @@ def snapshot() -> dict:
         return {"stale": True, "age_s": None, "message": "the monitor has not written a frame yet"}
     if "starting" in data:              # no map yet: how far its start-up is, for the page's progress bar
         starting, age = data["starting"], max(wall() - data["written_at"], 0.0)
+        if starting.get("failed"):
+            return {"stale": True, "age_s": age, "starting": starting,
+                    "message": f"the monitor could not start ({starting['phase']}): call the clinical engineer"}
         return {"stale": age > STARTING_QUIET_S, "age_s": age, "starting": starting,
                 "message": f"the monitor is starting: {starting['phase']}"}
     identity = (data.get("sequence"), data["written_at"])

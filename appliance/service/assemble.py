@@ -61,6 +61,7 @@ def _assemble(config: MonitorConfig, lock, *, say, on_event, on_map, live: bool)
                                 lambda step, share: starting("model", share, step))
         source = _source(config, layout, protocol)
     except BaseException:
+        starting.failed()
         for close in closers:
             close()
         raise
@@ -84,6 +85,7 @@ def _assemble(config: MonitorConfig, lock, *, say, on_event, on_map, live: bool)
         starting("reference", 0.0)
         daemon.start()
     except BaseException:
+        starting.failed()
         for close in reversed(closers):
             close()
         raise

@@ -3,7 +3,8 @@
 A first start builds the reconstruction model and may calibrate the virtual mat, which takes a while; until
 the first frame the nurse's screen would otherwise say only that no frame was written. Each phase is published
 through the same live channel as the frames (``{"starting": {"phase": ..., "share": ...}}``), so the screen
-reads one file for both, and the first frame's snapshot replaces it.
+reads one file for both, and the first frame's snapshot replaces it. A start-up that fails says so at once
+(``"failed": true``), so the screen sounds its alarm rather than show the last step as under way.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ class StartingReport:
     def __init__(self, live: LiveChannel | None, say: Callable[[str], None]):
         self.live, self.say = live, say
         self.share = 0.0
+        self.phase, self.step = PHASES["model"][0], ""
 
     def __call__(self, phase: str, share_of_phase: float, step: str = "") -> None:
         """Say ``step`` of ``phase`` (a key of :data:`PHASES`) and publish how far the start-up is."""
@@ -34,5 +36,12 @@ class StartingReport:
         words, start, end = PHASES[phase]
         self.share = max(self.share, round(start + share_of_phase * (end - start), 3))
         self.say(f"{words}: {step} ({share_of_phase:.0%})" if step else f"{words} ({share_of_phase:.0%})")
+        self.phase, self.step = words, step
         if self.live is not None:
             self.live.publish({"starting": {"phase": words, "step": step, "share": self.share}})
+
+    def failed(self) -> None:
+        """Publish that the start-up stopped at its last step (the reason goes to the log, not the screen)."""
+        if self.live is not None:
+            self.live.publish({"starting": {"phase": self.phase, "step": self.step, "share": self.share,
+                                            "failed": True}})
