@@ -44,6 +44,7 @@ from appliance.alerts.events import Event
 from appliance.alerts.limits import not_default
 from appliance.alerts.wardlink import WardLink
 from appliance.alerts.pipeline import AlertPipeline, FrameAlerts, technical_alarms
+from appliance.charting.link import ChartingLink
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.errors import ApplianceError, ConfigError, DataFileInvalid, ReconstructionError, StoreCorrupt
 from appliance.service.config_sections import MonitorConfig
@@ -400,6 +401,7 @@ class MonitorDaemon:
                         "delivery": None if self.ward_link is None else self.ward_link.delivery(a.alarm_id)}
                        for a in engine.alarms()],
             "ward_link": None if self.ward_link is None else self.ward_link.status(),
+            "charting": next((n.status() for n in self.notifiers if isinstance(n, ChartingLink)), None),
             "audible": engine.audible(now),
             "settings_changed": not_default(self.pipeline.settings),   # on screen while any is not the default
         }
