@@ -19,7 +19,6 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
-from datetime import datetime
 
 from flask import Blueprint, abort, jsonify, render_template, request
 
@@ -30,7 +29,9 @@ from appliance.alerts.turns import TURN_KINDS as TURN_EVENT_KINDS
 from appliance.alerts.wording import alarm_words
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.store import Store
-from webui.alarms import clock, reader
+from appliance.time_zones import WALL_CLOCK_AFTER_S, local_time
+from webui.alarms import reader
+from webui.clocks import clock, zone
 from webui.live import snapshot
 
 bp = Blueprint("history", __name__)
@@ -338,9 +339,10 @@ def time_ticks(start_s: float, end_s: float) -> list[float]:
 
 
 def tick_label(time_s: float, span_s: float) -> str:
-    """A tick's time, short: HH:MM (with the weekday over a day) for wall-clock times, h:mm for simulated ones."""
-    if time_s > 1e9:
-        return datetime.fromtimestamp(time_s).strftime("%a %H:%M" if span_s > 24 * 3600 else "%H:%M")
+    """A tick's time, short: HH:MM in the site's zone (with the weekday over a day) for wall-clock times, h:mm for
+    simulated ones."""
+    if time_s > WALL_CLOCK_AFTER_S:
+        return local_time(time_s, zone()).strftime("%a %H:%M" if span_s > 24 * 3600 else "%H:%M")
     minutes = round(time_s / 60)
     return f"{minutes // 60}:{minutes % 60:02d}"
 

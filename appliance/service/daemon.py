@@ -380,7 +380,8 @@ class MonitorDaemon:
         """What the live view shows: the map, regions with their dose, the turn clock, alarms and status."""
         engine, turns = self.pipeline.engine, self.pipeline.turns
         snapshot = {
-            "bed_id": self.config.bed_id, "time_s": now, "sequence": self.maps + self.faults,
+            "bed_id": self.config.bed_id, "time_zone": self.config.time_zone, "time_s": now,
+            "sequence": self.maps + self.faults,
             "frame_interval_s": self.config.frame_interval_s, "wall_interval_s": self.source.pace.period_s,
             "status": {"maps": self.maps, "faults": self.faults, "consecutive_faults": self.consecutive_faults,
                        "last_fault": self.last_fault, "source": self.config.source},

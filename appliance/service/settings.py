@@ -59,6 +59,7 @@ from appliance.core.named_layouts import BUILTIN_NAMES
 from appliance.core.toml_files import check_keys, read_toml
 from appliance.errors import ConfigError
 from appliance.files import write_atomic
+from appliance.time_zones import system_zone, time_zone
 from appliance.core.toml_files import toml_table
 from appliance.service.charting_target import describe_target, hl7_values, retarget
 from appliance.service.config_sections import MonitorConfig, read_sections
@@ -177,6 +178,22 @@ def settings_text(settings: dict) -> str:
     lines = ["# Settings made on the bedside screen; they override the configuration file.\n"]
     lines += [f"\n{toml_table(section, settings[section])}" for section in TABLES if settings.get(section)]
     return "".join(lines)
+
+
+def shown_time_zone(data_dir, live: dict | None) -> str:
+    """The zone clock times are shown in for the monitor of ``data_dir``: the settings file's, else the one the
+    monitor runs with (its live view ``live``), else the system's. A settings file that cannot be read is passed
+    over here, since the clock must still be shown; the settings page says what is wrong with it."""
+    try:
+        saved = read_settings(settings_path(data_dir))
+    except ConfigError:
+        saved = {}
+    for name in (saved.get("monitor", {}).get("time_zone"), (live or {}).get("time_zone")):
+        try:
+            return time_zone(name).key
+        except ConfigError:
+            continue
+    return system_zone()
 
 
 def load_overlaid(config: MonitorConfig, data_dir) -> MonitorConfig:
