@@ -296,8 +296,10 @@ def _hl7(charting: dict) -> Hl7Settings | None:
     if not isinstance(enabled, bool):
         raise ConfigError(f"{where}: enabled must be true or false, got {enabled!r}")
     names = {key: _text(table, key, default, where) for key, default in (
-        ("sending_facility", None), ("receiving_application", None), ("receiving_facility", ""),
-        ("sending_application", "APPLIANCE"))}
+        ("sending_facility", None), ("receiving_application", None), ("sending_application", "APPLIANCE"))}
+    names["receiving_facility"] = table.get("receiving_facility", "")     # MSH-6 may be empty: written as it is
+    if not isinstance(names["receiving_facility"], str):
+        raise ConfigError(f"{where}: receiving_facility must be text, got {names['receiving_facility']!r}")
     bad = [key for key, value in names.items() if any(c in value for c in "|^~\\&\r\n")]
     if bad:
         raise ConfigError(f"{where}: {bad[0]} must not hold HL7's delimiters | ^ ~ \\ & or line breaks")
