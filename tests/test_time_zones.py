@@ -180,3 +180,14 @@ def test_the_command_line_report_takes_the_beds_zone_or_one_given_and_refuses_an
         main(["report", "--data-dir", str(autumn), "--out", str(out), "--time-zone", "Mars/Base"])
     assert exited.value.code == 2
     assert "argument --time-zone: unknown time zone 'Mars/Base'" in capsys.readouterr().err
+
+
+def test_chart_ticks_fall_on_the_local_hour_in_a_zone_half_an_hour_off_utc():
+    from webui.history import time_ticks
+
+    start = utc(2026, 10, 25, 0, 10)                        # 05:40 in India (UTC+5:30)
+    ticks = time_ticks(start, start + 6 * 3600, offset_s=5.5 * 3600)
+    kolkata = time_zone("Asia/Kolkata")
+    assert [clock_text(t, kolkata, "%H:%M") for t in ticks] == ["06:00", "07:00", "08:00", "09:00", "10:00",
+                                                                "11:00"]
+    assert {clock_text(t, kolkata, "%M") for t in time_ticks(start, start + 6 * 3600)} == {"30"}   # UTC's hours
