@@ -1,6 +1,7 @@
 """The admin's Charting page: the HL7 target and its queue, set and read on the screen, checked, audited, taken by
 the running monitor; and the FHIR API's tokens made (shown once, kept hashed) and revoked."""
 
+import io
 import sqlite3
 
 import pytest
@@ -116,6 +117,26 @@ def test_a_bad_target_is_refused_naming_the_field_and_nothing_is_saved(app, tmp_
     assert not (tmp_path / "settings.toml").exists() and commands(tmp_path) == [] and audits(app) == before
 
 
+def test_a_saved_target_replaces_the_configurations_at_the_next_start_and_outlives_an_engineers_file(app,
+                                                                                                     tmp_path):
+    assert post(client_as(app, "admin"), "/charting/hl7", **TARGET).status_code == 303
+    engineer = client_as(app, "engineer")
+    answer = engineer.post("/settings/file", data={"csrf_token": token(engineer, "/settings"), "file": (
+        io.BytesIO(b'[monitor]\nbed_id = "ward3-bed7"\n'), "bed.toml")}, content_type="multipart/form-data")
+    assert answer.status_code == 303
+    saved = settings.read_settings(tmp_path / "settings.toml")
+    assert saved["monitor"] == {"bed_id": "ward3-bed7"} and saved["charting"]["hl7"]["host"] == "engine.hospital"
+    configured = config_from_mapping({"charting": {"hl7": {"host": "old.engine", "port": 7, "sending_facility": "W",
+                                                           "receiving_application": "E", "ack_timeout_s": 30}}})
+    started = settings.load_overlaid(configured, tmp_path)
+    assert (started.hl7.host, started.hl7.port, started.hl7.ack_timeout_s, started.bed_id) == (
+        "engine.hospital", 2575, 10.0, "ward3-bed7")                       # the whole table, not a mix
+    refused = engineer.post("/settings/file", data={"csrf_token": token(engineer, "/settings"), "file": (
+        io.BytesIO(b'[charting.hl7]\nhost = "x"\nport = 1\nsending_facility = "W"\nreceiving_application = "E"\n'),
+        "c.toml")}, content_type="multipart/form-data")
+    assert refused.status_code == 400 and "c.toml holds a [charting.hl7]" in refused.get_data(as_text=True)
+
+
 def test_the_configuration_checks_the_host_and_the_enabled_switch_too():
     table = {"host": "10.0.0.7", "port": 2575, "sending_facility": "W", "receiving_application": "E"}
     assert config_from_mapping({"charting": {"hl7": table}}).hl7.host == "10.0.0.7"
@@ -181,6 +202,11 @@ def test_the_monitor_takes_a_new_target_at_its_next_frame_and_sends_it_what_wait
         assert command["state"] == "done"
         assert command["result"] == f"charting target 127.0.0.1:{down} -> 127.0.0.1:{engine.port}"
         sequence = [int(cid.rsplit("-", 1)[1]) for cid in engine.control_ids()]
+        answer = admin.post("/settings/clock", data={"csrf_token": token(admin, "/settings"),
+                                                     "time_zone": "Europe/London"})
+        assert answer.status_code == 303 and read_live(tmp_path / "live.json")["time_zone"] != "Europe/London"
+        daemon.run(1)                                           # the time zone, like the bed id, at once
+        assert read_live(tmp_path / "live.json")["time_zone"] == daemon.config.time_zone == "Europe/London"
         assert len(sequence) >= waiting and sequence == list(range(1, len(sequence) + 1))    # all, once, in order
     finally:
         daemon.close()
