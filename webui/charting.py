@@ -33,7 +33,7 @@ from webui.alarms import store
 from webui.clocks import clock
 from webui.live import snapshot
 from webui.security import requires
-from webui.settings import as_number, current, settings_file
+from webui.settings import SettingsRefused, as_number, current, settings_file
 
 bp = Blueprint("charting", __name__)
 LABELS = {"host": "Interface engine host (name or IP address)", "port": "Port (1-65535)",
@@ -46,14 +46,6 @@ LABELS = {"host": "Interface engine host (name or IP address)", "port": "Port (1
 DEFAULTS = {f.name: f.default for f in dataclasses.fields(Hl7Settings) if f.default is not dataclasses.MISSING}
 """Keys with a default, which a field left empty takes."""
 NUMBERS = {"port", "ack_timeout_s", "undelivered_alarm_s", "observation_interval_s"}
-
-
-class Refused(Exception):
-    """A change that cannot be made; ``status`` is the HTTP status to answer with."""
-
-    def __init__(self, message: str, status: int = 400):
-        super().__init__(message)
-        self.status = status
 
 
 def tokens() -> ApiTokens:
@@ -94,7 +86,7 @@ def page():
 def change_target():
     try:
         changed, command = _apply()
-    except Refused as exc:
+    except SettingsRefused as exc:
         return _page(error=f"charting target not changed: {exc}", status=exc.status)
     if changed:
         flash(f"charting target changed: {monitor_settings.describe(changed)}; the monitor applies it at its next "
@@ -108,13 +100,13 @@ def _apply() -> tuple[list, int | None]:
     """The keys changed (key, old, new) and the queued command's id (None when nothing changed)."""
     state = current()
     if state["file_error"]:
-        raise Refused(f"{state['file_error']}: an engineer must fix or remove it first", 409)
+        raise SettingsRefused(f"{state['file_error']}: an engineer must fix or remove it first", 409)
     old, _ = target(state)
     sent = _submitted()
     try:
         new = hl7_values(read_sections({"charting": {"hl7": sent}}).hl7)
     except ConfigError as exc:
-        raise Refused(str(exc)) from None
+        raise SettingsRefused(str(exc)) from None
     changed = monitor_settings.changes({"hl7": old}, {"hl7": new})
     if not changed:
         return [], None
@@ -122,7 +114,7 @@ def _apply() -> tuple[list, int | None]:
     try:
         monitor_settings.write_settings(settings_file(), tables)
     except ConfigError as exc:
-        raise Refused(str(exc)) from None
+        raise SettingsRefused(str(exc)) from None
     with store() as s:
         command = s.queue_command(monitor_settings.COMMAND, {monitor_settings.CHARTING: {"hl7": new}}, g.user.name)
     current_app.extensions["users"].audit(g.user.name, "changed charting target",
@@ -137,7 +129,7 @@ def _submitted() -> dict:
     form.pop("csrf_token", None)
     unknown = sorted(set(form) - set(HL7_KEYS))
     if unknown:
-        raise Refused(f"unknown field {unknown[0]!r}; the target has {', '.join(HL7_KEYS)}")
+        raise SettingsRefused(f"unknown field {unknown[0]!r}; the target has {', '.join(HL7_KEYS)}")
     table: dict = {"enabled": form.pop("enabled", "") in ("on", "true", "1")}
     for key, value in form.items():
         value = value.strip()
