@@ -222,8 +222,9 @@ def publish(daemon, now: float) -> None:
 def apply_settings(daemon, now: float, args: dict) -> tuple[list, str]:
     """The ``apply-settings`` command: lay ``args`` (tables as in the settings file) over the running
     configuration; patient settings take effect now, the pipeline rebuilt from its state so doses, turn
-    clock and open alarms carry over. A wrong value, or a patient setting outside the ward policy in the
-    settings file, raises ConfigError, which refuses the command (the store takes whatever any process queues)."""
+    clock and open alarms carry over, and a new charting target takes over the charting queue. A wrong value,
+    or a patient setting outside the ward policy in the settings file, raises ConfigError, which refuses the
+    command (the store takes whatever any process queues)."""
     wanted = overlay(daemon.config, args)
     if daemon.config.data_dir is not None:
         check_within_policy(args.get("alerts", {}), policy_of(read_settings(settings_path(daemon.config.data_dir))))
