@@ -175,6 +175,11 @@ def charting_monitor(small_mat_calibration, tmp_path, port: int):
     return daemon
 
 
+def written(daemon) -> None:
+    """Wait until the live view holds the monitor's last snapshot: a thread of its own writes it."""
+    until(lambda: daemon.live.written + daemon.live.skipped == daemon.maps + daemon.faults)
+
+
 def test_the_monitor_takes_a_new_target_at_its_next_frame_and_sends_it_what_waited(small_mat_calibration, tmp_path):
     down = free_port()                                          # no engine listens here
     daemon = charting_monitor(small_mat_calibration, tmp_path, down)
@@ -184,6 +189,7 @@ def test_the_monitor_takes_a_new_target_at_its_next_frame_and_sends_it_what_wait
         [old] = daemon.notifiers
         until(lambda: old.status()["last_error"] is not None and old.status()["waiting"] > 0)
         daemon.run(1)                                           # the live view shows the failing link
+        written(daemon)
         app = create_app(tmp_path, secure_cookies=False, TESTING=True)
         admin = client_as(app, "admin")
         page = admin.get("/charting").get_data(as_text=True)
@@ -206,6 +212,7 @@ def test_the_monitor_takes_a_new_target_at_its_next_frame_and_sends_it_what_wait
                                                      "time_zone": "Europe/London"})
         assert answer.status_code == 303 and read_live(tmp_path / "live.json")["time_zone"] != "Europe/London"
         daemon.run(1)                                           # the time zone, like the bed id, at once
+        written(daemon)
         assert read_live(tmp_path / "live.json")["time_zone"] == daemon.config.time_zone == "Europe/London"
         assert len(sequence) >= waiting and sequence == list(range(1, len(sequence) + 1))    # all, once, in order
     finally:
