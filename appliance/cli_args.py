@@ -126,3 +126,14 @@ def physical(inclusion):
         raise ModelInputInvalid(f"contrast must be from {low:g} to {high:g} (a conductivity ratio), got "
                                 f"{inclusion.contrast:g}")
     return inclusion
+
+
+def iana_zone(text: str) -> str:
+    """A ``type=`` for a time zone the tz database names (``Europe/London``)."""
+    from appliance.time_zones import time_zone
+
+    try:
+        time_zone(text, "time zone")
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("time zone: ")) from None
+    return text

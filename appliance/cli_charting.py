@@ -39,13 +39,16 @@ def _fhir_token(args) -> int:
 
 
 def add_report_parser(sub) -> None:
-    from appliance.cli_args import within
+    from appliance.cli_args import iana_zone, within
 
     p = sub.add_parser("report", help="write a bed's shift report as a PDF, or the period's events as a CSV")
     p.add_argument("--data-dir", type=Path, required=True, help="the monitor's data folder (its appliance.db)")
     p.add_argument("--hours", type=within(1.0, 168.0, "h"), default=12.0,
                    help="the period: the last HOURS up to the newest record (1 to 168, default 12)")
     p.add_argument("--out", type=Path, required=True, help="the file to write: NAME.pdf or NAME.csv")
+    p.add_argument("--time-zone", type=iana_zone, metavar="ZONE",
+                   help="the IANA zone of the clock times, such as Europe/London (default: the bed's, as its screen "
+                        "shows them)")
     p.set_defaults(run=_report)
 
 
@@ -53,7 +56,9 @@ def _report(args) -> int:
     from appliance.errors import ConfigError
     from appliance.service.assemble import LIVE_FILE, STORE_FILE
     from appliance.service.live import read_live
+    from appliance.service.settings import shown_time_zone
     from appliance.store import Store
+    from appliance.time_zones import time_zone
     from webui.history import threshold_mmhg
     from webui.report import report_csv, report_pdf, shift_report
 
@@ -70,13 +75,15 @@ def _report(args) -> int:
     except ValueError as exc:                   # the bed's name and patient's name are missing, nothing else
         print(f"appliance report: the live view is not read ({exc})", file=sys.stderr)
         live = {}
+    zone = time_zone(args.time_zone or shown_time_zone(args.data_dir, live))
     with Store.open(store_path) as s:
-        made = shift_report(s, args.hours, live, threshold_mmhg(live))
+        made = shift_report(s, args.hours, live, threshold_mmhg(live), zone)
     if made is None:
         raise ConfigError(f"--data-dir {args.data_dir}: the store has recorded nothing yet")
     if kind == ".pdf":
         args.out.write_bytes(report_pdf(made))
     else:
         args.out.write_text(report_csv(made), encoding="utf-8")
-    print(f"appliance report: {args.out} ({len(made.events)} events, {made.patient})", file=sys.stderr)
+    print(f"appliance report: {args.out} ({len(made.events)} events, {made.patient}, times in {zone.key})",
+          file=sys.stderr)
     return 0

@@ -7,6 +7,7 @@ commands it queues are read from the monitor's store. Screenshots go to ``docs/s
 """
 
 import itertools
+import re
 import subprocess
 import sys
 
@@ -58,6 +59,7 @@ def publish(data_dir, live: dict) -> None:
 def screen(tmp_path_factory):
     """The screen on a data directory with a live view, a nurse account and the monitor's store; its address."""
     data_dir = tmp_path_factory.mktemp("bedside")
+    (data_dir / "settings.toml").write_text('[monitor]\ntime_zone = "America/New_York"\n')    # the site's clock
     publish(data_dir, snapshot())
     Store.open(data_dir / "appliance.db").close()
     users = UserStore(data_dir / "webui.db")
@@ -229,8 +231,13 @@ def test_the_map_is_marked_as_a_body_and_the_turn_clock_changes_colour(screen, n
         ["ok", "soon", "soon", "overdue"]
     expected = nurse.execute_script("return fetch('/api/live').then(r => r.json()).then(s => "
                                     "new Date((s.written_at - 300) * 1000).toLocaleTimeString([], "
-                                    "{hour: '2-digit', minute: '2-digit'}));")
+                                    "{hour: '2-digit', minute: '2-digit', timeZone: 'America/New_York', "
+                                    "timeZoneName: 'short'}));")
     assert shown(nurse, "#turn-at") == f"(at {expected})"           # the wall-clock time it was due, 5 min ago
+    # New York's clocks go back at 06:00 UTC on 1 November 2026: 05:30 and 06:30 UTC both read 1:30, told apart.
+    edt, est = (nurse.execute_script(f"return clockTime({{written_at: {t}, time_s: 0}}, 0);")
+                for t in (1793511000, 1793514600))
+    assert re.search(r"\b0?1:30\b.*\bEDT\b", edt) and re.search(r"\b0?1:30\b.*\bEST\b", est)
 
 
 def test_a_nurse_acknowledges_an_alarm_from_the_live_view(screen, nurse):

@@ -407,7 +407,7 @@ def test_a_bad_command_queued_directly_is_refused_with_the_reason_and_changes_no
     with Store.open(tmp_path / "appliance.db") as store:
         refused = store.command(command)
         assert refused["state"] == "refused" and reason in refused["result"]
-        assert store.load_state("settings") == settings.settings_values(config)
+        assert store.load_state("settings") == settings.published(config)
 
 
 def test_a_command_queued_directly_outside_the_ward_policy_is_refused_by_the_monitor(small_mat_calibration,

@@ -22,7 +22,7 @@ from flask import Flask, current_app, g, redirect, url_for
 from appliance.accounts.private import private_file
 from appliance.accounts.users import UserStore
 from appliance.alerts.wording import alarm_words, setting_words
-from webui import accounts, alarms, auth, engineering, fhir, history, live, patient, report, settings, ward
+from webui import accounts, alarms, auth, charting, engineering, fhir, history, live, patient, report, settings, ward
 from webui.headers import add_security_headers
 from webui.limiter import LoginLimiter
 from webui.security import csrf_token, guard, needs_https
@@ -30,12 +30,12 @@ from webui.sessions import SessionStore
 
 SESSION_HOURS = 12          # one shift
 BLUEPRINTS = (auth.bp, accounts.bp, live.bp, alarms.bp, patient.bp, history.bp, report.bp, settings.bp,
-              engineering.bp, fhir.bp)
+              engineering.bp, charting.bp, fhir.bp)
 WARD_BLUEPRINTS = (auth.bp, accounts.bp, ward.bp)
 PAGES = (("ward.page", "Ward", "nurse"), ("live.page", "Live", "nurse"), ("alarms.page", "Alarms", "nurse"),
          ("patient.page", "Patient", "nurse"), ("history.page", "History", "nurse"),
          ("settings.page", "Settings", "nurse"), ("engineering.page", "Engineering", "engineer"),
-         ("accounts.page", "Accounts", "admin"))
+         ("charting.page", "Charting", "admin"), ("accounts.page", "Accounts", "admin"))
 """The header's links, in order: each shown when its blueprint is registered and the user's role allows it."""
 
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 from flask import Blueprint, current_app, flash, g, redirect, render_template, request, url_for
 
 from appliance.accounts.users import ROLES, AccountError, UserStore
-from webui.alarms import clock
+from webui.clocks import clock
 from webui.auth import log_in
 from webui.security import requires
 

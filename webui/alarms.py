@@ -12,13 +12,13 @@ the command's id instead of a redirect, and stays on the page.
 from __future__ import annotations
 
 import time
-from datetime import datetime
 from pathlib import Path
 
 from flask import Blueprint, abort, current_app, flash, g, jsonify, redirect, render_template, request, url_for
 
 from appliance.alerts.alarms import DEFAULT_MAX_AUDIO_PAUSE_S
 from appliance.store import Store
+from webui.clocks import clock
 from webui.live import snapshot
 
 bp = Blueprint("alarms", __name__)
@@ -42,14 +42,6 @@ def reader() -> Store:
     if not path.exists():
         Store.open(path).close()
     return Store.open_read_only(path)
-
-
-def clock(time_s: float, now_s: float | None = None) -> str:
-    """A monitor time as a person reads it: wall-clock times as dates, simulated ones as h:mm:ss."""
-    if time_s > 1e9:
-        return datetime.fromtimestamp(time_s).strftime("%Y-%m-%d %H:%M:%S")
-    t = round(time_s)
-    return f"{t // 3600}:{t % 3600 // 60:02d}:{t % 60:02d}"
 
 
 @bp.route("/alarms")

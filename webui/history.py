@@ -19,7 +19,6 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
-from datetime import datetime
 
 from flask import Blueprint, abort, jsonify, render_template, request
 
@@ -30,7 +29,9 @@ from appliance.alerts.turns import TURN_KINDS as TURN_EVENT_KINDS
 from appliance.alerts.wording import alarm_words
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.store import Store
-from webui.alarms import clock, reader
+from appliance.time_zones import WALL_CLOCK_AFTER_S, local_time
+from webui.alarms import reader
+from webui.clocks import clock, zone
 from webui.live import snapshot
 
 bp = Blueprint("history", __name__)
@@ -295,7 +296,7 @@ def chart(series: RegionSeries, history: History, threshold: float) -> Chart:
         y(threshold, pressure_top), y(1.0, dose_top),
         [(y(v, pressure_top), f"{v:g}") for v in frange(0.0, pressure_top, pressure_top / 4)],
         [(y(v, dose_top), f"{v:g}") for v in frange(0.0, dose_top, dose_step)],
-        [(x(t), tick_label(t, span)) for t in time_ticks(history.start_s, history.end_s)],
+        [(x(t), tick_label(t, span)) for t in time_ticks(history.start_s, history.end_s, utc_offset(history.start_s))],
         markers)
 
 
@@ -329,18 +330,28 @@ def frange(start: float, stop: float, step: float) -> list[float]:
     return [start + i * step for i in range(round((stop - start) / step) + 1)]
 
 
-def time_ticks(start_s: float, end_s: float) -> list[float]:
-    """Round times across the window, at most ``MAX_TIME_TICKS`` of them."""
+def time_ticks(start_s: float, end_s: float, offset_s: float = 0.0) -> list[float]:
+    """Times across the window round on a clock ``offset_s`` ahead of UTC (hours at :00 in India too, days at
+    local midnight), at most ``MAX_TIME_TICKS`` of them."""
     span = end_s - start_s
     step = next((s for s in TICK_STEPS_S if span / s <= MAX_TIME_TICKS), TICK_STEPS_S[-1])
-    first = math.ceil(start_s / step) * step
+    first = math.ceil((start_s + offset_s) / step) * step - offset_s
     return [t for t in frange(first, end_s, step) if t <= end_s] if first <= end_s else []
 
 
+def utc_offset(time_s: float) -> float:
+    """How far the site's clock is ahead of UTC at ``time_s`` (none for a simulated bed's seconds)."""
+    if time_s <= WALL_CLOCK_AFTER_S:
+        return 0.0
+    offset = local_time(time_s, zone()).utcoffset()
+    return 0.0 if offset is None else offset.total_seconds()
+
+
 def tick_label(time_s: float, span_s: float) -> str:
-    """A tick's time, short: HH:MM (with the weekday over a day) for wall-clock times, h:mm for simulated ones."""
-    if time_s > 1e9:
-        return datetime.fromtimestamp(time_s).strftime("%a %H:%M" if span_s > 24 * 3600 else "%H:%M")
+    """A tick's time, short: HH:MM in the site's zone (with the weekday over a day) for wall-clock times, h:mm for
+    simulated ones."""
+    if time_s > WALL_CLOCK_AFTER_S:
+        return local_time(time_s, zone()).strftime("%a %H:%M" if span_s > 24 * 3600 else "%H:%M")
     minutes = round(time_s / 60)
     return f"{minutes // 60}:{minutes % 60:02d}"
 

@@ -20,6 +20,7 @@ from flask import Blueprint, current_app, jsonify, render_template
 
 from appliance.alerts.alarms import DEFAULT_MAX_AUDIO_PAUSE_S
 from appliance.service.live import read_live
+from webui.clocks import zone_name
 from webui.streams import event_stream
 
 bp = Blueprint("live", __name__)
@@ -93,7 +94,7 @@ def header_patient() -> dict:
 
 @bp.route("/")
 def page():
-    return render_template("live.html", max_pause_min=DEFAULT_MAX_AUDIO_PAUSE_S / 60)
+    return render_template("live.html", max_pause_min=DEFAULT_MAX_AUDIO_PAUSE_S / 60, time_zone=zone_name())
 
 
 @bp.route("/api/live")

@@ -16,7 +16,8 @@ from flask import Blueprint, current_app, flash, g, redirect, render_template, r
 
 from appliance.alerts.episodes import DEFAULT_BED_EXIT_AFTER_S, Episode
 from appliance.errors import ConfigError
-from webui.alarms import clock, reader, store
+from webui.alarms import reader, store
+from webui.clocks import clock
 from webui.live import snapshot
 
 bp = Blueprint("patient", __name__)

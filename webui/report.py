@@ -5,8 +5,11 @@ alarms and who acknowledged them how fast, minutes at or above the threshold
 per region) and a chart of the peak pressure at each site over the period; the
 CSV lists every event the store logged in the period, one a row. Both come
 from the store and the live view alone, so the screen and ``appliance report``
-make the same files. PDFs are written with fpdf2's built-in Helvetica, which
-holds Latin-1 only: other characters are shown as "?".
+make the same files. Clock times are the site's time zone's (with its
+abbreviation, so the hour repeated when the clocks go back reads apart); the
+CSV gives each event in UTC and as the local time with its offset. PDFs are
+written with fpdf2's built-in Helvetica, which holds Latin-1 only: other
+characters are shown as "?".
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ from __future__ import annotations
 import csv
 import io
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from zoneinfo import ZoneInfo
 
 from flask import Blueprint, Response, abort
 from fpdf import FPDF
@@ -23,31 +26,40 @@ from fpdf.enums import XPos, YPos
 from appliance.alerts.anatomy import site_words
 from appliance.alerts.wording import alarm_words
 from appliance.store import Store
-from webui.alarms import clock, reader
+from appliance.time_zones import WALL_CLOCK_AFTER_S, clock_text, local_time, time_zone
+from webui.alarms import reader
+from webui.clocks import zone
 from webui.history import (NO_HISTORY, History, ShiftSummary, duration, read_history, requested_hours, summarise,
                            threshold_mmhg)
 from webui.live import snapshot
 
-CSV_COLUMNS = ("time_utc", "time_s", "type", "kind", "priority", "category", "key", "alarm", "site", "posture",
-               "message", "user", "patient")
+CSV_COLUMNS = ("time_utc", "time_local", "time_s", "type", "kind", "priority", "category", "key", "alarm", "site",
+               "posture", "message", "user", "patient")
 CHART_W_MM, CHART_H_MM = 180.0, 60.0
+UTC_ZONE = time_zone("UTC")
 SITE_COLOURS = ((31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14), (23, 190, 207),
                 (140, 86, 75), (227, 119, 194))
 
 
 @dataclass(frozen=True)
 class ShiftReport:
-    """One bed's period: its history and summary, every event logged in it, and the patient in the bed."""
+    """One bed's period: its history and summary, every event logged in it, the patient in the bed, and the zone
+    its clock times are written in."""
 
     bed_id: str
     patient: str
     history: History
     summary: ShiftSummary
     events: list[dict]
+    zone: ZoneInfo
+
+    def clock(self, time_s: float) -> str:
+        return clock_text(time_s, self.zone)
 
 
-def shift_report(s: Store, hours: float, live: dict, threshold: float) -> ShiftReport | None:
-    """The last ``hours`` of store ``s`` (None if it recorded nothing); ``live`` is the live view's snapshot."""
+def shift_report(s: Store, hours: float, live: dict, threshold: float, zone: ZoneInfo) -> ShiftReport | None:
+    """The last ``hours`` of store ``s`` (None if it recorded nothing); ``live`` is the live view's snapshot;
+    clock times in ``zone``."""
     history = read_history(s, hours)
     if history is None:
         return None
@@ -57,12 +69,13 @@ def shift_report(s: Store, hours: float, live: dict, threshold: float) -> ShiftR
     name = named.get("name") if named.get("patient_id") == patient_id else None
     patient = "no patient admitted" if patient_id is None else f"{name} ({patient_id})" if name else patient_id
     events = [e for e in s.events_since(history.start_s) if e["time_s"] <= history.end_s]
-    return ShiftReport(live.get("bed_id") or "unknown", patient, history, summarise(history, threshold), events)
+    return ShiftReport(live.get("bed_id") or "unknown", patient, history, summarise(history, threshold), events,
+                       zone)
 
 
-def wall_time(time_s: float) -> str:
-    """An ISO 8601 UTC time for wall-clock times; a simulated bed's seconds stay as they are."""
-    return datetime.fromtimestamp(time_s, UTC).isoformat(timespec="seconds") if time_s > 1e9 else ""
+def wall_time(time_s: float, zone: ZoneInfo) -> str:
+    """An ISO 8601 time in ``zone`` (its offset written) for wall-clock times; none for a simulated bed's seconds."""
+    return local_time(time_s, zone).isoformat(timespec="seconds") if time_s > WALL_CLOCK_AFTER_S else ""
 
 
 def report_csv(report: ShiftReport) -> str:
@@ -70,7 +83,8 @@ def report_csv(report: ShiftReport) -> str:
     writer = csv.DictWriter(out, CSV_COLUMNS, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
     for e in report.events:
-        writer.writerow({**e, "time_utc": wall_time(e["time_s"]), "time_s": repr(e["time_s"]),
+        writer.writerow({**e, "time_utc": wall_time(e["time_s"], UTC_ZONE),
+                         "time_local": wall_time(e["time_s"], report.zone), "time_s": repr(e["time_s"]),
                          "alarm": alarm_words(e.get("key")) if e.get("type") == "alarm" else ""})
     return out.getvalue()
 
@@ -88,13 +102,14 @@ def report_pdf(report: ShiftReport) -> bytes:
     line(pdf, f"Shift report, bed {report.bed_id}", 9)
     pdf.set_font("Helvetica", size=10)
     line(pdf, f"Patient: {report.patient}")
-    line(pdf, f"Period {clock(s.start_s)} to {clock(s.end_s)} ({duration(s.end_s - s.start_s)})")
+    line(pdf, f"Period {report.clock(s.start_s)} to {report.clock(s.end_s)} ({duration(s.end_s - s.start_s)})")
     heading(pdf, "Turns")
     line(pdf, f"{s.turns} turn(s); longest time without a turn {duration(s.longest_without_turn_s)}; "
               f"{s.turn_reminders} turn reminder(s)")
     turns = [e for e in report.history.turns if e["kind"] in ("repositioned", "recorded")]
-    table(pdf, ("Time", "Turn", "By"), [(clock(e["time_s"]), e.get("message") or e["kind"], e.get("user") or "")
-                                        for e in turns], (35, 115, 40))
+    table(pdf, ("Time", "Turn", "By"),
+          [(report.clock(e["time_s"]), e.get("message") or e["kind"], e.get("user") or "") for e in turns],
+          (40, 110, 40))
     heading(pdf, f"Time at risk (at or above {s.threshold_mmhg:.0f} mmHg)")
     table(pdf, ("Region", "Peak mmHg", "Max dose", "Minutes at risk"),
           [(r.label, f"{r.peak_mmhg:.0f}", "-" if r.max_dose is None else f"{r.max_dose:.2f}",
@@ -102,9 +117,9 @@ def report_pdf(report: ShiftReport) -> bytes:
     for title, alarms in (("Clinical alarms", s.clinical), ("Technical alarms", s.technical)):
         heading(pdf, title)
         table(pdf, ("Raised", "Priority", "Alarm", "Acknowledged by", "After", "Ended"),
-              [(clock(a.raised_s), a.highest_priority, a.message or alarm_words(a.key),
+              [(report.clock(a.raised_s), a.highest_priority, a.message or alarm_words(a.key),
                 a.acknowledged_by or "not acknowledged", duration(a.acknowledge_delay_s),
-                "-" if a.ended_s is None else clock(a.ended_s)) for a in alarms], (30, 18, 72, 30, 20, 20))
+                "-" if a.ended_s is None else report.clock(a.ended_s)) for a in alarms], (38, 18, 64, 30, 20, 20))
     heading(pdf, "Peak pressure by site (mmHg)")
     pressure_chart(pdf, report)
     return bytes(pdf.output())
@@ -161,8 +176,8 @@ def pressure_chart(pdf: FPDF, report: ShiftReport) -> None:
     pdf.set_font("Helvetica", size=7)
     for value in (0.0, top / 2, top):
         pdf.text(pdf.l_margin, at(history.start_s, value)[1] + 1, f"{value:.0f}")
-    pdf.text(x0, y0 + CHART_H_MM + 4, latin1(clock(history.start_s)))
-    pdf.text(x0 + CHART_W_MM - 25, y0 + CHART_H_MM + 4, latin1(clock(history.end_s)))
+    pdf.text(x0, y0 + CHART_H_MM + 4, latin1(report.clock(history.start_s)))
+    pdf.text(x0 + CHART_W_MM - 32, y0 + CHART_H_MM + 4, latin1(report.clock(history.end_s)))
     with pdf.local_context(dash_pattern={"dash": 1, "gap": 1}):
         pdf.line(*at(history.start_s, threshold), *at(history.end_s, threshold))
     pdf.set_line_width(0.5)
@@ -192,7 +207,7 @@ def download(kind: str):
     hours = requested_hours()
     live = snapshot()
     with reader() as s:
-        made = shift_report(s, hours, live, threshold_mmhg(live))
+        made = shift_report(s, hours, live, threshold_mmhg(live), zone())
     if made is None:
         abort(404, description=NO_HISTORY)
     body = report_pdf(made) if kind == "pdf" else report_csv(made).encode()

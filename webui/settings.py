@@ -1,4 +1,5 @@
-"""Settings: the patient's (nurse) and the bed's (engineer), shown with where each value comes from, and changed.
+"""Settings: the patient's (nurse), the bed's (engineer) and the site's clock (admin), shown with where each value
+comes from, and changed.
 
 A change is checked by the monitor configuration's own rules, written to the
 settings file in the data directory (``appliance.service.settings``), queued as
@@ -7,6 +8,8 @@ audited with each old and new value. A value that is not accepted is answered
 with HTTP 400 naming the field and what it may be, and nothing is written,
 queued or audited; a form sent back unchanged queues nothing. A new mat layout
 needs another reconstruction model, so it applies when the monitor restarts.
+The time zone, an IANA name, sets the clock times of every page, the live view
+and the shift report.
 
 Each patient setting that could blind the monitor has a safe range
 (``appliance.alerts.limits``); inside it the ward's policy, which only an admin
@@ -36,8 +39,12 @@ from webui.security import requires
 bp = Blueprint("settings", __name__)
 HISTORY_S = 24 * 3600.0
 MAX_FILE_BYTES = 64 * 1024
-GROUPS = {"alerts": "patient", "monitor": "bed"}
-"""The settings file's tables by the form that changes them."""
+FORMS = {"patient": ("alerts", tuple(monitor_settings.PATIENT_FIELDS)),
+         "bed": ("monitor", monitor_settings.BED_KEYS),
+         "clock": ("monitor", monitor_settings.CLOCK_KEYS)}
+"""Each form: the settings file's table it changes, and its keys there."""
+ADMIN_KEYS = monitor_settings.CLOCK_KEYS
+"""Settings only an admin changes, on this page: not saved to or loaded from a settings file."""
 LABELS = {"threshold_mmhg": "Pressure threshold (mmHg)", "curve": "Tolerance curve",
           "alarm_dose": "Alarm at dose (share of tolerance)", "recovery": "Dose recovery off load",
           "relief_min": "Offloaded this long relieves a site (min)",
@@ -45,7 +52,8 @@ LABELS = {"threshold_mmhg": "Pressure threshold (mmHg)", "curve": "Tolerance cur
           "turn_grace_min": "A due turn is overdue after (min)",
           "reminder_repeat_min": "Repeat an overdue reminder every (min)",
           "escalate_after_min": "Escalate an unacknowledged alarm after (min)",
-          "bed_id": "Bed id", "layout": "Mat layout"}
+          "bed_id": "Bed id", "layout": "Mat layout",
+          "time_zone": "Time zone of the clock times shown (IANA name, such as Europe/London)"}
 CHOICES = {"curve": tuple(BUILT_IN_CURVES), "recovery": tuple(RECOVERY_MODES), "layout": BUILTIN_NAMES}
 
 
@@ -71,6 +79,7 @@ def current() -> dict:
         saved, file_error = {}, str(exc)
     with reader() as s:
         running = s.load_state(monitor_settings.STATE)
+    shown_running = running or {}
     defaults = monitor_settings.settings_values(read_sections({}))
     values: dict[str, dict] = {}
     for section, table in defaults.items():
@@ -78,13 +87,14 @@ def current() -> dict:
         for key, default in table.items():
             if key in saved.get(section, {}):
                 values[section][key] = {"value": saved[section][key], "source": "settings file"}
-            elif running is not None:
-                values[section][key] = {"value": running[section][key], "source": "monitor"}
+            elif key in shown_running.get(section, {}):
+                values[section][key] = {"value": shown_running[section][key], "source": "monitor"}
             else:
                 values[section][key] = {"value": default, "source": "default"}
     running_layout = running["monitor"]["layout"] if running is not None else None
     policy = monitor_settings.policy_of(saved) if file_error is None else check_policy({})
     return {"settings": values, "file": str(settings_file()), "file_error": file_error, "saved": saved,
+            "running": running,
             "policy": {key: {"low": low, "high": high, "safe_low": SAFE_RANGES[key].low,
                              "safe_high": SAFE_RANGES[key].high, "unit": SAFE_RANGES[key].unit}
                        for key, (low, high) in policy.items()},
@@ -106,13 +116,19 @@ def api():
 
 @bp.route("/settings/patient", methods=["POST"])
 def patient():
-    return _change("alerts")
+    return _change("patient")
 
 
 @bp.route("/settings/bed", methods=["POST"])
 @requires("engineer")
 def bed():
-    return _change("monitor")
+    return _change("bed")
+
+
+@bp.route("/settings/clock", methods=["POST"])
+@requires("admin")
+def clock():
+    return _change("clock")
 
 
 @bp.route("/settings/policy", methods=["POST"])
@@ -177,7 +193,7 @@ def _submitted_policy(old: dict) -> dict[str, tuple[float, float]]:
             if key not in SAFE_RANGES or end not in ("low", "high"):
                 raise SettingsRefused(f"unknown field {name!r}; the policy has <setting>_low and <setting>_high")
             span = list(sent.get(key, old[key]))
-            span[0 if end == "low" else 1] = _as_number(value)
+            span[0 if end == "low" else 1] = as_number(value)
             sent[key] = span
     unknown = sorted(set(sent) - set(SAFE_RANGES))
     if unknown:
@@ -200,7 +216,7 @@ def _describe_spans(changed) -> str:
 def save_file():
     """Every setting as the monitor runs with it, as a settings file to keep or to load on another bed."""
     state = current()
-    values = {section: {key: entry["value"] for key, entry in table.items()}
+    values = {section: {key: entry["value"] for key, entry in table.items() if key not in ADMIN_KEYS}
               for section, table in state["settings"].items()}
     stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
     bed = values["monitor"]["bed_id"]
@@ -241,6 +257,13 @@ def _load(sent) -> tuple[list, int | None]:
     if POLICY in loaded:
         raise SettingsRefused(f"{sent.filename} holds a [{POLICY}]: the ward policy is set on this page by an "
                               "admin, not loaded from a file")
+    if monitor_settings.CHARTING in loaded:
+        raise SettingsRefused(f"{sent.filename} holds a [charting.hl7]: the charting target is set on the Charting "
+                              "page by an admin, not loaded from a file")
+    admin = sorted(set(loaded.get("monitor", {})) & set(ADMIN_KEYS))
+    if admin:
+        raise SettingsRefused(f"{sent.filename} sets {admin[0]}: it is set on this page by an admin, not loaded "
+                              "from a file")
     state = current()
     if state["file_error"]:
         raise SettingsRefused(f"{state['file_error']}: an engineer must fix or remove it first", 409)
@@ -254,10 +277,10 @@ def _load(sent) -> tuple[list, int | None]:
                 tables.setdefault(section, {})[key] = value
     if not changed:
         return [], None
-    saved = {section: {**state["saved"].get(section, {}), **tables.get(section, {})} for section in GROUPS}
+    saved = {section: {**state["saved"].get(section, {}), **tables.get(section, {})}
+             for section in ("alerts", "monitor")}
     try:
-        monitor_settings.write_settings(settings_file(), {k: v for k, v in {**saved, POLICY: state["saved"].get(
-            POLICY, {})}.items() if v})
+        monitor_settings.write_settings(settings_file(), {k: v for k, v in {**state["saved"], **saved}.items() if v})
     except ConfigError as exc:
         raise SettingsRefused(str(exc)) from None
     with store() as s:
@@ -267,11 +290,10 @@ def _load(sent) -> tuple[list, int | None]:
     return changed, command
 
 
-def _change(section: str):
-    """Check, write, queue and audit the changed fields of one form (or JSON body) of table ``section``."""
-    group = GROUPS[section]
+def _change(group: str):
+    """Check, write, queue and audit the changed fields of form ``group`` (or its JSON body)."""
     try:
-        changed, command = _apply(section)
+        changed, command = _apply(group)
     except SettingsRefused as exc:
         message = f"{group} settings not changed: {exc}"
         if request.is_json:
@@ -290,13 +312,14 @@ def _change(section: str):
     return redirect(url_for("settings.page")), 303
 
 
-def _apply(section: str) -> tuple[list, int | None]:
+def _apply(group: str) -> tuple[list, int | None]:
     """The changes made and the queued command's id (None when nothing changed)."""
     state = current()
     if state["file_error"]:
         raise SettingsRefused(f"{state['file_error']}: an engineer must fix or remove it first", 409)
-    values = {key: entry["value"] for key, entry in state["settings"][section].items()}
-    submitted = _submitted(section, values)
+    section, keys = FORMS[group]
+    values = {key: state["settings"][section][key]["value"] for key in keys}
+    submitted = _submitted(group, values)
     changed = [(key, values[key], value) for key, value in submitted.items()
                if not monitor_settings.same(values[key], value)]
     if not changed:
@@ -313,20 +336,20 @@ def _apply(section: str) -> tuple[list, int | None]:
     return changed, command
 
 
-def _submitted(section: str, values: dict) -> dict:
-    """The fields sent for table ``section``: a form's text as numbers where the setting is a number."""
+def _submitted(group: str, values: dict) -> dict:
+    """The fields sent in form ``group``: a form's text as numbers where the setting is a number."""
     data = request.get_json(silent=True) if request.is_json else request.form.to_dict()
     if not isinstance(data, dict):
         raise SettingsRefused("send the settings as a form or a JSON object")
     data.pop("csrf_token", None)
-    allowed = monitor_settings.SECTIONS[section]
+    allowed = FORMS[group][1]
     unknown = sorted(set(data) - set(allowed))
     if unknown:
-        raise SettingsRefused(f"unknown field {unknown[0]!r}; {GROUPS[section]} settings are {', '.join(allowed)}")
-    return {key: _as_number(value) if isinstance(values[key], (int, float)) else value for key, value in data.items()}
+        raise SettingsRefused(f"unknown field {unknown[0]!r}; {group} settings are {', '.join(allowed)}")
+    return {key: as_number(value) if isinstance(values[key], (int, float)) else value for key, value in data.items()}
 
 
-def _as_number(value):
+def as_number(value):
     """A form's text as an int or float when it reads as one; anything else as it came, for the check to name."""
     if not isinstance(value, str):
         return value
@@ -343,7 +366,7 @@ def _page(error: str | None = None, status: int = 200):
     with reader() as s:
         history = s.commands_since(time.time() - HISTORY_S, [monitor_settings.COMMAND])
     return render_template("settings.html", state=state, error=error, labels=LABELS, choices=_choices(state),
-                           history=history, restart_note=monitor_settings.RESTART_NOTE,
+                           forms=FORMS, history=history, restart_note=monitor_settings.RESTART_NOTE,
                            shown=monitor_settings.shown, span_text=span_text), status
 
 

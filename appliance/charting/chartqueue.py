@@ -83,6 +83,11 @@ class ChartQueue:
                                     " ORDER BY seq LIMIT ?", (limit,)).fetchall()
         return [Queued(seq, json.loads(text), queued_at) for seq, text, queued_at in rows]
 
+    def waiting(self) -> int:
+        """How many records wait for the engine's answer (those held in memory not counted: see ``unwritten``)."""
+        with self._lock:
+            return self._db.execute("SELECT COUNT(*) FROM messages WHERE state = 'pending'").fetchone()[0]
+
     def refused(self) -> list[Queued]:
         """Records the engine refused, oldest first, with its answer."""
         with self._lock:

@@ -113,7 +113,8 @@ class ChartingLink:
     def status(self) -> dict:
         with self._lock:
             waiting = None if self._head is None else time.monotonic() - self._head[1]
-        return {"connected": self._connection is not None, "oldest_undelivered_s": waiting,
+        return {"target": f"{self.host}:{self.port}", "connected": self._connection is not None,
+                "waiting": self.queue.waiting(), "oldest_undelivered_s": waiting,
                 "delivered": self.delivered, "refused": self.refusals, "unwritten": self.queue.unwritten,
                 "last_error": self.last_error}
 

@@ -12,6 +12,10 @@ Traceback (most recent call last):
 ValueError: [monitor]: unknown key 'layuot'; allowed: layout
 >>> print(toml_value(['a "b"', 2, 0.5, True]))
 ["a \\u0022b\\u0022", 2, 0.5, true]
+>>> print(toml_table("charting", {"hl7": {"host": "engine", "port": 2575}}), end="")
+[charting.hl7]
+host = "engine"
+port = 2575
 """
 
 from __future__ import annotations
@@ -57,7 +61,7 @@ def toml_value(value) -> str:
 
     Text is a basic string, its quotes, backslashes and control characters written as ``\\uXXXX`` escapes; a float
     is Python's shortest repr, which TOML reads back to the same number (``inf`` and ``nan`` included). Anything
-    else (a table, None) raises TypeError naming it: the files we write hold tables only at their top level.
+    else (a table, None) raises TypeError naming it: tables are written whole by :func:`toml_table`.
     """
     if isinstance(value, str):
         escaped = "".join(f"\\u{ord(c):04x}" if c in '"\\' or ord(c) < 0x20 or ord(c) == 0x7f else c for c in value)
@@ -71,3 +75,14 @@ def toml_value(value) -> str:
     if isinstance(value, float):
         return repr(value)
     raise TypeError(f"TOML values here are text, numbers, true or false and lists of them, got {value!r}")
+
+
+def toml_table(name: str, table: dict) -> str:
+    """Table ``name`` with its values under a ``[name]`` header and each table in it as ``[name.key]`` after them
+    (none for an empty one), as TOML writes nested tables."""
+    values = {key: value for key, value in table.items() if not isinstance(value, dict)}
+    text = f"[{name}]\n" + "".join(f"{key} = {toml_value(value)}\n" for key, value in values.items()) if values else ""
+    for key, value in table.items():
+        if isinstance(value, dict) and value:
+            text += ("\n" if text else "") + toml_table(f"{name}.{key}", value)
+    return text

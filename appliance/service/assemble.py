@@ -19,7 +19,6 @@ LIVE_FILE = "live.json"
 STORE_FILE = "appliance.db"
 DEAD_LETTER_FILE = "dead-letters.jsonl"
 OUTBOX_FILE = "ward-outbox.db"
-CHARTING_FILE = "charting-queue.db"
 
 
 def assemble(config: MonitorConfig, *, say: Callable[[str], None], on_event=None, on_map=None,
@@ -41,6 +40,7 @@ def assemble(config: MonitorConfig, *, say: Callable[[str], None], on_event=None
 
 def _assemble(config: MonitorConfig, lock, *, say, on_event, on_map, live: bool) -> MonitorDaemon:
     from appliance.charting.link import ChartingLink
+    from appliance.service.charting_target import follow_patient
     from appliance.core.model_cache import cached_model, default_cache_dir, default_setup
     from appliance.core.named_layouts import get_layout
     from appliance.service import settings
@@ -80,7 +80,7 @@ def _assemble(config: MonitorConfig, lock, *, say, on_event, on_map, live: bool)
         settings.attach(daemon)
         for notifier in notifiers:
             if isinstance(notifier, ChartingLink):  # it names the admitted patient in its messages
-                notifier.patient = lambda: daemon.pipeline.episode
+                follow_patient(notifier, daemon)
         daemon.add_commands(engineering_commands(daemon))
         starting("reference", 0.0)
         daemon.start()
@@ -138,9 +138,8 @@ def _notifiers(config: MonitorConfig, data_dir: Path, closers: list) -> list:
     ``closers`` as soon as it is made."""
     from appliance.alerts.notifiers import WebhookNotifier
     from appliance.alerts.wardlink import WardLink
-    from appliance.charting.chartqueue import ChartQueue
-    from appliance.charting.hl7 import Parties
     from appliance.charting.link import ChartingLink
+    from appliance.service.charting_target import charting_link
     from appliance.store.outbox import Outbox
 
     notifiers: list[WardLink | WebhookNotifier | ChartingLink] = []
@@ -160,18 +159,8 @@ def _notifiers(config: MonitorConfig, data_dir: Path, closers: list) -> list:
         notifiers.append(WebhookNotifier(config.webhook.url, timeout_s=config.webhook.timeout_s,
                                          dead_letter_path=data_dir / DEAD_LETTER_FILE))
         closers.append(notifiers[-1].close)
-    if config.hl7 is not None:
-        h = config.hl7
-        queue = ChartQueue(data_dir / CHARTING_FILE)
-        try:
-            charting = ChartingLink(h.host, h.port, Parties(h.sending_application, h.sending_facility,
-                                                            h.receiving_application, h.receiving_facility,
-                                                            config.bed_id), queue,
-                                    ack_timeout_s=h.ack_timeout_s, undelivered_alarm_s=h.undelivered_alarm_s,
-                                    observation_interval_s=h.observation_interval_s)
-        except BaseException:
-            queue.close()
-            raise
+    charting = charting_link(config, data_dir)
+    if charting is not None:
         notifiers.append(charting)
         closers.append(charting.close)              # closes the queue too
     return notifiers

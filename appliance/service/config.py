@@ -10,6 +10,7 @@ runs, not after it silently ignored it::
     source = "virtual"            # virtual | emulated | hardware
     frame_interval_s = 1.0
     bed_id = "ward3-bed12"        # MQTT topics and the live view name the bed by this
+    time_zone = "Europe/London"   # IANA zone for the clock times shown and reported (default: the system's)
     data_dir = "/var/lib/appliance"
     # calibration = "pressure.json"   (default: the virtual mat's own, made once)
 
@@ -57,8 +58,9 @@ runs, not after it silently ignored it::
     led = "status_led"
 
     [charting.hl7]                # HL7 v2 ORU^R01 over MLLP to the hospital's interface engine
-    host = "engine.hospital"
+    host = "engine.hospital"      # a host name or an IP address
     port = 2575
+    enabled = true                # false: nothing is sent; what is queued waits
     sending_facility = "WARD3"
     receiving_application = "EHR"
     receiving_facility = "HOSPITAL"

@@ -7,8 +7,11 @@ profile and the virtual bed's scenario are checked against the drivers' and the 
 
 from __future__ import annotations
 
+import contextlib
+import ipaddress
 import math
 import os
+import re
 import socket
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,10 +23,15 @@ from appliance.alerts.pipeline import AlertSettings
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.core.toml_files import check_keys, read_toml_as
 from appliance.errors import ConfigError, CurveInvalid
+from appliance.time_zones import system_zone, time_zone
 
 SOURCES = ("virtual", "emulated", "hardware")
 FRAME_INTERVAL_RANGE_S = (0.05, 3600.0)
 """Seconds between frames, here and for the command line's --interval, which overrides it."""
+HL7_KEYS = ("host", "port", "enabled", "sending_facility", "sending_application", "receiving_application",
+            "receiving_facility", "ack_timeout_s", "undelivered_alarm_s", "observation_interval_s")
+"""The keys of ``[charting.hl7]``, in the order the screen shows them."""
+HOST_LABEL = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)")
 SPEED_RANGE = (0.0, 1e6)
 """The virtual bed's scene seconds per wall-clock second, here and for --speed (0: as fast as it goes)."""
 
@@ -88,6 +96,8 @@ class Hl7Settings:
     ack_timeout_s: float = 10.0
     undelivered_alarm_s: float = 300.0
     observation_interval_s: float = 600.0
+    enabled: bool = True
+    """False keeps the target but sends nothing (what is queued waits for it to be switched on)."""
 
 
 @dataclass(frozen=True)
@@ -107,6 +117,8 @@ class MonitorConfig:
     source: str = "virtual"
     frame_interval_s: float = 1.0
     bed_id: str = field(default_factory=socket.gethostname)
+    time_zone: str = field(default_factory=system_zone)
+    """The IANA zone the screen and the shift report show clock times in."""
     data_dir: Path | None = None
     calibration: Path | None = None
     cache_dir: Path | None = None
@@ -143,8 +155,8 @@ def read_sections(data: dict, base: Path | None = None) -> MonitorConfig:
     against the board profiles and the scenarios."""
     _only(data, {"monitor", "virtual", "board", "alerts", "store", "notify", "charting"}, "the configuration")
     monitor = _section(data, "monitor")
-    _only(monitor, {"layout", "source", "frame_interval_s", "bed_id", "data_dir", "calibration", "cache_dir"},
-          "[monitor]")
+    _only(monitor, {"layout", "source", "frame_interval_s", "bed_id", "time_zone", "data_dir", "calibration",
+                    "cache_dir"}, "[monitor]")
     virtual = _section(data, "virtual")
     _only(virtual, {"scenario", "speed", "seed"}, "[virtual]")
     source = _choice(monitor, "source", SOURCES, "virtual", "[monitor]")
@@ -166,6 +178,7 @@ def read_sections(data: dict, base: Path | None = None) -> MonitorConfig:
         source=source,
         frame_interval_s=_number(monitor, "frame_interval_s", 1.0, "[monitor]", *FRAME_INTERVAL_RANGE_S),
         bed_id=_bed_id(monitor),
+        time_zone=_time_zone(monitor),
         data_dir=_path(monitor, "data_dir", base),
         calibration=_path(monitor, "calibration", base),
         cache_dir=_path(monitor, "cache_dir", base),
@@ -276,22 +289,47 @@ def _hl7(charting: dict) -> Hl7Settings | None:
     if not table:
         return None
     where = "[charting.hl7]"
-    _only(table, {"host", "port", "sending_facility", "sending_application", "receiving_application",
-                  "receiving_facility", "ack_timeout_s", "undelivered_alarm_s", "observation_interval_s"}, where)
+    _only(table, set(HL7_KEYS), where)
     if "port" not in table:
         raise ConfigError(f"{where} is missing 'port'")
+    enabled = table.get("enabled", True)
+    if not isinstance(enabled, bool):
+        raise ConfigError(f"{where}: enabled must be true or false, got {enabled!r}")
     names = {key: _text(table, key, default, where) for key, default in (
-        ("sending_facility", None), ("receiving_application", None), ("receiving_facility", ""),
-        ("sending_application", "APPLIANCE"))}
+        ("sending_facility", None), ("receiving_application", None), ("sending_application", "APPLIANCE"))}
+    names["receiving_facility"] = table.get("receiving_facility", "")     # MSH-6 may be empty: written as it is
+    if not isinstance(names["receiving_facility"], str):
+        raise ConfigError(f"{where}: receiving_facility must be text, got {names['receiving_facility']!r}")
     bad = [key for key, value in names.items() if any(c in value for c in "|^~\\&\r\n")]
     if bad:
         raise ConfigError(f"{where}: {bad[0]} must not hold HL7's delimiters | ^ ~ \\ & or line breaks")
-    return Hl7Settings(_text(table, "host", None, where),
+    return Hl7Settings(host_name(table, "host", where),
                        int(_number(table, "port", 2575, where, low=1, high=65535, integer=True)), **names,
                        ack_timeout_s=_number(table, "ack_timeout_s", 10.0, where, low=0.5, high=300.0),
                        undelivered_alarm_s=_number(table, "undelivered_alarm_s", 300.0, where, low=10.0, high=86400.0),
                        observation_interval_s=_number(table, "observation_interval_s", 600.0, where, low=10.0,
-                                                      high=86400.0))
+                                                      high=86400.0), enabled=enabled)
+
+
+def host_name(table: dict, key: str, where: str) -> str:
+    """``table[key]`` as a host: a DNS name (letters, digits and '-' in dot-separated labels of 1-63, 253 in all)
+    or an IPv4 or IPv6 address; anything else (a URL, a port, a space) is refused naming it."""
+    host = _text(table, key, None, where)
+    with contextlib.suppress(ValueError):
+        ipaddress.ip_address(host)
+        return host
+    if len(host) > 253 or not all(HOST_LABEL.fullmatch(label) for label in host.removesuffix(".").split(".")):
+        raise ConfigError(f"{where}: {key} must be a host name (such as engine.hospital) or an IP address, "
+                          f"got {host!r}")
+    return host
+
+
+def _time_zone(monitor: dict) -> str:
+    if "time_zone" not in monitor:
+        return system_zone()
+    name = monitor["time_zone"]
+    time_zone(name, "[monitor] time_zone")
+    return name
 
 
 def _gpio(table: dict) -> GpioSettings:

@@ -44,6 +44,7 @@ from appliance.alerts.events import Event
 from appliance.alerts.limits import not_default
 from appliance.alerts.wardlink import WardLink
 from appliance.alerts.pipeline import AlertPipeline, FrameAlerts, technical_alarms
+from appliance.charting.link import ChartingLink
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.errors import ApplianceError, ConfigError, DataFileInvalid, ReconstructionError, StoreCorrupt
 from appliance.service.config_sections import MonitorConfig
@@ -379,7 +380,8 @@ class MonitorDaemon:
         """What the live view shows: the map, regions with their dose, the turn clock, alarms and status."""
         engine, turns = self.pipeline.engine, self.pipeline.turns
         snapshot = {
-            "bed_id": self.config.bed_id, "time_s": now, "sequence": self.maps + self.faults,
+            "bed_id": self.config.bed_id, "time_zone": self.config.time_zone, "time_s": now,
+            "sequence": self.maps + self.faults,
             "frame_interval_s": self.config.frame_interval_s, "wall_interval_s": self.source.pace.period_s,
             "status": {"maps": self.maps, "faults": self.faults, "consecutive_faults": self.consecutive_faults,
                        "last_fault": self.last_fault, "source": self.config.source},
@@ -400,6 +402,7 @@ class MonitorDaemon:
                         "delivery": None if self.ward_link is None else self.ward_link.delivery(a.alarm_id)}
                        for a in engine.alarms()],
             "ward_link": None if self.ward_link is None else self.ward_link.status(),
+            "charting": next((n.status() for n in self.notifiers if isinstance(n, ChartingLink)), None),
             "audible": engine.audible(now),
             "settings_changed": not_default(self.pipeline.settings),   # on screen while any is not the default
         }

@@ -2,10 +2,12 @@
 
 The ward's configuration file says how a bed is monitored by default; what a
 nurse sets for the patient in it (threshold, tolerance curve, alarm dose,
-recovery, turn and escalation times) and what an engineer sets for the bed (its
-id and mat layout) is kept apart, in the monitor's data directory, so the
-configuration file stays the ward's and a restart keeps the nurse's choice. The
-file holds the same tables and keys as the configuration it overrides::
+recovery, turn and escalation times), what an engineer sets for the bed (its
+id and mat layout) and what an admin sets for the site (the time zone clock
+times are shown in, the hospital's HL7 interface engine) is kept apart, in the
+monitor's data directory, so the configuration file stays the ward's and a
+restart keeps the choice made on the screen. The file holds the same tables and
+keys as the configuration it overrides::
 
     [alerts]
     threshold_mmhg = 40
@@ -14,6 +16,15 @@ file holds the same tables and keys as the configuration it overrides::
     [monitor]
     bed_id = "ward3-bed12"
     layout = "grid-16x32"
+    time_zone = "Europe/London"
+
+    [charting.hl7]
+    host = "engine.hospital"
+    port = 2575
+    sending_facility = "WARD3"
+    receiving_application = "EHR"
+
+A ``[charting.hl7]`` table is the whole target and replaces the configuration's.
 
 and is checked by the configuration's own parser, so a value refused in the
 configuration file is refused here with the same message. A ``[policy]`` table
@@ -28,9 +39,11 @@ The screen is another process: it writes the file and queues an
 at its next frame. Patient settings rebuild the alert pipeline from its state,
 so doses, the turn clock and open alarms carry over (an open pressure alarm is
 held until its site has been relieved for the relief time, whatever the new
-threshold or alarm dose says); a new bed id shows at once;
-a new layout needs another reconstruction model and applies when the monitor
-restarts. The monitor keeps the settings it runs with in its store (state
+threshold or alarm dose says); a new bed id and time zone show at once; a new
+charting target takes over the charting queue at once
+(:mod:`appliance.service.charting_target`); a new layout needs another
+reconstruction model and applies when the monitor restarts.
+The monitor keeps the settings it runs with in its store (state
 ``settings``) for the screen to show.
 """
 
@@ -43,9 +56,12 @@ from pathlib import Path
 from appliance.alerts.limits import POLICY, alert_values, check_policy, check_within_policy
 from appliance.alerts.pipeline import AlertPipeline
 from appliance.core.named_layouts import BUILTIN_NAMES
-from appliance.core.toml_files import check_keys, read_toml, toml_value
+from appliance.core.toml_files import check_keys, read_toml
 from appliance.errors import ConfigError
 from appliance.files import write_atomic
+from appliance.time_zones import system_zone, time_zone
+from appliance.core.toml_files import toml_table
+from appliance.service.charting_target import describe_target, hl7_values, retarget
 from appliance.service.config_sections import MonitorConfig, read_sections
 
 SETTINGS_FILE = "settings.toml"
@@ -62,7 +78,11 @@ PATIENT_FIELDS = {"threshold_mmhg": "threshold_kpa", "curve": "curve", "alarm_do
 """Patient settings (keys of the configuration's ``[alerts]``) and the AlertSettings field each sets."""
 BED_KEYS = ("bed_id", "layout")
 """Bed settings (keys of the configuration's ``[monitor]``)."""
-SECTIONS = {"alerts": tuple(PATIENT_FIELDS), "monitor": BED_KEYS}
+CLOCK_KEYS = ("time_zone",)
+"""The site's clock (a key of the configuration's ``[monitor]``)."""
+CHARTING = "charting"
+"""The table of the charting target, ``[charting.hl7]`` as in the configuration."""
+SECTIONS = {"alerts": tuple(PATIENT_FIELDS), "monitor": (*BED_KEYS, *CLOCK_KEYS), CHARTING: ("hl7",)}
 """The settings file's tables of settings and the keys each may hold."""
 TABLES = (*SECTIONS, POLICY)
 """Every table the settings file may hold: the settings and the ward policy that bounds the patient's."""
@@ -105,13 +125,15 @@ def overlay(config: MonitorConfig, settings: dict) -> MonitorConfig:
     if "curve" in patient:
         alerts["curve_points"] = None                  # a built-in curve replaces the ward's own points
     bed = {key: getattr(checked, key) for key in settings.get("monitor", {})}
+    if CHARTING in settings:
+        bed["hl7"] = checked.hl7
     return dataclasses.replace(config, alerts=dataclasses.replace(config.alerts, **alerts), **bed)
 
 
 def settings_values(config: MonitorConfig) -> dict:
-    """The patient and bed settings of ``config`` in the file's tables and units (mmHg, minutes)."""
+    """The patient, bed and clock settings of ``config`` in the file's tables and units (mmHg, minutes)."""
     return {"alerts": alert_values(config.alerts),
-            "monitor": {"bed_id": config.bed_id, "layout": config.layout}}
+            "monitor": {"bed_id": config.bed_id, "layout": config.layout, "time_zone": config.time_zone}}
 
 
 def same(a, b) -> bool:
@@ -153,12 +175,25 @@ def write_settings(path, settings: dict) -> None:
 def settings_text(settings: dict) -> str:
     """``settings`` (checked first) as a settings file's TOML."""
     check_settings(settings)
-    lines = ["# Patient and bed settings made on the bedside screen; they override the configuration file.\n"]
-    for section in TABLES:
-        if settings.get(section):
-            lines.append(f"\n[{section}]\n")
-            lines += [f"{key} = {toml_value(value)}\n" for key, value in settings[section].items()]
+    lines = ["# Settings made on the bedside screen; they override the configuration file.\n"]
+    lines += [f"\n{toml_table(section, settings[section])}" for section in TABLES if settings.get(section)]
     return "".join(lines)
+
+
+def shown_time_zone(data_dir, live: dict | None) -> str:
+    """The zone clock times are shown in for the monitor of ``data_dir``: the settings file's, else the one the
+    monitor runs with (its live view ``live``), else the system's. A settings file that cannot be read is passed
+    over here, since the clock must still be shown; the settings page says what is wrong with it."""
+    try:
+        saved = read_settings(settings_path(data_dir))
+    except ConfigError:
+        saved = {}
+    for name in (saved.get("monitor", {}).get("time_zone"), (live or {}).get("time_zone")):
+        try:
+            return time_zone(name).key
+        except ConfigError:
+            continue
+    return system_zone()
 
 
 def load_overlaid(config: MonitorConfig, data_dir) -> MonitorConfig:
@@ -173,22 +208,33 @@ def attach(daemon) -> None:
     publish(daemon, daemon.source.now())
 
 
+def published(config: MonitorConfig) -> dict:
+    """What the monitor running with ``config`` tells the screen: its settings, and its charting target."""
+    return {**settings_values(config), CHARTING: {"hl7": hl7_values(config.hl7)}}
+
+
 def publish(daemon, now: float) -> None:
-    """Save the settings ``daemon`` runs with in its store (state ``settings``), where the screen reads them."""
-    daemon.writes.save_state(STATE, settings_values(daemon.config), now)
+    """Save what ``daemon`` runs with (:func:`published`) in its store (state ``settings``), where the screen
+    reads it."""
+    daemon.writes.save_state(STATE, published(daemon.config), now)
 
 
 def apply_settings(daemon, now: float, args: dict) -> tuple[list, str]:
     """The ``apply-settings`` command: lay ``args`` (tables as in the settings file) over the running
     configuration; patient settings take effect now, the pipeline rebuilt from its state so doses, turn
-    clock and open alarms carry over. A wrong value, or a patient setting outside the ward policy in the
-    settings file, raises ConfigError, which refuses the command (the store takes whatever any process queues)."""
+    clock and open alarms carry over, and a new charting target takes over the charting queue. A wrong value,
+    or a patient setting outside the ward policy in the settings file, raises ConfigError, which refuses the
+    command (the store takes whatever any process queues)."""
     wanted = overlay(daemon.config, args)
     if daemon.config.data_dir is not None:
         check_within_policy(args.get("alerts", {}), policy_of(read_settings(settings_path(daemon.config.data_dir))))
     changed = changes(settings_values(daemon.config), settings_values(wanted))
-    if not changed:
+    target = wanted.hl7 != daemon.config.hl7
+    if not changed and not target:
         return [], "nothing changed"
+    old_target = daemon.config.hl7
+    if target:
+        retarget(daemon, wanted)                   # first: a queue that cannot be opened refuses the whole command
     if wanted.alerts != daemon.config.alerts:
         daemon.pipeline = AlertPipeline.from_state(daemon.grid, daemon.pipeline.state(), wanted.alerts)
     daemon.config = dataclasses.replace(wanted, layout=daemon.config.layout)   # the running model's mat
@@ -196,6 +242,8 @@ def apply_settings(daemon, now: float, args: dict) -> tuple[list, str]:
     applied = [c for c in changed if c[0] != "layout"]
     later = [c for c in changed if c[0] == "layout"]
     parts = [f"applied {describe(applied)}"] if applied else []
+    if target:
+        parts.append(f"charting target {describe_target(old_target)} -> {describe_target(wanted.hl7)}")
     if later:
         parts.append(f"{describe(later)} {RESTART_NOTE}")
     if daemon.config.mqtt is not None and any(c[0] == "bed_id" for c in changed):

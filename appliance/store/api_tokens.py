@@ -58,6 +58,11 @@ class ApiTokens:
         with self._db() as db:
             return [row[0] for row in db.execute("SELECT name FROM tokens ORDER BY name")]
 
+    def made(self) -> list[tuple[str, float]]:
+        """Each token's name and when it was made (Unix seconds), by name."""
+        with self._db() as db:
+            return [(name, made_at) for name, made_at in db.execute("SELECT name, made_at FROM tokens ORDER BY name")]
+
     def client(self, token: str) -> str | None:
         """The name the token was made for, or None if it is not a current token."""
         with self._db() as db:

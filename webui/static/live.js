@@ -1,6 +1,6 @@
 // The live view: draws each snapshot the server streams (map, regions, alarms, turn clock), and lets the nurse
-// acknowledge an alarm or pause its sound from here. Times are shown as the screen's local clock time: the
-// monitor's own time (time_s) is turned into wall time through the snapshot's written_at.
+// acknowledge an alarm or pause its sound from here. Times are shown as the site time zone's clock time (the
+// page names it): the monitor's own time (time_s) is turned into wall time through the snapshot's written_at.
 "use strict";
 const TURN_SOON_S = 30 * 60;        // the turn clock is amber from this long before the turn is due, red once overdue
 const RANK = {low: 1, medium: 2, high: 3};
@@ -44,11 +44,15 @@ function turnState(dueInS) {
   return dueInS < 0 ? "overdue" : dueInS <= TURN_SOON_S ? "soon" : "ok";
 }
 
-// The wall-clock time of the monitor time t (s), as the screen's locale writes hours and minutes.
+// Hours and minutes in the site's time zone (an IANA name the server puts on the page) with its abbreviation, so
+// the hour repeated when the clocks go back reads apart; as the screen's locale writes them.
+const CLOCK = {hour: "2-digit", minute: "2-digit", timeZoneName: "short",
+               timeZone: document.getElementById("live").dataset.timeZone};
+
+// The wall-clock time of the monitor time t (s) in the site's zone.
 function clockTime(snapshot, t, seconds = false) {
   const at = new Date((snapshot.written_at - (snapshot.time_s - t)) * 1000);
-  return at.toLocaleTimeString([], seconds ? {hour: "2-digit", minute: "2-digit", second: "2-digit"}
-                                          : {hour: "2-digit", minute: "2-digit"});
+  return at.toLocaleTimeString([], seconds ? {...CLOCK, second: "2-digit"} : CLOCK);
 }
 
 // The priority to sound: the highest of the alarms neither acknowledged nor paused (nor just acknowledged here),

@@ -1,0 +1,25 @@
+"""docs/configuration.md: every TOML example in it is a configuration the monitor accepts, and every key of the
+tables it documents in full is in its tables, so the reference cannot drift from the code."""
+
+import re
+import tomllib
+from pathlib import Path
+
+from appliance.service.config import config_from_mapping
+from appliance.service.config_sections import HL7_KEYS
+
+REFERENCE = Path(__file__).resolve().parents[1] / "docs" / "configuration.md"
+
+
+def test_every_example_is_accepted_as_written():
+    text = REFERENCE.read_text(encoding="utf-8")
+    examples = re.findall(r"```toml\n(.*?)```", text, re.S)
+    assert len(examples) == 2
+    for example in examples:
+        config = config_from_mapping(tomllib.loads(example))
+        assert config.time_zone == "Europe/London" or config.hl7 is not None
+
+
+def test_every_key_of_the_documented_tables_has_a_row():
+    rows = set(re.findall(r"^\| `([a-z_]+)` \|", REFERENCE.read_text(encoding="utf-8"), re.M))
+    assert rows == {*HL7_KEYS, "time_zone"}
