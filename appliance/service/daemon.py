@@ -46,6 +46,7 @@ from appliance.alerts.anatomy import POSTURE_WORDS, site_words
 from appliance.alerts.episodes import Episode
 from appliance.alerts.events import Event
 from appliance.alerts.limits import not_default
+from appliance.alerts.nurse_call import NurseCallRelays
 from appliance.alerts.ward_commands import WardCommand
 from appliance.alerts.wardlink import WardLink
 from appliance.alerts.pipeline import AlertPipeline, FrameAlerts, technical_alarms
@@ -95,13 +96,14 @@ class MonitorDaemon:
     """
 
     def __init__(self, config: MonitorConfig, source, model, calibration, store, *, notifiers=(), gpio=None,
-                 live: LiveChannel | None = None, on_event: Callable[[Event], None] | None = None,
-                 on_map: Callable | None = None, say: Callable[[str], None] = log.info,
+                 nurse_call: NurseCallRelays | None = None, live: LiveChannel | None = None,
+                 on_event: Callable[[Event], None] | None = None, on_map: Callable | None = None,
+                 say: Callable[[str], None] = log.info,
                  systemd: SystemdNotifier | None = None, lock=None):
         self.lock = lock            # the data folder's, given up last on close
         self.config, self.source, self.model, self.store = config, source, model, store
         self.writes = HeldWrites(store)         # a full disk holds the records in memory; monitoring goes on
-        self.notifiers, self.gpio, self.live = list(notifiers), gpio, live
+        self.notifiers, self.gpio, self.nurse_call, self.live = list(notifiers), gpio, nurse_call, live
         self.ward_link = next((n for n in self.notifiers if isinstance(n, WardLink)), None)
         self.on_event, self.on_map, self.say = on_event, on_map, say
         self.systemd = systemd or SystemdNotifier()
@@ -386,6 +388,8 @@ class MonitorDaemon:
                 self.on_event(event)
         if self.gpio is not None:
             self.gpio.show(self.pipeline.engine.audible(now))
+        if self.nurse_call is not None:
+            self.nurse_call.show(self.pipeline.engine.alarms())
 
     def _prune_when_due(self, now: float) -> None:
         """Retention: at the first frame and every ``PRUNE_EVERY_S`` after (a clock step counts as due), so the
@@ -416,7 +420,7 @@ class MonitorDaemon:
 
     def _helper_faults(self) -> dict[str, str]:
         """A technical alarm for each helper that is failing: the live view's writer, a notifier's threads
-        (restarted with a back-off by their supervisors)."""
+        (restarted with a back-off by their supervisors), the nurse-call relays' lines."""
         faults = {}
         if self.live is not None and self.live.fault is not None:
             faults["technical:live-view"] = f"the live view cannot be written (retrying): {self.live.fault}"
@@ -427,6 +431,8 @@ class MonitorDaemon:
         for notifier in self.notifiers:
             if hasattr(notifier, "conditions"):         # the ward link's and the charting link's own alarms
                 faults.update(notifier.conditions())
+        if self.nurse_call is not None:
+            faults.update(self.nurse_call.conditions())
         return faults
 
     def _snapshot(self, now: float, pressure_map, alerts: FrameAlerts) -> dict:
@@ -475,6 +481,8 @@ class MonitorDaemon:
             notifier.close()
         if self.gpio is not None:
             self.gpio.close()
+        if self.nurse_call is not None:
+            self.nurse_call.close()
         if self.live is not None:
             self.live.close()
         if not self.writes.flush():
