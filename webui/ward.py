@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import time
 
-from flask import Blueprint, abort, current_app, flash, g, jsonify, redirect, render_template, url_for
+from flask import Blueprint, abort, current_app, g, jsonify, render_template
 
-from webui.alarms import wants_json
+from webui.alarms import answer
 from webui.live import SIMULATED
 from webui.security import requires
 from webui.streams import event_stream
@@ -29,7 +29,7 @@ bp = Blueprint("ward", __name__)
 POLL_S = 0.25
 REGIONS_SHOWN = 3       # the most loaded sites of a bed; its own screen has them all
 COMMANDS_SHOWN = 3      # a bed's latest commands from the ward, with their state
-COMMANDS_SHOWN_S = 900.0
+COMMANDS_SHOWN_S = 900.0  # how far back a tile looks for them; the station's journal keeps them all
 COMMAND_FIELDS = ("id", "kind", "args", "user", "issued_at", "state", "result")
 
 
@@ -116,11 +116,7 @@ def _send(bed: dict, kind: str, args: dict, what: str):
 
 
 def _answer(message: str, status: int, command: dict | None = None):
-    """JSON for the page's ``fetch``; for a plain form, the message flashed on the ward page."""
-    if wants_json():
-        return jsonify({"message": message, "command": command}), status
-    flash(message, "info" if command is not None else "error")
-    return redirect(url_for("ward.page")), 303
+    return answer(message, status, "ward.page", command=command)
 
 
 @bp.route("/api/ward/stream")
