@@ -72,6 +72,7 @@ class CommandSender:
         command = new_command(bed_id, kind, args, user, self.station, time.time(), self.expiry_s)
         self.journal.add(command)
         self._send(command)
+        self.on_change()
         return self.journal.get(command.id) or {}
 
     def connected(self, up: bool) -> None:
