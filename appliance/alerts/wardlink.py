@@ -99,6 +99,7 @@ class WardLink:
         self.published = self.confirmed = self.summaries_sent = self.summaries_skipped = 0
         self.commands_received = self.bad_commands = 0
         self._commands: list[WardCommand] = []                  # taken from the station, for the monitor loop
+        self._command_subscription: int | None = None           # the mid of its subscription
         self._answers: list[str] = []                           # answers for the sender to publish
         self.confirm_latencies_s: list[float] = []
         self._summary_due = float("-inf")
@@ -295,12 +296,19 @@ class WardLink:
             log.warning("ward link: the broker refused the connection: %s", reason_code)
             return
         client.publish(self.status_topic, "online", qos=1, retain=True)
-        client.subscribe([(self.confirm_topic, 1), (self.command_topic, 1)])
+        client.subscribe(self.confirm_topic, qos=1)
+        # Apart: a broker whose ACL predates the ward's commands refuses this one, and must still get the alarms.
+        self._command_subscription = client.subscribe(self.command_topic, qos=1)[1]
 
     def _on_subscribe(self, client, userdata, mid, reason_codes, properties) -> None:
+        if mid == self._command_subscription:
+            if any(code.is_failure for code in reason_codes):
+                log.error("ward link: the broker refused %s (%s): the ward station's commands cannot reach this "
+                          "bed; write its ACL again with appliance ward-broker", self.command_topic, reason_codes)
+            return
         if any(code.is_failure for code in reason_codes):
-            log.error("ward link: the broker refused the topics %s and %s: %s", self.confirm_topic,
-                      self.command_topic, reason_codes)
+            log.error("ward link: the broker refused the confirmations' topic %s: %s", self.confirm_topic,
+                      reason_codes)
             return
         with self._lock:
             self._ready, self._down_since = True, None
