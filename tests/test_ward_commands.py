@@ -21,26 +21,19 @@ from appliance.ward.journal import CommandJournal
 BED = "ward-bed"
 
 
-class Publisher:
-    """A bare client that publishes what the station would, as often as a test likes (QoS 1 repeats)."""
-
-    def __init__(self, port):
-        self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="test-repeater")
-        self.client.connect("127.0.0.1", port)
-        self.client.loop_start()
-
-    def send(self, command):
-        self.client.publish(f"appliance/{command.bed_id}/command", command.to_payload(), qos=1).wait_for_publish(5)
-
-    def close(self):
-        release(self.client)
-
-
 @pytest.fixture
 def repeater(broker):
-    publisher = Publisher(broker.port)
-    yield publisher
-    publisher.close()
+    """Publishes a command as the station would, as often as a test likes (QoS 1 repeats), or any payload on
+    any topic."""
+    client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="test-repeater")
+    client.connect("127.0.0.1", broker.port)
+    client.loop_start()
+
+    def send(command, topic=None):
+        payload = command if topic else command.to_payload()
+        client.publish(topic or f"appliance/{command.bed_id}/command", payload, qos=1).wait_for_publish(5)
+    yield send
+    release(client)
 
 
 def bed_link(broker, tmp_path):
@@ -85,11 +78,11 @@ def test_a_command_delivered_three_times_is_applied_once_and_its_answer_reaches_
             sent = station.commands.send(BED, "acknowledge", {"alarm_id": alarm.alarm_id}, "nurse.smith")
             assert sent["state"] == "pending" and sent["user"] == "nurse.smith"
             command = journal.pending()[0]
-            repeater.send(command)
-            repeater.send(command)                       # as QoS 1 may: the same id twice more
+            repeater(command)
+            repeater(command)                       # as QoS 1 may: the same id twice more
             assert wait_until(lambda: daemon.ward_link.commands_received >= 3)
             assert step_until(daemon, lambda: journal.get(command.id)["state"] == "done")
-            repeater.send(command)                       # after it was applied
+            repeater(command)                       # after it was applied
             assert wait_until(lambda: daemon.ward_link.commands_received >= 4)
             daemon.step()
         finally:
@@ -132,7 +125,7 @@ def test_a_turn_sent_while_the_bed_is_down_and_across_a_station_restart_is_appli
             daemon.close()
     daemon = start_bed(small_mat_calibration, tmp_path, broker)               # the bed restarts: a copy comes late
     try:
-        repeater.send(command)
+        repeater(command)
         assert wait_until(lambda: daemon.ward_link.commands_received >= 1)
         daemon.step()
         daemon.step()
@@ -154,7 +147,7 @@ def test_a_command_whose_bed_stays_away_expires_and_the_bed_refuses_a_late_copy(
         journal.add(late)                                    # as if the station had sent it a minute ago
         daemon = start_bed(small_mat_calibration, tmp_path, broker)
         try:
-            repeater.send(late)
+            repeater(late)
             assert step_until(daemon, lambda: journal.get(late.id)["state"] == "refused")
             assert journal.get(command_id)["state"] == "expired"     # never sent again once given up
         finally:
@@ -194,17 +187,13 @@ def test_a_bad_command_is_refused_naming_what_is_wrong(change, message):
         parse_command(json.dumps({**good, **change}).encode(), BED)
 
 
-def test_a_bad_answer_is_refused_and_the_station_counts_it(broker, tmp_path):
+def test_a_bad_answer_is_refused_and_the_station_counts_it(broker, tmp_path, repeater):
     with pytest.raises(ValueError, match="state of done, refused"):
         parse_result(json.dumps({"id": "a" * 32, "state": "maybe", "result": "", "answered_at": 1.0}).encode())
     with subscribed_station(broker.port, client_id="test-station",
                             journal=CommandJournal(tmp_path / "journal.db")) as station:
-        publisher = Publisher(broker.port)
-        try:
-            publisher.client.publish(f"appliance/{BED}/command-result", "not json", qos=1).wait_for_publish(5)
-            assert wait_until(lambda: station.bad_payloads == 1)
-        finally:
-            publisher.close()
+        repeater("not json", f"appliance/{BED}/command-result")
+        assert wait_until(lambda: station.bad_payloads == 1)
 
 
 # The ward screen's controls.
