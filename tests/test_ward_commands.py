@@ -152,7 +152,7 @@ def test_a_command_whose_bed_stays_away_expires_and_the_bed_refuses_a_late_copy(
             assert journal.get(command_id)["state"] == "expired"     # never sent again once given up
         finally:
             daemon.close()
-    assert re.match(r"expired: record-turn from ward:nurse.smith came 3\d s after it was due",
+    assert re.match(r"expired: record-turn from ward:nurse.smith came 3\d s after it expired",
                     journal.get(late.id)["result"])
     assert [e for e in logged(tmp_path, "recorded") if e["user"] == "ward:nurse.smith"] == []
 

@@ -268,8 +268,9 @@ class MonitorDaemon:
         self.writes.commit_frame(now, events + self._clock_steps(now),
                                  {"alerts": self.pipeline.state(), "outbox": {"events": [e.to_dict() for e in events]}},
                                  outcomes, ward_done)
-        for done in ward_done:                  # once kept: a crash before this is answered from the store
-            self.ward_link.answer(done["ward_id"], done["applied"], done["result"])     # type: ignore[union-attr]
+        if self.ward_link is not None:          # answered once kept: after a crash before this, from the store
+            for done in ward_done:
+                self.ward_link.answer(done["ward_id"], done["applied"], done["result"])
         self._tell(events, now)
         self._prune_when_due(now)
         if pressure_map is not None and self.on_map is not None:
@@ -341,7 +342,7 @@ class MonitorDaemon:
         """One new command from the ward station through its handler, unless it came too late."""
         late_s = time.time() - command.expires_at
         if late_s > 0:
-            result = f"expired: {command.kind} from {command.bed_user} came {late_s:.0f} s after it was due " \
+            result = f"expired: {command.kind} from {command.bed_user} came {late_s:.0f} s after it expired " \
                      f"(the bed was away or the network slow); nothing was done, ask again if still needed"
             self.say(f"ward command {command.kind} by {command.bed_user} refused: {result}")
             return [], False, result
