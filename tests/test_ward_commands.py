@@ -254,3 +254,21 @@ def test_only_a_logged_in_user_may_act_and_a_watching_station_says_it_cannot(tmp
     answer = nurse.post(f"/ward/{BED}/turn", headers={"X-CSRF-Token": token(nurse, "/ward"),
                                                      "Accept": "application/json"})
     assert answer.status_code == 503 and "only watches the beds" in answer.get_json()["message"]
+
+
+def test_a_command_no_bed_could_take_is_refused_at_the_station_and_not_journalled(tmp_path, broker, beds):
+    from test_ward_screen import ward, ward_app
+    from ward_payloads import summary
+    from webui_client import client_as, token
+
+    journal = CommandJournal(tmp_path / "journal.db")
+    long_id = "b" * 70                                   # no bed may have it (the broker's logins allow 64)
+    with subscribed_station(broker.port, client_id="test-station", journal=journal) as station:
+        app = ward_app(tmp_path, station)
+        nurse = client_as(app, "nurse")
+        beds(long_id).summarise(summary(long_id))
+        assert wait_until(lambda: ward(nurse)["beds"])
+        answer = nurse.post(f"/ward/{long_id}/turn", headers={"X-CSRF-Token": token(nurse, "/ward"),
+                                                             "Accept": "application/json"})
+    assert answer.status_code == 400 and "bed_id must be 1-64 printable characters" in answer.get_json()["message"]
+    assert journal.recent(0.0) == []

@@ -107,7 +107,10 @@ def _send(bed: dict, kind: str, args: dict, what: str):
     sender = current_app.extensions["ward_station"].commands
     if sender is None:
         return _answer("this station has no command journal: it only watches the beds", 503)
-    command = sender.send(bed["bed_id"], kind, args, g.user.name)
+    try:
+        command = sender.send(bed["bed_id"], kind, args, g.user.name)
+    except ValueError as exc:                       # what no bed would take, e.g. a bed id longer than any may be
+        return _answer(f"not sent: {exc}", 400)
     current_app.extensions["users"].audit(g.user.name, f"ward: {what}", f"bed {bed['bed_id']}, command "
                                                                         f"{command['id']}")
     when = "the bed applies it at its next frame" if bed["online"] else \
