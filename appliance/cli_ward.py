@@ -4,8 +4,8 @@
 It subscribes to the ward's MQTT broker (``appliance.ward.station``) with the
 broker settings of its configuration file (``appliance.ward.config``) and serves
 the ward's screen (``webui.create_ward_app``) with waitress until SIGTERM. The
-screen's accounts are its own, kept in the data directory; the first visit sets
-up the admin. Put it behind a TLS proxy as a bed's screen is.
+screen's accounts are its own, kept in the data directory with the journal of
+the commands its nurses send to beds; the first visit sets up the admin. Put it behind a TLS proxy as a bed's screen is.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from pathlib import Path
 DEFAULT_THREADS = 16        # a few station screens and their event streams
 MAX_THREADS = 1000          # far more screens than a ward has
 DEFAULT_STATION = "ward-station"
+JOURNAL = "ward-commands.db"
 
 
 def add_parsers(sub) -> None:
@@ -27,8 +28,8 @@ def add_parsers(sub) -> None:
                                                              "[station])")
     p.add_argument("--check-config", action="store_true", help="check the configuration, print it and exit")
     p.add_argument("--data-dir", type=Path, default=None,
-                   help="where the screen's accounts and audit log are kept (default $APPLIANCE_DATA_DIR/ward "
-                        "or ~/.local/share/appliance/ward)")
+                   help="where the screen's accounts, audit log and command journal are kept (default "
+                        "$APPLIANCE_DATA_DIR/ward or ~/.local/share/appliance/ward)")
     p.add_argument("--listen", metavar="[HOST:]PORT", default="8090", help="the screen's address (default "
                                                                            "127.0.0.1:8090)")
     p.add_argument("--threads", type=whole_within(1, MAX_THREADS), default=DEFAULT_THREADS,
@@ -64,6 +65,7 @@ def _ward(args) -> int:
     from appliance.errors import ConfigError
     from appliance.service.config_sections import default_data_dir
     from appliance.ward.config import load_ward_config
+    from appliance.ward.journal import CommandJournal
     from appliance.ward.station import WardStation
     from webui import create_ward_app
     from webui.server import serve
@@ -77,7 +79,8 @@ def _ward(args) -> int:
         return 0
     data_dir = args.data_dir or default_data_dir() / "ward"
     signal.signal(signal.SIGTERM, _stop)
-    with WardStation.from_config(config) as station:
+    data_dir.mkdir(parents=True, exist_ok=True)
+    with WardStation.from_config(config, CommandJournal(data_dir / JOURNAL)) as station:
         app = create_ward_app(data_dir, station, config, secure_cookies=not args.plain_http)
         b = config.broker
         print(f"ward station: beds under {b.topic_prefix}/ on {b.host}:{b.port}{' (TLS)' if b.ca_file else ''}; "

@@ -359,6 +359,21 @@ def test_the_ward_station_shows_every_bed_a_new_alarm_within_2_s_and_a_stopped_b
                  "bed 12 offline")
         assert "offline" in next(t["class"] for t in tiles(browser) if t["bed"] == "ward3-bed12")
         assert "12 bed(s): 3 with alarms, 1 offline" in text(browser, "#counts")
+
+        # A nurse acknowledges bed 4's alarm from the ward: pending until the bed answers, then done.
+        sizes = browser.execute_script("return Array.from(document.querySelectorAll('article.bed button'))"
+                                       ".map(b => [b.offsetWidth, b.offsetHeight]);")
+        assert len(sizes) == 12 + 3 and all(w >= 44 and h >= 44 for w, h in sizes), sizes   # a turn each, 3 acks
+        browser.execute_script("document.querySelector(arguments[0]).click();",    # one step: the page redraws often
+                               'article[data-bed="ward3-bed04"] [data-alarm="1"] button')
+        bed4 = notifiers["ward3-bed04"]
+        wait_for(lambda: bed4.commands_received == 1, 15, "the command at bed 4")
+        wait_for(lambda: "Acknowledge alarm 1 by admin.ward3: pending" in tiles(browser)[0]["text"], 15, "pending")
+        (command,) = bed4.take_commands()
+        assert (command.kind, command.args, command.bed_user) == ("acknowledge", {"alarm_id": 1}, "ward:admin.ward3")
+        bed4.answer(command.id, True, "1 event(s)")
+        wait_for(lambda: "Acknowledge alarm 1 by admin.ward3: done" in tiles(browser)[0]["text"], 15, "done")
+        assert "sent; the bed applies it at its next frame" in text(browser, "#said")
         assert png_size(screenshot(browser, "ward", 1920, 1080)) == (1920, 1080)
     finally:
         running.clear()

@@ -348,3 +348,26 @@ def test_what_a_full_disk_holds_is_bounded_and_what_is_dropped_is_counted(tmp_pa
     assert [t for t, _ in store.history_between(0, 10)] == [5.0, 6.0, 7.0]
     assert store.load_state("alerts") == {"t": 7}
     store.close()
+
+
+def test_a_ward_command_applied_while_the_disk_is_full_is_known_until_written_and_then_kept(tmp_path):
+    """A repeat of the ward station's command must find it applied whether its record is still held in memory
+    or already in the store, or the bed would apply it twice."""
+    from appliance.store.holding import HeldWrites
+
+    store = FillingStore.open(tmp_path / "a.db")
+    writes = HeldWrites(store)
+    done = {"ward_id": "c" * 32, "kind": "record-turn", "args": {}, "user": "ward:nurse.smith", "queued_at": 5.0,
+            "applied": True, "result": "turn recorded"}
+    store.full = True
+    writes.commit_frame(6.0, [{"time_s": 6.0, "kind": "recorded", "user": "ward:nurse.smith"}], {}, [], [done])
+    assert writes.held_ward_command("c" * 32) == done and store.ward_command("c" * 32) is None
+    assert writes.held == 2
+    store.full = False
+    assert writes.flush() and writes.held_ward_command("c" * 32) is None
+    kept = store.ward_command("c" * 32)
+    assert (kept["state"], kept["user"], kept["kind"], kept["result"]) == \
+        ("done", "ward:nurse.smith", "record-turn", "turn recorded")
+    store.commit_frame(7.0, [], {}, [], [done])                    # written twice by mistake: still once
+    assert len(store.commands_since(0.0)) == 1
+    store.close()

@@ -236,7 +236,9 @@ def test_the_size_cap_cuts_the_oldest_events_only_once_history_is_gone(tmp_path)
         times = [e["time_s"] for e in store.events_since(0.0)]
         assert store.size_bytes() <= 100_000
     assert deleted == {"history": 1, "events": 2000 - len(times)}
-    assert 150 <= len(times) < 250  # about 400 bytes an event: most of the cap is kept, and the newest
+    # About 400 bytes an event: most of the cap is kept, and the newest; every table and index, however empty,
+    # takes a 4 KiB page of the cap.
+    assert 140 <= len(times) < 250
     assert times == [float(i) for i in range(2000 - len(times), 2000)]
 
 

@@ -207,6 +207,24 @@ def test_the_station_confirms_to_a_bed_but_cannot_publish_as_one(ward, clients):
         assert bed1.received == [(topic(BED1, "confirm"), "alarm 1 seen at the station")]
 
 
+def test_only_the_station_commands_a_bed_and_only_that_bed_answers(ward, clients):
+    broker, files = ward
+    bed1, bed2 = (clients(broker.port, b, secret(files, b)) for b in (BED1, BED2))
+    station = clients(broker.port, STATION, secret(files, STATION), client_id="station-commands")
+    bed1.subscribe(topic(BED1, "command"), topic(BED2, "command"))
+    station.subscribe(topic("+", "command-result"))
+    bed2.publish(topic(BED1, "command"), "record a turn, says bed 2")
+    bed1.publish(topic(BED1, "command"), "record a turn, says bed 1 itself")
+    bed1.publish(topic(BED2, "command-result"), "done, says bed 1 for bed 2")
+    station.publish(topic(BED2, "command"), "for bed 2")
+    station.publish(topic(BED1, "command-result"), "done, says the station")
+    station.publish(topic(BED1, "command"), "acknowledge, says the station")
+    bed1.publish(topic(BED1, "command-result"), "done, says bed 1")
+    assert wait_until(lambda: bed1.received and station.received)
+    assert bed1.received == [(topic(BED1, "command"), "acknowledge, says the station")]
+    assert station.received == [(topic(BED1, "command-result"), "done, says bed 1")]
+
+
 def test_a_new_bed_gets_in_on_sighup_and_a_removed_one_is_refused_without_a_restart(ward, tmp_path, clients):
     broker, files = ward
     bed1_password, bed2_password = secret(files, BED1), secret(files, BED2)

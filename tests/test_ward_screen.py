@@ -93,6 +93,7 @@ def test_the_ward_says_when_it_has_no_broker(tmp_path):
     ({"broker": {"host": "b"}, "station": {"client_id": "ward/3"}}, "client_id must be"),
     ({"broker": {"host": "b"}, "station": {"summary_interval_s": 0}}, "summary_interval_s must be from 0.1"),
     ({"broker": {"host": "b", "password_file": "pw"}}, "[broker]: password_file needs a username"),
+    ({"broker": {"host": "b"}, "station": {"command_expiry_s": 1}}, "command_expiry_s must be from 5 to 3600"),
 ])
 def test_a_bad_station_configuration_names_the_key(table, message):
     with pytest.raises(ConfigError) as caught:
@@ -113,6 +114,7 @@ def test_the_configuration_file_and_screen_links(tmp_path):
     assert config.broker.ca_file == tmp_path / "ca.crt"
     assert config.screen_of("bed 1/a") == "https://bed%201%2Fa.ward3.example:8443/"     # a bed id cannot escape
     assert WardConfig(config.broker).screen_of("bed-1") is None
+    assert config.command_expiry_s == 120.0                   # a nurse's command waits two minutes by default
 
 
 def test_appliance_ward_serves_the_screen_and_stops_on_sigterm(tmp_path, broker, beds):

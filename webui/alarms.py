@@ -93,11 +93,16 @@ def pause_audio():
 
 
 def _answer(message: str, status: int, command: int | None = None):
-    """A JSON answer for the live view's ``fetch``; for a form, the message flashed on the Alarms page."""
+    return answer(message, status, "alarms.page", command_id=command)
+
+
+def answer(message: str, status: int, page: str, **found):
+    """A JSON answer (the message and ``found``) for a page's ``fetch``; for a form, the message flashed on
+    ``page``, as news when the request was taken (a status below 400) and as an error when not."""
     if wants_json():
-        return jsonify({"message": message, "command_id": command}), status
-    flash(message, "info" if command is not None else "error")
-    return redirect(url_for("alarms.page")), 303
+        return jsonify({"message": message, **found}), status
+    flash(message, "info" if status < 400 else "error")
+    return redirect(url_for(page)), 303
 
 
 @bp.route("/api/commands/<int:command_id>")

@@ -19,6 +19,9 @@ Topics (``<prefix>`` is ``topic_prefix``, "appliance" by default)::
     <prefix>/<bed_id>/turn     QoS 1: one turn Event (type "turn"), the same fields
     <prefix>/<bed_id>/episode  QoS 1: admitted or discharged, the same fields
     <prefix>/<bed_id>/confirm  QoS 1, from the ward station: {seq, station, confirmed_at}
+    <prefix>/<bed_id>/command  QoS 1, from the ward station: acknowledge an alarm, record
+                               a turn (``appliance.alerts.ward_commands``)
+    <prefix>/<bed_id>/command-result   QoS 1: the bed's answer to each command
     <prefix>/<bed_id>/status   QoS 1, retained: "online" once connected; "offline" on
                                close, and as the last will when the connection dies.
     <prefix>/<bed_id>/summary  QoS 0, retained: the bed at a glance about once a second
@@ -32,6 +35,12 @@ after ``resend_after_s``, doubling up to ``MAX_RESEND_S``, so a station away for
 an hour finds a handful of copies of each event waiting, not thousands. With
 ``confirm`` off (a broker with no ward station behind it) the broker's
 acknowledgement counts as delivery, and the screen says so.
+
+Commands from the ward station are taken on paho's thread, checked, and held
+for the monitor loop (:meth:`WardLink.take_commands`), which applies each once
+and hands back its answer (:meth:`WardLink.answer`) for the sender thread to
+publish. An answer lost on the way is not kept: the station sends the command
+again until it has one, and the bed answers a repeat from its store.
 """
 
 from __future__ import annotations
@@ -44,6 +53,7 @@ import time
 import paho.mqtt.client as mqtt
 
 from appliance.alerts.events import EVENT_TYPES, Event
+from appliance.alerts.ward_commands import COMMAND_TOPIC, RESULT_TOPIC, WardCommand, parse_command, result_payload
 from appliance.store.outbox import Outbox
 from appliance.supervise import Supervised
 
@@ -64,8 +74,9 @@ class WardLink:
     :meth:`notify` and :meth:`summarise` never wait on the network: one worker
     thread publishes, paho's thread receives the confirmations. Counters:
     ``published`` (publications, resends included), ``confirmed``,
-    ``summaries_sent``, ``summaries_skipped``; ``confirm_latencies_s`` holds the
-    latest few queue-to-confirmation times.
+    ``summaries_sent``, ``summaries_skipped``, ``commands_received``,
+    ``bad_commands``; ``confirm_latencies_s`` holds the latest few
+    queue-to-confirmation times.
     """
 
     name = "ward-link"
@@ -82,9 +93,14 @@ class WardLink:
         self.topics = {kind: f"{base}/{kind}" for kind in EVENT_TYPES}
         self.status_topic, self.summary_topic, self.confirm_topic = f"{base}/status", f"{base}/summary", \
             f"{base}/confirm"
+        self.command_topic, self.result_topic = f"{base}/{COMMAND_TOPIC}", f"{base}/{RESULT_TOPIC}"
         self.summary_interval_s, self.confirm_timeout_s, self.resend_after_s = \
             summary_interval_s, confirm_timeout_s, resend_after_s
         self.published = self.confirmed = self.summaries_sent = self.summaries_skipped = 0
+        self.commands_received = self.bad_commands = 0
+        self._commands: list[WardCommand] = []                  # taken from the station, for the monitor loop
+        self._command_subscription: int | None = None           # the mid of its subscription
+        self._answers: list[str] = []                           # answers for the sender to publish
         self.confirm_latencies_s: list[float] = []
         self._summary_due = float("-inf")
         self._lock = threading.Lock()
@@ -113,6 +129,7 @@ class WardLink:
         self._client.on_publish = self._on_publish
         self._client.on_message = self._on_message
         self._client.message_callback_add(self.confirm_topic, self._on_confirm)
+        self._client.message_callback_add(self.command_topic, self._on_command)
         self._client.connect_async(host, port, keepalive=keepalive_s)
         self._client.loop_start()
         self._worker = Supervised(f"{self.name}-sender", self._run)
@@ -144,6 +161,21 @@ class WardLink:
             self.summaries_sent += 1
         else:
             self.summaries_skipped += 1
+
+    def take_commands(self) -> list[WardCommand]:
+        """The ward station's commands received since the last call, oldest first (repeats included: the loop
+        knows which it has applied)."""
+        with self._lock:
+            commands, self._commands = self._commands, []
+        return commands
+
+    def answer(self, command_id: str, applied: bool, result: str) -> None:
+        """Tell the ward station command ``command_id`` was applied (or refused, with ``result`` saying why);
+        published by the sender thread, never waited for."""
+        payload = result_payload(command_id, "done" if applied else "refused", result, time.time())
+        with self._lock:
+            self._answers.append(payload)
+        self._wake.set()
 
     def delivery(self, alarm_id: int) -> str | None:
         """How far alarm ``alarm_id``'s latest change got: one of ``DELIVERY_STEPS``."""
@@ -225,8 +257,17 @@ class WardLink:
             self._wake.clear()
             self.outbox.retry_writes()
             if self._ready:
+                self._send_answers()
                 self._send_due()
             self._worker.ok()
+
+    def _send_answers(self) -> None:
+        with self._lock:
+            answers, self._answers = self._answers, []
+        for payload in answers:
+            info = self._client.publish(self.result_topic, payload, qos=1)
+            if info.rc != mqtt.MQTT_ERR_SUCCESS:          # the station asks again, and is answered from the store
+                log.warning("ward link: an answer to the ward station was not sent: %s", mqtt.error_string(info.rc))
 
     def _send_due(self) -> None:
         steady = time.monotonic()
@@ -256,8 +297,15 @@ class WardLink:
             return
         client.publish(self.status_topic, "online", qos=1, retain=True)
         client.subscribe(self.confirm_topic, qos=1)
+        # Apart: a broker whose ACL predates the ward's commands refuses this one, and must still get the alarms.
+        self._command_subscription = client.subscribe(self.command_topic, qos=1)[1]
 
     def _on_subscribe(self, client, userdata, mid, reason_codes, properties) -> None:
+        if mid == self._command_subscription:
+            if any(code.is_failure for code in reason_codes):
+                log.error("ward link: the broker refused %s (%s): the ward station's commands cannot reach this "
+                          "bed; write its ACL again with appliance ward-broker", self.command_topic, reason_codes)
+            return
         if any(code.is_failure for code in reason_codes):
             log.error("ward link: the broker refused the confirmations' topic %s: %s", self.confirm_topic,
                       reason_codes)
@@ -297,6 +345,18 @@ class WardLink:
             log.warning("ward link: bad confirmation ignored: %s", exc)
             return
         self._confirmed(seq, station)
+
+    def _on_command(self, client, userdata, message) -> None:
+        try:
+            command = parse_command(message.payload, self.bed_id)
+        except (ValueError, TypeError, UnicodeDecodeError) as exc:      # json's errors are ValueErrors
+            with self._lock:
+                self.bad_commands += 1
+            log.warning("ward link: bad command from the ward station ignored: %s", exc)
+            return
+        with self._lock:
+            self.commands_received += 1
+            self._commands.append(command)
 
     def _confirmed(self, seq: int, by: str) -> None:
         if not self.outbox.confirm(seq, by, time.time()):

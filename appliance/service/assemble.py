@@ -75,7 +75,7 @@ def _assemble(config: MonitorConfig, lock, *, say, on_event, on_map, live: bool)
         closers.append(store.close)
         notifiers = _notifiers(config, data_dir, closers)
         daemon = MonitorDaemon(config, source, model, calibration, store, notifiers=notifiers,
-                               gpio=_gpio(config, source), live=channel,
+                               gpio=_gpio(config, source), nurse_call=_nurse_call(config, source), live=channel,
                                on_event=on_event, on_map=on_map, say=say, lock=lock)
         settings.attach(daemon)
         for notifier in notifiers:
@@ -181,3 +181,28 @@ def _gpio(config: MonitorConfig, source):
     buzzer, led = pins[config.gpio.buzzer], pins[config.gpio.led]
     lines = source.board.gpio(GpioNotifier.request(buzzer, led), consumer="alarm signals")
     return GpioNotifier(lines, buzzer=buzzer, led=led)
+
+
+def _nurse_call(config: MonitorConfig, source):
+    """The nurse-call relays on the board's lines, named by their roles in the board profile; every relay open
+    from the moment the lines are requested."""
+    if config.nurse_call is None:
+        return None
+    from appliance.alerts.nurse_call import NurseCallRelays
+    from appliance.drivers.bus import LineRequest
+    from appliance.errors import ConfigError
+
+    settings, pins = config.nurse_call, source.front_end.profile.gpio
+    missing = [role for role in settings.relays.values() if role not in pins]
+    if missing:
+        raise ConfigError(f"[notify.nurse_call]: the board profile has no gpio role {missing[0]!r} (add it to "
+                          f"[board.gpio] with its line); it has {', '.join(sorted(pins))}")
+    relays = {priority: pins[role] for priority, role in settings.relays.items()}
+    taken = {role: pins[role] for role in ((config.gpio.buzzer, config.gpio.led) if config.gpio else ())}
+    clash = [line for line in relays.values() if line in taken.values()]
+    if clash:
+        raise ConfigError(f"[notify.nurse_call]: line {clash[0]} is the buzzer's or the LED's")
+    open_level = 1 if settings.active_low else 0
+    lines = source.board.gpio(LineRequest(outputs=dict.fromkeys(relays.values(), open_level), inputs={}),
+                              consumer="nurse call")
+    return NurseCallRelays(lines, relays, mode=settings.mode, active_low=settings.active_low)

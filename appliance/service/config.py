@@ -57,6 +57,13 @@ runs, not after it silently ignored it::
     buzzer = "buzzer"
     led = "status_led"
 
+    [notify.nurse_call]           # dry-contact relays to the nurse-call system; off without this section
+    high = "nurse_call_high"      # per priority, a role in [board]'s gpio table; a priority left out: no relay
+    medium = "nurse_call_medium"
+    low = "nurse_call_low"
+    mode = "latched"              # closed until acknowledged; "follow": only while the condition holds too
+    active_low = false            # true: a low line closes the relay
+
     [charting.hl7]                # HL7 v2 ORU^R01 over MLLP to the hospital's interface engine
     host = "engine.hospital"      # a host name or an IP address
     port = 2575

@@ -19,6 +19,8 @@ from pathlib import Path
 from appliance.alerts.dose import BUILT_IN as BUILT_IN_CURVES
 from appliance.alerts.dose import RECOVERY_MODES, custom_curve
 from appliance.alerts.limits import check_curve, check_safe
+from appliance.alerts.nurse_call import MODES as NURSE_CALL_MODES
+from appliance.alerts.nurse_call import check as check_nurse_call
 from appliance.alerts.pipeline import AlertSettings
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.core.toml_files import check_keys, read_toml_as
@@ -109,6 +111,16 @@ class GpioSettings:
 
 
 @dataclass(frozen=True)
+class NurseCallSettings:
+    """The nurse-call relays (:mod:`appliance.alerts.nurse_call`): a role in the board profile's ``[gpio]`` table
+    per priority that has a relay, how they follow the alarms, and whether a low line closes them."""
+
+    relays: dict[str, str]
+    mode: str = "latched"
+    active_low: bool = False
+
+
+@dataclass(frozen=True)
 class MonitorConfig:
     """Everything the daemon is told: built by :func:`read_sections`, checked whole by
     :mod:`appliance.service.config`."""
@@ -132,6 +144,7 @@ class MonitorConfig:
     confirmation: ConfirmSettings = ConfirmSettings()
     webhook: WebhookSettings | None = None
     gpio: GpioSettings | None = None
+    nurse_call: NurseCallSettings | None = None
     hl7: Hl7Settings | None = None
 
 
@@ -163,10 +176,13 @@ def read_sections(data: dict, base: Path | None = None) -> MonitorConfig:
     if virtual and source != "virtual":
         raise ConfigError(f"[virtual] is only for source = \"virtual\", but [monitor] source = {source!r}")
     notify = _section(data, "notify")
-    _only(notify, {"mqtt", "webhook", "gpio"}, "[notify]")
+    _only(notify, {"mqtt", "webhook", "gpio", "nurse_call"}, "[notify]")
     gpio = _gpio(_section(notify, "gpio", "notify.gpio")) if "gpio" in notify else None
     if gpio is not None and source == "virtual":
         raise ConfigError("[notify.gpio] needs a board: the virtual bed has no buzzer or LED lines")
+    nurse_call = _nurse_call(_section(notify, "nurse_call", "notify.nurse_call")) if "nurse_call" in notify else None
+    if nurse_call is not None and source == "virtual":
+        raise ConfigError("[notify.nurse_call] needs a board: the virtual bed has no relay lines")
     mqtt = dict(_section(notify, "mqtt", "notify.mqtt"))
     confirming = {key: mqtt.pop(key) for key in ("confirm", "confirm_timeout_s") if key in mqtt}
     if confirming and not mqtt:
@@ -192,6 +208,7 @@ def read_sections(data: dict, base: Path | None = None) -> MonitorConfig:
         confirmation=confirmation,
         webhook=_webhook(_section(notify, "webhook", "notify.webhook")),
         gpio=gpio,
+        nurse_call=nurse_call,
         hl7=_hl7(_section(data, "charting")),
     )
 
@@ -336,6 +353,22 @@ def _gpio(table: dict) -> GpioSettings:
     where = "[notify.gpio]"
     _only(table, {"buzzer", "led"}, where)
     return GpioSettings(_text(table, "buzzer", "buzzer", where), _text(table, "led", "status_led", where))
+
+
+def _nurse_call(table: dict) -> NurseCallSettings:
+    where = "[notify.nurse_call]"
+    _only(table, {"high", "medium", "low", "mode", "active_low"}, where)
+    relays = {priority: _text(table, priority, None, where) for priority in ("high", "medium", "low")
+              if priority in table}
+    mode = _choice(table, "mode", NURSE_CALL_MODES, "latched", where)
+    active_low = table.get("active_low", False)
+    if not isinstance(active_low, bool):
+        raise ConfigError(f"{where}: active_low must be true or false, got {active_low!r}")
+    try:
+        check_nurse_call(relays, mode)
+    except ValueError as exc:
+        raise ConfigError(f"{where}: {exc} (give high, medium and/or low: roles in [board.gpio])") from None
+    return NurseCallSettings(relays, mode, active_low)
 
 
 def _bed_id(monitor: dict) -> str:

@@ -16,7 +16,10 @@ row ``technical:no-data``; during a gap clinical alarms stay as the last map
 left them. Commands from outside (acknowledge, pause audio) are queued in the
 store by whoever asks (the web screen is another process), applied at the start
 of the next frame, and marked done in the commit of the events they caused, so
-each is applied exactly once even across a crash.
+each is applied exactly once even across a crash. The ward station's commands
+come through the ward link instead, as often as the network repeats them: each
+is applied once under the station's id, kept in the store with the frame that
+applied it, and a repeat is answered as the first was and applies nothing.
 
 Faults around the loop are technical alarms too, never its end: a full or
 failing disk (the store's writes held in memory, :mod:`appliance.store.holding`),
@@ -34,6 +37,7 @@ import contextlib
 import logging
 import sqlite3
 import threading
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -42,6 +46,8 @@ from appliance.alerts.anatomy import POSTURE_WORDS, site_words
 from appliance.alerts.episodes import Episode
 from appliance.alerts.events import Event
 from appliance.alerts.limits import not_default
+from appliance.alerts.nurse_call import NurseCallRelays
+from appliance.alerts.ward_commands import WardCommand
 from appliance.alerts.wardlink import WardLink
 from appliance.alerts.pipeline import AlertPipeline, FrameAlerts, technical_alarms
 from appliance.charting.link import ChartingLink
@@ -91,13 +97,14 @@ class MonitorDaemon:
     """
 
     def __init__(self, config: MonitorConfig, source, model, calibration, store, *, notifiers=(), gpio=None,
-                 live: LiveChannel | None = None, on_event: Callable[[Event], None] | None = None,
-                 on_map: Callable | None = None, say: Callable[[str], None] = log.info,
+                 nurse_call: NurseCallRelays | None = None, live: LiveChannel | None = None,
+                 on_event: Callable[[Event], None] | None = None, on_map: Callable | None = None,
+                 say: Callable[[str], None] = log.info,
                  systemd: SystemdNotifier | None = None, lock=None):
         self.lock = lock            # the data folder's, given up last on close
         self.config, self.source, self.model, self.store = config, source, model, store
         self.writes = HeldWrites(store)         # a full disk holds the records in memory; monitoring goes on
-        self.notifiers, self.gpio, self.live = list(notifiers), gpio, live
+        self.notifiers, self.gpio, self.nurse_call, self.live = list(notifiers), gpio, nurse_call, live
         self.ward_link = next((n for n in self.notifiers if isinstance(n, WardLink)), None)
         self.on_event, self.on_map, self.say = on_event, on_map, say
         self.systemd = systemd or SystemdNotifier()
@@ -231,6 +238,8 @@ class MonitorDaemon:
         """One frame through every stage."""
         now = self.source.now()
         events, outcomes = self._apply_commands(now)
+        ward_events, ward_done = self._apply_ward_commands(now)
+        events += ward_events
         try:
             pressure_map = self.monitor.next_map()
         except (ApplianceError, OSError) as exc:
@@ -259,7 +268,10 @@ class MonitorDaemon:
             self.writes.record_map(now, np.nan_to_num(pressure_map.pressure_kpa), snapshot["regions"])
         self.writes.commit_frame(now, events + self._clock_steps(now),
                                  {"alerts": self.pipeline.state(), "outbox": {"events": [e.to_dict() for e in events]}},
-                                 outcomes)
+                                 outcomes, ward_done)
+        if self.ward_link is not None:          # answered once kept: after a crash before this, from the store
+            for done in ward_done:
+                self.ward_link.answer(done["ward_id"], done["applied"], done["result"])
         self._tell(events, now)
         self._prune_when_due(now)
         if pressure_map is not None and self.on_map is not None:
@@ -297,6 +309,51 @@ class MonitorDaemon:
             outcomes.append((command["id"], True, result))
         return events, outcomes
 
+    def _apply_ward_commands(self, now: float) -> tuple[list[Event], list[dict]]:
+        """The ward station's commands the link has taken: their events, and a record of each one applied or
+        refused this frame for the store. A repeat of one already taken (kept in the store, held in memory
+        while the disk refuses writes, or twice in this frame) is answered as it was the first time."""
+        if self.ward_link is None:
+            return [], []
+        events: list[Event] = []
+        taken: dict[str, dict] = {}
+        for command in self.ward_link.take_commands():
+            if command.id in taken:
+                continue
+            try:
+                known = self.writes.held_ward_command(command.id) or self._stored_ward_command(command.id)
+            except sqlite3.OperationalError as exc:    # cannot tell whether it was applied: the station asks again
+                self.say(f"ward command {command.id} left for the station's next resend: {exc}")
+                continue
+            if known is not None:
+                self.ward_link.answer(command.id, known["applied"], known["result"])
+                continue
+            done, applied, result = self._ward_command(now, command)
+            events += done
+            taken[command.id] = {"ward_id": command.id, "kind": command.kind, "args": command.args,
+                                 "user": command.bed_user, "queued_at": command.issued_at, "applied": applied,
+                                 "result": result}
+        return events, list(taken.values())
+
+    def _stored_ward_command(self, ward_id: str) -> dict | None:
+        command = self.store.ward_command(ward_id)
+        return None if command is None else {"applied": command["state"] == "done", "result": command["result"]}
+
+    def _ward_command(self, now: float, command: WardCommand) -> tuple[list[Event], bool, str]:
+        """One new command from the ward station through its handler, unless it came too late."""
+        late_s = time.time() - command.expires_at
+        if late_s > 0:
+            result = f"expired: {command.kind} from {command.bed_user} came {late_s:.0f} s after it expired " \
+                     f"(the bed was away or the network slow); nothing was done, ask again if still needed"
+            self.say(f"ward command {command.kind} by {command.bed_user} refused: {result}")
+            return [], False, result
+        try:
+            done, result = self.commands[command.kind](now, command.args, command.bed_user, 0)
+        except (ApplianceError, ValueError, KeyError, TypeError) as exc:
+            self.say(f"ward command {command.kind} by {command.bed_user} refused: {exc}")
+            return [], False, str(exc)
+        return done, True, result
+
     def _acknowledge(self, now: float, args: dict, user: str, _id: int) -> tuple[list[Event], str]:
         done = [self.pipeline.record(e) for e in self.pipeline.engine.acknowledge(now, int(args["alarm_id"]), user)]
         return done, f"{len(done)} event(s)"
@@ -333,6 +390,8 @@ class MonitorDaemon:
                 self.on_event(event)
         if self.gpio is not None:
             self.gpio.show(self.pipeline.engine.audible(now))
+        if self.nurse_call is not None:
+            self.nurse_call.show(self.pipeline.engine.alarms())
 
     def _prune_when_due(self, now: float) -> None:
         """Retention: at the first frame and every ``PRUNE_EVERY_S`` after (a clock step counts as due), so the
@@ -363,7 +422,7 @@ class MonitorDaemon:
 
     def _helper_faults(self) -> dict[str, str]:
         """A technical alarm for each helper that is failing: the live view's writer, a notifier's threads
-        (restarted with a back-off by their supervisors)."""
+        (restarted with a back-off by their supervisors), the nurse-call relays' lines."""
         faults = {}
         if self.live is not None and self.live.fault is not None:
             faults["technical:live-view"] = f"the live view cannot be written (retrying): {self.live.fault}"
@@ -374,6 +433,8 @@ class MonitorDaemon:
         for notifier in self.notifiers:
             if hasattr(notifier, "conditions"):         # the ward link's and the charting link's own alarms
                 faults.update(notifier.conditions())
+        if self.nurse_call is not None:
+            faults.update(self.nurse_call.conditions())
         return faults
 
     def _snapshot(self, now: float, pressure_map, alerts: FrameAlerts) -> dict:
@@ -424,6 +485,8 @@ class MonitorDaemon:
             notifier.close()
         if self.gpio is not None:
             self.gpio.close()
+        if self.nurse_call is not None:
+            self.nurse_call.close()
         if self.live is not None:
             self.live.close()
         if not self.writes.flush():

@@ -34,7 +34,7 @@ import numpy as np
 
 from appliance.errors import SchemaTooNew, StoreClosed, StoreCorrupt, StoreError
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 BUSY_TIMEOUT_S = 5.0
 STATE_SYNC_S = 15.0
 """Longest stretch of monitoring time whose alert state a power cut may take back: 15 s of a dose that alarms
@@ -69,6 +69,11 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
         "CREATE INDEX region_history_time ON region_history (time_s)",
         "ALTER TABLE commands ADD COLUMN progress REAL",
         "ALTER TABLE commands ADD COLUMN progress_note TEXT",
+    ),
+    (
+        # The ward station's id of a command it sent: unique, so a repeat of one already applied is never kept twice.
+        "ALTER TABLE commands ADD COLUMN ward_id TEXT",
+        "CREATE UNIQUE INDEX commands_ward_id ON commands (ward_id)",
     ),
 )
 
@@ -225,12 +230,16 @@ class Store:
             _upsert_state(db, name, state, now_s)
 
     def commit_frame(self, now_s: float, events: Iterable, states: Mapping[str, dict],
-                     commands_done: Iterable[tuple[int, bool, str]] = ()) -> None:
+                     commands_done: Iterable[tuple[int, bool, str]] = (),
+                     ward_commands: Iterable[Mapping] = ()) -> None:
         """A frame's events, the states they led to and the commands it applied (id, applied, result), in one
-        transaction: a crash keeps all or none, so a command is applied exactly once. Durable (FULL) when it
-        carries an event or a command, or ``STATE_SYNC_S`` after the last durable one (see the module's notes)."""
-        events, commands_done = list(events), list(commands_done)
-        durable = bool(events or commands_done) or self._last_full_s is None \
+        transaction: a crash keeps all or none, so a command is applied exactly once. ``ward_commands`` are the
+        ward station's commands the frame applied or refused, each a mapping with ``ward_id``, ``kind``,
+        ``args``, ``user``, ``queued_at``, ``applied`` and ``result``: kept under their ward id, so a repeat is
+        known (:meth:`ward_command`). Durable (FULL) when it carries an event or a command, or ``STATE_SYNC_S``
+        after the last durable one (see the module's notes)."""
+        events, commands_done, ward_commands = list(events), list(commands_done), list(ward_commands)
+        durable = bool(events or commands_done or ward_commands) or self._last_full_s is None \
             or not 0.0 <= now_s - self._last_full_s < STATE_SYNC_S      # a clock step back syncs at once
         with self._transaction("FULL" if durable else "NORMAL") as db:
             for name, state in states.items():
@@ -239,6 +248,11 @@ class Store:
             for command_id, applied, result in commands_done:
                 db.execute("UPDATE commands SET state = ?, result = ?, done_s = ? WHERE id = ?",
                            ("done" if applied else "refused", result, now_s, command_id))
+            for c in ward_commands:
+                db.execute("INSERT INTO commands (queued_at, user, kind, args, state, result, done_s, ward_id)"
+                           " VALUES (?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (ward_id) DO NOTHING",
+                           (c["queued_at"], c["user"], c["kind"], json.dumps(dict(c["args"])),
+                            "done" if c["applied"] else "refused", c["result"], now_s, c["ward_id"]))
         if durable:
             self._last_full_s = now_s
 
@@ -263,6 +277,11 @@ class Store:
             return None
         return dict(zip(("id", "user", "kind", "args", "state", "result", "progress", "progress_note"),
                         row[:3] + (json.loads(row[3]),) + row[4:]))
+
+    def ward_command(self, ward_id: str) -> dict | None:
+        """The ward station's command ``ward_id`` as this bed applied or refused it, or None if it never came."""
+        row = self._conn().execute("SELECT id FROM commands WHERE ward_id = ?", (ward_id,)).fetchone()
+        return None if row is None else self.command(row[0])
 
     def commands_since(self, queued_after: float, kinds: Iterable[str] | None = None) -> list[dict]:
         """Commands queued after wall time ``queued_after``, newest first (optionally only these kinds)."""

@@ -48,6 +48,7 @@ class HeldWrites:
         self._events: deque = deque()
         self._states: dict[str, dict] = {}
         self._outcomes: list[tuple[int, bool, str]] = []
+        self._ward: dict[str, dict] = {}                # the ward's commands applied, by ward id
         self._now_s = 0.0
         self._maps: deque = deque(maxlen=max_maps)
         self._last_held_map_s: float | None = None
@@ -58,12 +59,16 @@ class HeldWrites:
     @property
     def held(self) -> int:
         """Records held in memory: events, maps and command outcomes."""
-        return len(self._events) + len(self._maps) + len(self._outcomes)
+        return len(self._events) + len(self._maps) + len(self._outcomes) + len(self._ward)
 
     @property
     def held_commands(self) -> set[int]:
         """Commands applied whose outcome is not yet written: they must not be applied again."""
         return {command_id for command_id, _, _ in self._outcomes}
+
+    def held_ward_command(self, ward_id: str) -> dict | None:
+        """The ward's command ``ward_id`` if it was applied but is not yet written: it must not be applied again."""
+        return self._ward.get(ward_id)
 
     def condition(self) -> dict[str, str]:
         """The technical alarm while records are held or were lost: ``{"technical:storage": message}``."""
@@ -96,7 +101,8 @@ class HeldWrites:
         self.commit_frame(now_s, [], {name: state})
 
     def commit_frame(self, now_s: float, events: Iterable, states: Mapping[str, dict],
-                     commands_done: Iterable[tuple[int, bool, str]] = ()) -> None:
+                     commands_done: Iterable[tuple[int, bool, str]] = (),
+                     ward_commands: Iterable[Mapping] = ()) -> None:
         """The store's ``commit_frame`` after everything held before it, in order; held too if the disk refuses
         it. Only the newest of each state is needed, so states held are replaced, not queued."""
         self._now_s = now_s
@@ -106,6 +112,7 @@ class HeldWrites:
             self.dropped_events += 1
         self._states.update(states)
         self._outcomes.extend(commands_done)
+        self._ward.update((c["ward_id"], dict(c)) for c in ward_commands)
         self.flush()
 
     def flush(self) -> bool:
@@ -115,12 +122,13 @@ class HeldWrites:
                 time_s, pressure, regions = self._maps[0]
                 self.store.record_map(time_s, pressure, regions)
                 self._maps.popleft()
-            if self._events or self._states or self._outcomes:
+            if self._events or self._states or self._outcomes or self._ward:
                 self.store.commit_frame(self._now_s, list(self._events),
-                                        dict(self._states), self._outcomes)
+                                        dict(self._states), self._outcomes, self._ward.values())
                 self._events.clear()
                 self._states.clear()
                 self._outcomes = []
+                self._ward = {}
         except Exception as exc:
             if not storage_failure(exc):
                 raise

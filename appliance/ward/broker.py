@@ -9,8 +9,9 @@ and station user names, into one folder:
 - ``secrets/<user>.password``: each user's random password on the first line, for the bed's
   ``[notify.mqtt] password_file`` or the station's ``[broker] password_file`` (folder 0700, files 0600);
 - ``acl``: Mosquitto's ``acl_file``. A bed's user name is its bed id; it writes only
-  ``<prefix>/<bed_id>/{alarm,turn,episode,status,summary}`` and reads only ``<prefix>/<bed_id>/confirm``.
-  A station reads those topics of every bed and writes every bed's ``confirm``, nothing else;
+  ``<prefix>/<bed_id>/{alarm,turn,episode,status,summary,command-result}`` and reads only
+  ``<prefix>/<bed_id>/{confirm,command}``. A station reads those topics of every bed and writes every bed's
+  ``confirm`` and ``command``, nothing else;
 - ``ward-broker.conf``: the lines for ``/etc/mosquitto/conf.d`` that name the two files, refuse anonymous
   clients and keep the station's queued alarms over a broker restart.
 
@@ -36,14 +37,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from appliance.alerts.events import EVENT_TYPES
+from appliance.alerts.ward_commands import COMMAND_TOPIC, RESULT_TOPIC
 from appliance.errors import ConfigError
 from appliance.files import write_atomic
 
-BED_TOPICS = (*EVENT_TYPES, "status", "summary")
-"""What a bed publishes under ``<prefix>/<bed_id>/`` (appliance.alerts.notifiers): the ACL lets it write these."""
+BED_TOPICS = (*EVENT_TYPES, "status", "summary", RESULT_TOPIC)
+"""What a bed publishes under ``<prefix>/<bed_id>/`` (appliance.alerts.wardlink): the ACL lets it write these."""
 
 CONFIRM_TOPIC = "confirm"
 """Written by the ward station under ``<prefix>/<bed_id>/`` to confirm each alarm event; read by that bed alone."""
+STATION_TOPICS = (CONFIRM_TOPIC, COMMAND_TOPIC)
+"""What a station writes under each ``<prefix>/<bed_id>/``: confirmations, and its nurses' commands."""
 
 PBKDF2_ITERATIONS = 101
 """mosquitto_passwd's own count. The passwords are 192 random bits, which no count of iterations makes harder
@@ -145,14 +149,15 @@ def acl_text(stations: Sequence[str], topic_prefix: str) -> str:
     ``<prefix>/<station>/summary`` as a bed of that name; its own ``deny`` closes that, and Mosquitto checks a
     user's denials before any grant."""
     lines = ["# Written by `appliance ward-broker`, whole on every run: edit its beds and stations, not this file.",
-             "# A bed's user name is its bed id: it writes its own topics and reads its own confirmations.",
+             "# A bed's user name is its bed id: it writes its own topics and reads its own confirmations and "
+             "commands.",
              *(f"pattern write {topic_prefix}/%u/{kind}" for kind in BED_TOPICS),
-             f"pattern read {topic_prefix}/%u/{CONFIRM_TOPIC}"]
+             *(f"pattern read {topic_prefix}/%u/{kind}" for kind in STATION_TOPICS)]
     for station in stations:
-        lines += ["", "# A ward station: every bed's topics, and the confirmations it sends them.", f"user {station}",
-                  f"topic deny {topic_prefix}/{station}/#",
+        lines += ["", "# A ward station: every bed's topics, and the confirmations and commands it sends them.",
+                  f"user {station}", f"topic deny {topic_prefix}/{station}/#",
                   *(f"topic read {topic_prefix}/+/{kind}" for kind in BED_TOPICS),
-                  f"topic write {topic_prefix}/+/{CONFIRM_TOPIC}"]
+                  *(f"topic write {topic_prefix}/+/{kind}" for kind in STATION_TOPICS)]
     return "\n".join(lines) + "\n"
 
 

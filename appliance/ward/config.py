@@ -15,6 +15,7 @@
     client_id = "ward3-station"   # names the broker session that holds alarms while the station is away
     summary_interval_s = 1.0      # the beds' summary interval: a bed silent for 3 of them (+2 s) is offline
     screen_url = "https://{bed_id}.ward3.example/"   # each bed's own screen; omit for no link
+    command_expiry_s = 120.0      # a nurse's command a bed has not answered by then is given up, and refused
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from urllib.parse import quote
 from appliance.core.toml_files import read_toml_as
 from appliance.errors import ConfigError
 from appliance.service.config_sections import MqttSettings, _number, _only, _section, _text, mqtt_settings
+from appliance.ward.commands import DEFAULT_EXPIRY_S
 
 
 @dataclass(frozen=True)
@@ -35,6 +37,7 @@ class WardConfig:
     client_id: str = field(default_factory=lambda: f"ward-station-{socket.gethostname()}")
     summary_interval_s: float = 1.0
     screen_url: str | None = None
+    command_expiry_s: float = DEFAULT_EXPIRY_S
 
     def screen_of(self, bed_id: str) -> str | None:
         """The bed's own screen, from the ``screen_url`` pattern (None without one)."""
@@ -53,7 +56,7 @@ def ward_config_from_mapping(data: dict, base: Path | None = None) -> WardConfig
         raise ConfigError("[broker] is missing: the station needs the ward's broker 'host'")
     station = _section(data, "station")
     where = "[station]"
-    _only(station, {"client_id", "summary_interval_s", "screen_url"}, where)
+    _only(station, {"client_id", "summary_interval_s", "screen_url", "command_expiry_s"}, where)
     client_id = _text(station, "client_id", f"ward-station-{socket.gethostname()}", where)
     if len(client_id) > 64 or any(c in client_id for c in "/#+ "):
         raise ConfigError(f"{where}: client_id must be 1-64 characters without spaces, '/', '#' or '+', "
@@ -62,7 +65,8 @@ def ward_config_from_mapping(data: dict, base: Path | None = None) -> WardConfig
     if screen_url is not None:
         _check_screen_url(screen_url, where)
     return WardConfig(broker, client_id, _number(station, "summary_interval_s", 1.0, where, low=0.1, high=60.0),
-                      screen_url)
+                      screen_url, _number(station, "command_expiry_s", DEFAULT_EXPIRY_S, where, low=5.0,
+                                          high=3600.0))
 
 
 def _check_screen_url(pattern: str, where: str) -> None:

@@ -34,6 +34,12 @@ never by the bed's ``time_s``, which a clock step can send back: each alarm
 remembers the ``seq`` of the last event applied to it, and an older event for it
 changes nothing.
 
+Nurses at the station can also act on a bed (acknowledge an alarm, record a
+turn): with a command journal the station sends them through
+:class:`~appliance.ward.commands.CommandSender` on ``<prefix>/<bed_id>/command``
+and takes the beds' answers from ``<prefix>/<bed_id>/command-result``
+(payloads in ``appliance.alerts.ward_commands``).
+
 A bed is offline when its status says so (a clean stop at once; a dead
 connection when the broker gives its last will, 1.5 keep-alives later) or when
 nothing came from it for ``stale_after_s``: a monitor whose loop has hung can
@@ -48,6 +54,7 @@ import copy
 import json
 import logging
 import socket
+import sqlite3
 import threading
 import time
 from collections import deque
@@ -57,7 +64,10 @@ import paho.mqtt.client as mqtt
 
 from appliance.alerts.alarms import AWAITING_ACK, PRIORITIES
 from appliance.alerts.events import EVENT_TYPES, Event
+from appliance.alerts.ward_commands import RESULT_TOPIC
+from appliance.ward.commands import DEFAULT_EXPIRY_S, DEFAULT_RESEND_S, CommandSender
 from appliance.ward.config import WardConfig
+from appliance.ward.journal import CommandJournal
 
 log = logging.getLogger(__name__)
 
@@ -156,23 +166,31 @@ class WardStation:
     intervals plus ``STALE_MARGIN_S``. Counters: ``messages``, ``bad_payloads``,
     ``confirmations_sent``; ``version`` grows with every message taken, so a
     screen can tell that something changed without comparing the beds.
+    ``journal`` lets the station's nurses send commands to beds (``commands``,
+    a :class:`CommandSender`, is None without one); ``command_expiry_s`` and
+    ``resend_after_s`` are its timings.
     """
 
     def __init__(self, host: str, port: int, *, topic_prefix: str = "appliance", keepalive_s: int = 30,
                  client_id: str | None = None, username: str | None = None, password: str | None = None,
-                 tls: dict | None = None, summary_interval_s: float = 1.0, stale_after_s: float | None = None):
+                 tls: dict | None = None, summary_interval_s: float = 1.0, stale_after_s: float | None = None,
+                 journal: CommandJournal | None = None, command_expiry_s: float = DEFAULT_EXPIRY_S,
+                 resend_after_s: float = DEFAULT_RESEND_S):
         if any(c in topic_prefix for c in "+#") or not topic_prefix:
             raise ValueError(f"topic_prefix must be a topic without wildcards, got {topic_prefix!r}")
         self.topic_prefix = topic_prefix
         self.stale_after_s = 3 * summary_interval_s + STALE_MARGIN_S if stale_after_s is None else stale_after_s
         self.subscriptions = [(f"{topic_prefix}/+/status", 0), (f"{topic_prefix}/+/summary", 0),
-                              *((f"{topic_prefix}/+/{kind}", 1) for kind in EVENT_TYPES)]
+                              *((f"{topic_prefix}/+/{kind}", 1) for kind in (*EVENT_TYPES, RESULT_TOPIC))]
         self.client_id = client_id or f"ward-station-{socket.gethostname()}"
         self.messages = self.bad_payloads = self.confirmations_sent = self.version = 0
         self._beds: dict[str, BedState] = {}
         self._lock = threading.Lock()
         self._subscribed = threading.Event()
         self._client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=self.client_id, clean_session=False)
+        self.commands = None if journal is None else CommandSender(
+            journal, self._publish_command, topic_prefix, self.client_id, expiry_s=command_expiry_s,
+            resend_after_s=resend_after_s, on_change=self._changed)
         if username is not None:
             self._client.username_pw_set(username, password)
         if tls is not None:
@@ -186,12 +204,13 @@ class WardStation:
         self._client.loop_start()
 
     @classmethod
-    def from_config(cls, config: WardConfig) -> WardStation:
+    def from_config(cls, config: WardConfig, journal: CommandJournal | None = None) -> WardStation:
         broker = config.broker
         return cls(broker.host, broker.port, topic_prefix=broker.topic_prefix, keepalive_s=broker.keepalive_s,
                    client_id=config.client_id, username=broker.username, password=broker.password(),
                    tls=None if broker.ca_file is None else {"ca_certs": str(broker.ca_file)},
-                   summary_interval_s=config.summary_interval_s)
+                   summary_interval_s=config.summary_interval_s, journal=journal,
+                   command_expiry_s=config.command_expiry_s)
 
     @property
     def connected(self) -> bool:
@@ -216,7 +235,10 @@ class WardStation:
             return tuple(bed.online(time.monotonic(), self.stale_after_s) for bed in self._beds.values())
 
     def close(self) -> None:
-        """Disconnect; the broker keeps the session, and the events for it, until the station is back."""
+        """Disconnect; the broker keeps the session, and the events for it, until the station is back. Commands
+        not yet answered stay in the journal, sent again at the next start."""
+        if self.commands is not None:
+            self.commands.close()
         self._client.disconnect()
         self._client.loop_stop()
 
@@ -251,9 +273,20 @@ class WardStation:
             log.error("ward: broker refused subscriptions: %s", refused)
             return
         self._subscribed.set()
+        if self.commands is not None:
+            self.commands.connected(True)
 
     def _on_disconnect(self, client, userdata, flags, reason_code, properties) -> None:
         self._subscribed.clear()
+        if self.commands is not None:
+            self.commands.connected(False)
+
+    def _publish_command(self, topic: str, payload: str) -> bool:
+        return self._client.publish(topic, payload, qos=1).rc == mqtt.MQTT_ERR_SUCCESS
+
+    def _changed(self) -> None:
+        with self._lock:
+            self.version += 1
 
     def _on_message(self, client, userdata, message) -> None:
         now = time.time()
@@ -263,6 +296,14 @@ class WardStation:
                 status = message.payload.decode()
                 if status not in ("online", "offline"):
                     raise ValueError(f"status must be 'online' or 'offline', got {status[:40]!r}")
+            elif kind == RESULT_TOPIC:
+                if self.commands is None:
+                    raise ValueError("an answer to a command, but this station sends none")
+                try:
+                    self.commands.take_answer(bed_id, message.payload)
+                except sqlite3.Error as exc:          # the bed answers the next resend too
+                    log.error("ward: %s's answer not journalled: %s", bed_id, exc)
+                return
             else:
                 body = json.loads(message.payload)
                 body = _summary(body, bed_id) if kind == "summary" else _event(body, bed_id, kind)
@@ -284,6 +325,8 @@ class WardStation:
                 bed.take_event({**body, "received_at": now})
         if kind in EVENT_TYPES:
             self._confirm(bed_id, body["seq"])
+        elif kind == "status" and status == "online" and self.commands is not None:
+            self.commands.bed_online(bed_id)
 
     def _confirm(self, bed_id: str, seq: int) -> None:
         """Tell the bed its event ``seq`` is on the screen; if this is lost the bed resends and is told again."""

@@ -8,6 +8,44 @@ function element(tag, className, text) {
   return e;
 }
 
+const COMMAND_WORDS = {"acknowledge": "Acknowledge", "record-turn": "Record turn"};
+const STATE_WORDS = {"pending": "pending", "done": "done", "refused": "refused", "expired": "expired"};
+let canAct = false;
+
+// A nurse's command to a bed: posted with the session's CSRF token; the stream shows it pending, then done.
+function act(button, path) {
+  button.disabled = true;
+  const token = document.querySelector('meta[name="csrf-token"]').content;
+  fetch(path, {method: "POST", headers: {"Accept": "application/json", "X-CSRF-Token": token}})
+    .then(r => r.json().then(body => ({ok: r.ok, body})))
+    .then(({ok, body}) => say(body.message, ok))
+    .catch(() => say("not sent: no connection to the station", false))
+    .finally(() => { button.disabled = false; });
+}
+
+function say(message, ok) {
+  const p = document.getElementById("said");
+  p.textContent = message;
+  p.className = "flash " + (ok ? "info" : "error");
+  p.hidden = false;
+}
+
+function button(text, path, label) {
+  const b = element("button", "act", text);
+  b.type = "button";
+  b.setAttribute("aria-label", label);
+  b.addEventListener("click", () => act(b, path));
+  return b;
+}
+
+function commandLine(c) {
+  const what = COMMAND_WORDS[c.kind] + (c.kind === "acknowledge" ? ` alarm ${c.args.alarm_id}` : "");
+  const state = STATE_WORDS[c.state] + (c.state === "pending" ? "..." : "") + (c.result && c.state !== "done" ? `: ${c.result}` : "");
+  const p = element("p", "command " + c.state, `${what} by ${c.user}: ${state}`);
+  p.dataset.command = c.id;
+  return p;
+}
+
 function tile(bed) {
   const div = element("article", "bed " + (!bed.online ? "offline" : bed.highest_priority || "quiet"));
   div.dataset.bed = bed.bed_id;
@@ -28,6 +66,10 @@ function tile(bed) {
                  (a.acknowledged_by ? ` (acknowledged by ${a.acknowledged_by})` : "");
     const p = element("p", "alarm " + a.priority, text);
     p.dataset.alarm = a.alarm_id;
+    if (canAct && !a.acknowledged_by) {
+      p.appendChild(button("Acknowledge", `/ward/${encodeURIComponent(bed.bed_id)}/alarms/${a.alarm_id}/acknowledge`,
+                           `Acknowledge alarm ${a.alarm_id} at bed ${bed.bed_id}`));
+    }
     div.appendChild(p);
   }
   const facts = element("p", "facts");
@@ -38,12 +80,17 @@ function tile(bed) {
   if (bed.regions.length) {
     div.appendChild(element("p", "facts", bed.regions.map(r => `${r.words || r.zone || "region"} ${Math.round(100 * (r.dose || 0))} %`).join(" · ")));
   }
+  if (canAct) {
+    div.appendChild(button("Record turn", `/ward/${encodeURIComponent(bed.bed_id)}/turn`, `Record a turn at bed ${bed.bed_id}`));
+    for (const c of bed.commands) div.appendChild(commandLine(c));
+  }
   return div;
 }
 
 function draw(ward) {
   document.getElementById("lost").hidden = true;
   document.getElementById("broker").hidden = ward.connected;
+  canAct = ward.can_act;
   const c = ward.counts;
   document.getElementById("counts").textContent =
     `${c.beds} bed(s): ${c.alarming} with alarms, ${c.offline} offline`;

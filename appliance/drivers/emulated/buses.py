@@ -14,6 +14,7 @@ Faults are injected through a :class:`FaultPlan` shared by the buses.
 from __future__ import annotations
 
 import errno
+import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -254,6 +255,14 @@ class GPIOBank:
         self.driven: dict[str, int] = {}
         self.sources: dict[str, InputSource] = {}
         self.watchers: dict[str, list[Callable[[int, int], None]]] = {}
+        self.broken: dict[str, int] = {}          # line -> the errno a write to it fails with
+
+    def break_line(self, name: str, error: int = errno.EIO) -> None:
+        """Writes to ``name`` fail with ``error`` (a line shorted, or its chip gone) until :meth:`mend_line`."""
+        self.broken[name] = error
+
+    def mend_line(self, name: str) -> None:
+        self.broken.pop(name, None)
 
     def watch(self, name: str, callback: Callable[[int, int], None]) -> None:
         """Call ``callback(old, new)`` whenever the appliance drives ``name`` (wired to a chip pin)."""
@@ -317,6 +326,10 @@ class EmulatedGPIOLines(GPIOLines):
         if inputs:
             raise EmulatorViolation(f"GPIO line {inputs[0]} of {self.consumer} is an input; it cannot be driven")
         self.bank.clock.sleep(self._timing.call_overhead_s)
+        broken = [n for n in values if n in self.bank.broken]
+        if broken:                                  # as the kernel's line-set ioctl fails: nothing changes
+            error = self.bank.broken[broken[0]]
+            raise OSError(error, f"GPIO line {broken[0]} of {self.consumer}: {os.strerror(error)}")
         values = {name: int(bool(v)) for name, v in values.items()}
         self.bank.log.append(Transaction(self.bank.clock.monotonic(), "gpio", ",".join(values),
                                          bytes(values.values())))
