@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from appliance.alerts.anatomy import BodyView
-from appliance.alerts.sites import SiteReading, label_cells, locate_sites
+from appliance.alerts.anatomy import BodyView, posture_side
+from appliance.alerts.sites import FLOOR_KPA, TROCHANTER_REACH_MM, SiteReading, label_cells, locate_sites
 from appliance.errors import ConfigError, ModelInputInvalid
 from appliance.sim.body import MatGrid, Placement, Subject, body_field, body_patches
 from appliance.sim.field import KPA_PER_MMHG
@@ -105,6 +105,31 @@ def test_left_and_right_follow_the_patient_not_the_mat():
                        for s in sites)
 
 
+def one_lower_leg(view: BodyView, kept: str) -> BodyView:
+    """``view`` with the other leg lifted off the mat from the knee down (as with the legs crossed or one knee up):
+    the cells below 60 % of the contact's length on the patient's other side of the hips' centre of load."""
+    kpa = view.kpa.copy()
+    rows = np.flatnonzero((kpa >= 5 * KPA_PER_MMHG).any(axis=1))
+    knee = rows[0] + int(0.6 * (rows[-1] - rows[0]))
+    hips = kpa[rows[0] + int(0.45 * (rows[-1] - rows[0])):rows[0] + int(0.55 * (rows[-1] - rows[0]))]
+    middle = round(float(np.average(np.arange(kpa.shape[1]), weights=hips.sum(axis=0))))
+    if kept == "right":
+        kpa[knee:, middle:] = 0.0
+    else:
+        kpa[knee:, :middle + 1] = 0.0
+    return BodyView(kpa, view.pitch_mm, view.transposed)
+
+
+@pytest.mark.parametrize("subject, placement", [(Subject(75.0, 175.0), Placement("supine")),
+                                                (Subject(60.0, 160.0), Placement("supine", 400))])
+@pytest.mark.parametrize("kept", ["left", "right"])
+def test_a_heel_alone_on_the_mat_is_named_by_the_side_of_the_trunk_it_lies_on(subject, placement, kept):
+    """The legs' own midline runs through a lone heel; the trunk's does not."""
+    view = one_lower_leg(monitor_view(body_field(subject, placement).pressure_kpa), kept)
+    names = label_cells(view, "supine", floor_kpa=12 * KPA_PER_MMHG)
+    assert {n for n in names.ravel() if n and n.startswith("heel")} == {f"heel-{kept}"}
+
+
 def test_sitting_on_the_edge_names_the_ischia_by_the_way_the_patient_faces():
     kpa = np.zeros((64, 30))
     kpa[30, 2], kpa[34, 2] = 12.0, 10.0                    # on the right-hand edge, facing out: left to the foot
@@ -173,13 +198,33 @@ def test_training_subjects_side_lying_rest_on_the_down_side(subject, posture_fil
         assert sites[f"shoulder-{down}"].along_mm < sites[f"trochanter-{down}"].along_mm
 
 
+@needs_pmat
+@pytest.mark.parametrize("subject", TRAINING)
+@pytest.mark.parametrize("posture_file, posture", [(2, "right-90"), (3, "left-90"), (13, "fetal-right"),
+                                                   (14, "fetal-left")])
+def test_a_side_lying_trochanter_is_its_hot_spot_and_the_hip_within_reach_of_it(subject, posture_file, posture):
+    view = pmat_view(subject, posture_file)
+    names = label_cells(view, posture)
+    site = f"trochanter-{posture_side(posture)}"
+    cells = [tuple(rc) for rc in np.argwhere(names == site)]
+    assert cells
+    loaded = [tuple(rc) for rc in np.argwhere(view.kpa >= FLOOR_KPA)]
+
+    def reach(peak):
+        return {rc for rc in loaded if names[rc] in (None, site)
+                and math.dist(view.cell_centre_mm(*rc), view.cell_centre_mm(*peak)) <= TROCHANTER_REACH_MM}
+    # some cell of it (its peak before the hip around it joined) reaches exactly the trochanter's cells
+    assert any(reach(peak) == set(cells) for peak in cells)
+
+
 # ---------------------------------------------------------------------------
 # The learned table, on the training subjects' labels (S4, S6 and S11 are held out and never read here)
 
 LABELS = Path(__file__).resolve().parent / "data" / "site_labels"
-LOSO_ALL, LOSO_NAMED, LOSO_MARGIN = 0.779, 0.771, 0.04
+LOSO_ALL, LOSO_NAMED, LOSO_MARGIN = 0.804, 0.800, 0.02
 """Leave-one-subject-out accuracy measured on the loaded labelled spots (all, and those the hand named) when the
-table's constants were chosen; the margin allows for small changes to the frame fit."""
+locator's constants were chosen (the table alone: 0.779 and 0.771, which the margin, allowing for small changes to
+the frame fit, does not reach)."""
 
 
 @pytest.fixture(scope="module")

@@ -58,13 +58,20 @@ class BodyFrame:
         return (da * c + dc * s) / self.length_mm, (dc * c - da * s) / self.length_mm
 
 
-def body_coordinates(view: BodyView, posture: str, along_mm, across_mm) -> tuple[np.ndarray, np.ndarray]:
-    """(s, u) of view points in the frame fitted for a lying ``posture``; on the back (supine, inclined,
-    prone) ``u`` is taken from the body's midline at each point's ``s``."""
+def posture_frame(view: BodyView, posture: str) -> BodyFrame:
+    """The body frame fitted for a lying ``posture`` (lying 60 or 90 degrees on a side, or curled up, the knees
+    may be drawn up)."""
     side = posture_side(posture)
-    frame = fit_body_frame(view, side_lying=side is not None and not posture.endswith("30"))
+    return fit_body_frame(view, side_lying=side is not None and not posture.endswith("30"))
+
+
+def body_coordinates(view: BodyView, posture: str, along_mm, across_mm,
+                     frame: BodyFrame | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(s, u) of view points in the frame fitted for a lying ``posture`` (``frame``: that frame, if already
+    fitted); on the back (supine, inclined, prone) ``u`` is taken from the body's midline at each point's ``s``."""
+    frame = frame or posture_frame(view, posture)
     s, u = frame.body_fractions(along_mm, across_mm)
-    if side is None:
+    if posture_side(posture) is None:
         u = u - _midline(view, frame, np.atleast_1d(s))
     return np.atleast_1d(s), np.atleast_1d(u)
 
