@@ -94,10 +94,17 @@ def _start_local(args) -> int:
 
 
 async def _ensure_streams(hospital, urls: list[str], secrets: Path) -> list[str]:
+    import nats.errors
+
+    from appliance.errors import ConfigError
     from appliance.hospital.engine import connect, ensure_ward_streams
     from appliance.hospital.nodeconfig import ADMIN, read_password
 
-    connection = await connect(urls, ADMIN, read_password(secrets, ADMIN))
+    try:
+        connection = await connect(urls, ADMIN, read_password(secrets, ADMIN), attempts=3)
+    except nats.errors.NoServersError:
+        raise ConfigError(f"no node of {', '.join(urls)} let {ADMIN} in: are they running, and is {secrets} the "
+                          f"secrets folder of their configuration?") from None
     try:
         return await ensure_ward_streams(connection, hospital)
     finally:

@@ -43,12 +43,13 @@ a stream that does not take the subject) is a fault to raise, not to retry."""
 
 
 async def connect(urls: Sequence[str], user: str, password: str, *,
-                  on_error: Callable[[Exception], Awaitable[None]] | None = None) -> Client:
-    """A connection as ``user`` to whichever node of ``urls`` answers, reconnecting to the others for ever, with
-    replies on the user's own inbox (the only one its permissions let it read). The server's complaints (a
-    permissions violation, which drops the publish) go to ``on_error``, or to the log."""
+                  on_error: Callable[[Exception], Awaitable[None]] | None = None, attempts: int = -1) -> Client:
+    """A connection as ``user`` to whichever node of ``urls`` answers, reconnecting to the others for ever (or
+    ``attempts`` times, a refused login included, then NoServersError), with replies on the user's own inbox
+    (the only one its permissions let it read). The server's complaints (a permissions violation, which drops
+    the publish) go to ``on_error``, or to the log."""
     return await nats.connect(servers=list(urls), user=user, password=password, inbox_prefix=inbox_prefix(user),
-                              name=user, allow_reconnect=True, max_reconnect_attempts=-1,
+                              name=user, allow_reconnect=True, max_reconnect_attempts=attempts,
                               reconnect_time_wait=RECONNECT_WAIT_S, connect_timeout=2, ping_interval=5,
                               max_outstanding_pings=2, error_cb=on_error or _log_error)
 
