@@ -59,9 +59,9 @@ def write_node_configs(hospital: Hospital, folder: Path) -> NodeConfigs:
         raise ConfigError(f"{ADMIN!r} is the engine's administrator: no bed or station may take that name")
     folder = Path(folder).absolute()
     if folder.exists() and not folder.is_dir():
-        raise ConfigError(f"--out {folder} is a file, not a folder")
+        raise ConfigError(f"configuration folder {folder} is a file, not a folder")
     if not folder.parent.is_dir():
-        raise ConfigError(f"--out {folder}: the folder {folder.parent} does not exist")
+        raise ConfigError(f"configuration folder {folder}: the folder {folder.parent} does not exist")
     folder.mkdir(mode=0o755, exist_ok=True)
     secrets_folder = folder / "secrets"
     secrets_folder.mkdir(mode=0o700, exist_ok=True)
