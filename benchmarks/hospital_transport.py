@@ -241,6 +241,9 @@ async def measure(cluster, alarms: int, probe: int, kill_alarms: int) -> dict:
         except Exception:  # noqa: BLE001  not yet answering: ask again
             await asyncio.sleep(0.2)
     mqtt_kept, native_kept = await probe_messages(cluster, before + 1, after)
+    result["mqtt_store_failures"] = sum(
+        (cluster.folder / f"{node.name}.log").read_text(errors="replace").count("failed a pipelined QoS1/2 operation")
+        for node in cluster.hospital.nodes)
     result.update(mqtt_probe_acked=mqtt_acked, native_probe_acked=native_acked, mqtt_probe_stored=mqtt_kept,
                   native_probe_stored=native_kept, mqtt_disconnected=mqtt_bed.disconnected,
                   mqtt_connections=mqtt_bed.connections)
@@ -281,7 +284,23 @@ def report(result: dict, version: str, seconds: float) -> str:
              table(["path", "killed", "bed on", "confirmed", "confirmed but not in the ward stream",
                     "stored twice", "p50 ms", "max ms (across the kill)"],
                    [[k["path"], k["killed"], k["publisher_node"], k["confirmed"], k["lost"], k["duplicates"],
-                     k["p50_ms"], k["max_ms"]] for k in result["kills"]])]
+                     k["p50_ms"], k["max_ms"]] for k in result["kills"]]),
+             "", "## What a confirmation means on each path", "",
+             "* **MQTT QoS 1**: since 2.15 (nats-server pull request #8415) the listener stores each QoS 1 PUBLISH "
+             "in its own stream `$MQTT_msgs` and sends the PUBACK when JetStream acknowledges that store; a store "
+             "that fails or takes over 5 s closes the connection instead (in the quorum probe the nodes logged "
+             f"\"JetStream failed a pipelined QoS1/2 operation\" {result['mqtt_store_failures']} time(s)). The "
+             "ward's own "
+             "stream takes the message as a plain NATS publish, which nothing acknowledges "
+             "(nats-server `server/README-MQTT.md`, section Message): the PUBACK is for `$MQTT_msgs`, a different "
+             "replicated log with its own leader, not for the stream the station reads. MQTT 3.1.1 carries no "
+             "headers, so a PUBLISH sent again after a lost PUBACK is stored again (the \"stored twice\" column), "
+             "and the listener needs its session stream `$MQTT_sess` to have a quorum before it accepts a "
+             "connection (nats-server issues #2226, #3787).",
+             "* **native JetStream**: the acknowledgement comes from the ward's stream itself, after its leader "
+             "has the message on a quorum (docs.nats.io, JetStream clustering), and names the stream and the "
+             "message's place in it; `Nats-Msg-Id` = bed and sequence number makes a resend inside the duplicate "
+             "window an acknowledged duplicate, not a second copy."]
     return "\n".join(lines) + "\n"
 
 
