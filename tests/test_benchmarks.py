@@ -244,8 +244,8 @@ def test_hospital_transport_benchmark_runs_a_small_case(tmp_path):
     without a quorum, and the report carries the figures."""
     bench = load("hospital_transport")
     out = tmp_path / "report.md"
-    bench.main(["--alarms", "20", "--probe", "2", "--kill-alarms", "20", "--out", str(out), "--dir",
-                str(tmp_path / "engine")])
+    bench.main(["--alarms", "20", "--probe", "2", "--kill-alarms", "20", "--kill-rounds", "1", "--out", str(out),
+                "--dir", str(tmp_path / "engine")])
     text = out.read_text()
     assert "| MQTT QoS 1 | 0 of 2 |" in text and "| native JetStream | 0 of 2 |" in text
     rows = {line.split(" | ")[0]: line.split(" | ") for line in text.splitlines()
