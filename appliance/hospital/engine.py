@@ -38,7 +38,7 @@ after a node's death takes a few seconds, during which publishes time out."""
 RETRYABLE = (nats.errors.TimeoutError, nats.errors.NoRespondersError, nats.errors.ConnectionClosedError,
              nats.errors.ConnectionReconnectingError, nats.js.errors.NoStreamResponseError,
              nats.js.errors.ServiceUnavailableError, nats.js.errors.ServerError, TimeoutError)
-"""What a publish may meet while a node dies or a leader is elected; anything else (a permissions violation,
+"""What a publish or a read may meet while a node dies or a leader is elected; anything else (a permissions violation,
 a stream that does not take the subject) is a fault to raise, not to retry."""
 
 
@@ -145,12 +145,12 @@ class WardReader:
 
     async def read(self, batch: int = 100, timeout_s: float = 1.0) -> list[Delivery]:
         """The events new to this station among the next ``batch`` messages (none within ``timeout_s``: [])."""
-        if self.subscription is None:
-            await self.open()
-        assert self.subscription is not None
         try:
+            if self.subscription is None:
+                await self.open()
+            assert self.subscription is not None
             messages = await self.subscription.fetch(batch, timeout=timeout_s)
-        except (TimeoutError, nats.errors.TimeoutError):
+        except RETRYABLE:           # nothing new, or the stream or consumer is electing a leader: ask again later
             return []
         fresh = []
         for message in messages:
