@@ -3,7 +3,8 @@
 
 ``config`` writes each node's nats-server configuration and everyone's passwords from the hospital
 description; ``streams`` creates or updates every ward's replicated alarm stream on a running cluster;
-``start-local`` runs a whole cluster on loopback for trials, until Ctrl-C.
+``start-local`` runs a whole cluster on loopback for trials, until Ctrl-C, and writes its description beside
+it for the other two.
 """
 
 from __future__ import annotations
@@ -70,14 +71,17 @@ def _streams(args) -> int:
 
 
 def _start_local(args) -> int:
+    from appliance.files import write_atomic
     from appliance.hospital.cluster import LocalCluster, loopback_hospital, server_version
-    from appliance.hospital.description import Ward
+    from appliance.hospital.description import Ward, description_text
     from appliance.hospital.nodeconfig import ADMIN
 
     folder = args.dir or Path(tempfile.mkdtemp(prefix="appliance-hospital-"))
     folder.mkdir(parents=True, exist_ok=True)
     ward = Ward("trial", tuple(f"bed{i:02d}" for i in range(1, args.beds + 1)), ("trial-station",))
     hospital = loopback_hospital(folder / "store", [ward])
+    description = folder / "hospital.toml"
+    write_atomic(description, description_text(hospital))
     signal.signal(signal.SIGTERM, _stop)
     with LocalCluster(hospital, folder / "config") as cluster:
         names = asyncio.run(_ensure_streams(hospital, cluster.urls, cluster.configs.secrets_folder))
@@ -87,7 +91,8 @@ def _start_local(args) -> int:
             print(f"  {node.name}: {node.client_url}  mqtt://{node.host}:{node.mqtt_port}  "
                   f"http://{node.host}:{node.monitor_port}/jsz  log {folder / 'config' / f'{node.name}.log'}")
         print(f"users {ADMIN}, {', '.join(ward.beds)}, {', '.join(ward.stations)}: passwords in "
-              f"{cluster.configs.secrets_folder}; Ctrl-C stops the cluster", flush=True)
+              f"{cluster.configs.secrets_folder}; the description in {description}; Ctrl-C stops the cluster",
+              flush=True)
         with contextlib.suppress(KeyboardInterrupt):
             signal.pause()
     return 0

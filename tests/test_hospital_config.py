@@ -7,6 +7,8 @@ import os
 import signal
 import socket
 import stat
+import subprocess
+import sys
 
 import pytest
 from hospital_engine import logged_in, make_streams, running_cluster
@@ -14,8 +16,8 @@ from mqtt_broker import wait_until
 
 from appliance.cli import main
 from appliance.errors import ConfigError
-from appliance.hospital.description import Ward, hospital_from_mapping, load_hospital
-from appliance.hospital.engine import BedPublisher
+from appliance.hospital.description import Ward, description_text, hospital_from_mapping, load_hospital
+from appliance.hospital.engine import BedPublisher, connect
 from appliance.hospital.nodeconfig import read_password, write_node_configs
 
 DESCRIPTION = """
@@ -53,9 +55,7 @@ def description(**changes):
 
 
 def test_the_description_file_is_read_with_its_defaults(tmp_path):
-    path = tmp_path / "hospital.toml"
-    path.write_text(DESCRIPTION)
-    hospital = load_hospital(path)
+    hospital = load_hospital_text(tmp_path, DESCRIPTION)
     assert hospital.cluster == "st-mary" and hospital.replicas == 3
     assert hospital.store_dir == tmp_path / "store"
     assert [(n.name, n.client_port, n.cluster_port, n.monitor_port, n.mqtt_port) for n in hospital.nodes] == [
@@ -163,3 +163,55 @@ def test_a_bed_added_to_the_description_gets_in_on_reload_without_a_restart(tmp_
         assert ack.stream == "ALARMS_ward1" and ack.seq == 1
         assert {name: process.pid for name, process in cluster.processes.items()} == pids
         assert all(cluster.running(name) for name in pids)
+
+
+def test_a_description_written_out_reads_back_the_same(tmp_path):
+    hospital = load_hospital_text(tmp_path, DESCRIPTION)
+    path = tmp_path / "again.toml"
+    path.write_text(description_text(hospital))
+    assert load_hospital(path) == hospital
+
+
+def load_hospital_text(folder, text):
+    path = folder / "hospital.toml"
+    path.write_text(text)
+    return load_hospital(path)
+
+
+def test_start_local_runs_a_cluster_that_the_streams_command_and_a_bed_can_use_and_stops_it(tmp_path, capsys):
+    folder = tmp_path / "local"
+    with subprocess.Popen([sys.executable, "-m", "appliance", "hospital", "start-local", "--dir", str(folder),
+                           "--beds", "2"], stdout=subprocess.PIPE, text=True) as command:
+        try:
+            hospital = _use_local_cluster(command, folder, capsys)
+        finally:
+            command.send_signal(signal.SIGTERM)
+            assert command.wait(30) == 0
+    for node in hospital.nodes:                                 # every node stopped with it
+        with pytest.raises(OSError):
+            socket.create_connection((node.host, node.client_port), timeout=1).close()
+
+
+def _use_local_cluster(command, folder, capsys):
+    """What start-local printed, its description and secrets used by the streams command and a bed."""
+    lines = [command.stdout.readline() for _ in range(5)]
+    assert lines[0].startswith("hospital engine: nats-server v2.15.1, 3 nodes on loopback, stream ALARMS_trial "
+                               "with 3 replicas"), lines
+    assert "Ctrl-C stops the cluster" in lines[4]
+    hospital = load_hospital(folder / "hospital.toml")
+    assert hospital.wards == (Ward("trial", ("bed01", "bed02"), ("trial-station",)),)
+    secrets = folder / "config" / "secrets"
+    assert main(["hospital", "streams", "--description", str(folder / "hospital.toml"), "--secrets",
+                 str(secrets)]) == 0
+    assert "1 ward stream(s), 3 replica(s) each: ALARMS_trial" in capsys.readouterr().out
+
+    async def bed_publishes():
+        connection = await connect([node.client_url for node in hospital.nodes], "bed02",
+                                   read_password(secrets, "bed02"))
+        try:
+            return await BedPublisher(connection, "trial", "bed02").send("alarm", 1, {"kind": "sacrum"})
+        finally:
+            await connection.close()
+
+    assert asyncio.run(bed_publishes()).stream == "ALARMS_trial"
+    return hospital

@@ -30,7 +30,7 @@ import unicodedata
 from dataclasses import dataclass
 from pathlib import Path
 
-from appliance.core.toml_files import check_keys, read_toml_as
+from appliance.core.toml_files import check_keys, read_toml_as, toml_value
 from appliance.errors import ConfigError
 
 MAX_NAME = 64
@@ -110,6 +110,22 @@ def hospital_from_mapping(data: dict, base: Path | None = None) -> Hospital:
     _unique([ward.name for ward in wards], "ward name")
     _unique([name for ward in wards for name in (*ward.beds, *ward.stations)], "bed id or station")
     return Hospital(cluster, store_dir, nodes, wards, replicas)
+
+
+def description_text(hospital: Hospital) -> str:
+    """``hospital`` as a description file that :func:`load_hospital` reads back to the same hospital."""
+    lines = ["[hospital]", f"cluster = {toml_value(hospital.cluster)}",
+             f"store_dir = {toml_value(str(hospital.store_dir))}", f"replicas = {hospital.replicas}"]
+    for node in hospital.nodes:
+        lines += ["", "[[node]]", f"name = {toml_value(node.name)}", f"host = {toml_value(node.host)}",
+                  f"client_port = {node.client_port}", f"cluster_port = {node.cluster_port}",
+                  f"monitor_port = {node.monitor_port}"]
+        if node.mqtt_port is not None:
+            lines.append(f"mqtt_port = {node.mqtt_port}")
+    for ward in hospital.wards:
+        lines += ["", "[[ward]]", f"name = {toml_value(ward.name)}", f"beds = {toml_value(ward.beds)}",
+                  f"stations = {toml_value(ward.stations)}"]
+    return "\n".join(lines) + "\n"
 
 
 def check_name(name: str, what: str) -> str:
