@@ -2,6 +2,7 @@
 named, passwords kept across runs, and a bed added to a running engine by a reload, without a restart."""
 
 import asyncio
+import dataclasses
 import json
 import os
 import signal
@@ -60,7 +61,7 @@ def test_the_description_file_is_read_with_its_defaults(tmp_path):
     assert hospital.store_dir == tmp_path / "store"
     assert [(n.name, n.client_port, n.cluster_port, n.monitor_port, n.mqtt_port) for n in hospital.nodes] == [
         ("n1", 4222, 6222, 8222, 1883), ("n2", 4222, 6222, 8222, None), ("n3", 4222, 6222, 8222, None)]
-    assert hospital.ward_of_bed("w3-bed02").stations == ("ward3-station",)
+    assert hospital.wards == (Ward("ward3", ("w3-bed01", "w3-bed02"), ("ward3-station",)),)
 
 
 @pytest.mark.parametrize("changes, message", [
@@ -139,10 +140,8 @@ def test_a_bed_added_to_the_description_gets_in_on_reload_without_a_restart(tmp_
         asyncio.run(make_streams(cluster))
         pids = {name: process.pid for name, process in cluster.processes.items()}
         ward1 = cluster.hospital.wards[0]
-        grown = cluster.hospital.__class__(cluster.hospital.cluster, cluster.hospital.store_dir,
-                                           cluster.hospital.nodes,
-                                           (Ward(ward1.name, (*ward1.beds, "bed9"), ward1.stations),
-                                            *cluster.hospital.wards[1:]), cluster.hospital.replicas)
+        grown = dataclasses.replace(cluster.hospital, wards=(Ward(ward1.name, (*ward1.beds, "bed9"), ward1.stations),
+                                                             *cluster.hospital.wards[1:]))
         before = read_password(cluster.configs.secrets_folder, "bed1")
         assert write_node_configs(grown, cluster.folder).added == ("bed9",)
         assert read_password(cluster.configs.secrets_folder, "bed1") == before

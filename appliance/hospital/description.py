@@ -71,18 +71,6 @@ class Hospital:
     wards: tuple[Ward, ...]
     replicas: int = 3
 
-    def ward(self, name: str) -> Ward:
-        for ward in self.wards:
-            if ward.name == name:
-                return ward
-        raise ConfigError(f"no ward {name!r} in the hospital; wards: {', '.join(w.name for w in self.wards)}")
-
-    def ward_of_bed(self, bed: str) -> Ward:
-        for ward in self.wards:
-            if bed in ward.beds:
-                return ward
-        raise ConfigError(f"no bed {bed!r} in any ward of the hospital")
-
 
 def load_hospital(path) -> Hospital:
     """The hospital described in TOML file ``path``; a relative ``store_dir`` is relative to the file's folder."""

@@ -99,8 +99,6 @@ class BedPublisher:
     def __init__(self, connection: Client, ward: str, bed: str):
         self.connection, self.ward, self.bed = connection, ward, bed
         self.js = connection.jetstream()
-        self.attempts = 0
-        """Publishes sent, resends included."""
 
     async def send(self, kind: str, seq: int, event: dict, *, deadline_s: float = 60.0) -> api.PubAck:
         """Publish ``event`` as number ``seq`` until the ward's stream acknowledges it (its ``duplicate`` flag set
@@ -111,7 +109,6 @@ class BedPublisher:
         loop = asyncio.get_running_loop()
         give_up = loop.time() + deadline_s
         while True:
-            self.attempts += 1
             try:
                 return await self.js.publish(subject, payload, timeout=PUBLISH_TIMEOUT_S, headers=headers,
                                              stream=stream_name(self.ward))
