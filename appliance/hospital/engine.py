@@ -2,7 +2,7 @@
 ward's stream has it on a quorum, and a station applies each bed's sequence number once.
 
 JetStream acknowledges a publish after the stream's leader has replicated it to a majority of its replicas
-(with ``sync_interval: always``, fsynced there), and keeps one copy per ``Nats-Msg-Id`` inside the stream's
+(each node fsyncing every write, ``sync_interval: always``), and keeps one copy per ``Nats-Msg-Id`` inside the stream's
 duplicate window. So a bed resends an event under the same id until it holds an acknowledgement, whatever
 node died meanwhile (:meth:`BedPublisher.send`); a station reads the ward's stream through its own durable
 consumer, acknowledges each message after applying it, and applies a bed's number only once
