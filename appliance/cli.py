@@ -111,6 +111,7 @@ def _parser() -> argparse.ArgumentParser:
     from appliance.cli_calibrate import add_parsers as add_calibrate_parsers
     from appliance.cli_charting import add_parsers as add_charting_parsers
     from appliance.cli_frontend import add_parsers as add_frontend_parsers
+    from appliance.cli_hospital import add_parsers as add_hospital_parsers
     from appliance.cli_provision import add_parsers as add_provision_parsers
     from appliance.cli_run import add_parsers as add_run_parsers
     from appliance.cli_sim import add_parsers as add_sim_parsers
@@ -121,6 +122,7 @@ def _parser() -> argparse.ArgumentParser:
     add_run_parsers(sub)
     add_calibrate_parsers(sub)
     add_ward_parsers(sub)
+    add_hospital_parsers(sub)
     add_provision_parsers(sub)
     add_charting_parsers(sub)
     return parser

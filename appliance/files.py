@@ -51,3 +51,17 @@ def write_atomic(path: Path, content) -> None:
         os.fsync(folder)
     finally:
         os.close(folder)
+
+
+def read_secret(path: Path, remedy: str) -> str:
+    """The first line of secret file ``path`` (a password), or a ConfigError naming it; ``remedy`` says what to
+    do when it is empty."""
+    from appliance.errors import ConfigError
+
+    try:
+        lines = Path(path).read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read the password ({exc})") from None
+    if not lines or not lines[0]:
+        raise ConfigError(f"{path}: empty; {remedy}")
+    return lines[0]

@@ -6,10 +6,10 @@ must be refused before anything expensive is built: a model build would show as 
 test that takes minutes. The web screen's forms and uploads are held to the same rule:
 a 4xx naming what is wrong, never a 500 and never "nothing changed".
 
-313 command-line cases (layout 13, protocol 11, simulate 26, reconstruct 34, sim load-test 18,
+324 command-line cases (layout 13, protocol 11, simulate 26, reconstruct 34, sim load-test 18,
 sim run 36, sim replay 14, sim map 20, acquire 24, selftest 5, run 33, calibrate pressure 28,
-calibrate sensitivity 11, ward 14, ward-broker 17, provision 6, the parser itself 3), all exiting 2; 61 web
-cases (settings 28, patient 7, accounts 8, engineering 18), all answered with a 4xx.
+calibrate sensitivity 11, ward 14, ward-broker 17, hospital 11, provision 6, the parser itself 3), all
+exiting 2; 61 web cases (settings 28, patient 7, accounts 8, engineering 18), all answered with a 4xx.
 """
 
 from __future__ import annotations
@@ -65,6 +65,7 @@ PRESSURE = ["calibrate", "pressure", "--layout", "grid-4x4", "--cache-dir", "{t}
 SENSITIVITY = ["calibrate", "sensitivity", "--layout", "grid-4x4"]
 WARD = ["ward", "--check-config", "--data-dir", "{t}/ward"]
 WARD_BROKER = ["ward-broker", "--out", "{t}/ward-broker"]
+HOSPITAL_CONFIG = ["hospital", "config", "--out", "{t}/engine"]
 PROVISION = ["provision", "--config-dir", "{t}/etc", "--data-dir", "{t}/data", "--no-hostname"]
 
 CASES = [
@@ -396,6 +397,19 @@ CASES = [
     ([*WARD_BROKER, "--bed", "bed1", "--listener", "70000"], "--listener"),
     ([*WARD_BROKER, "--bed", "bed1", "--certfile", "{t}/ref.csv"], "--certfile"),
     ([*WARD_BROKER, "--bed", "bed1", "--broker-user", "no-such-account"], "no-such-account"),
+    # hospital
+    ([*HOSPITAL_CONFIG, "--description", "{t}/missing.toml"], "missing.toml"),
+    ([*HOSPITAL_CONFIG, "--description", "{t}/folder"], "folder"),
+    ([*HOSPITAL_CONFIG, "--description", "{t}/empty.toml"], "[hospital] is missing"),
+    ([*HOSPITAL_CONFIG, "--description", "{t}/garbage.toml"], "garbage.toml"),
+    ([*HOSPITAL_CONFIG, "--description", "{t}/binary.toml"], "binary.toml"),
+    (["hospital", "config", "--description", "{t}/hospital.toml", "--out", "{t}/empty.csv"], "empty.csv"),
+    (["hospital", "config", "--description", "{t}/hospital.toml", "--out", "{t}/nofolder/engine"], "nofolder"),
+    (["hospital", "streams", "--description", "{t}/hospital.toml", "--secrets", "{t}/folder"],
+     "hospital-admin.password does not exist"),
+    (["hospital", "start-local", "--beds", "0"], "--beds"),
+    (["hospital", "start-local", "--beds", "x"], "--beds"),
+    (["hospital"], "HOSPITAL_COMMAND"),
     # provision
     ([*PROVISION, "--setup", "{t}/missing.toml"], "missing.toml"),
     ([*PROVISION, "--setup", "{t}/folder"], "folder"),
@@ -418,6 +432,9 @@ def t(tmp_path_factory):
     assert main(["simulate", "--layout", "grid-4x4", "--out", str(t / "ref.csv")]) == 0
     (t / "map.csv").write_text("0,40\n40,0\n")
     (t / "data.mat").write_bytes(b"not a mat file")
+    (t / "hospital.toml").write_text('[hospital]\ncluster = "c"\nstore_dir = "store"\nreplicas = 1\n'
+                                     '[[node]]\nname = "n1"\nhost = "127.0.0.1"\n'
+                                     '[[ward]]\nname = "w"\nbeds = ["b"]\nstations = ["s"]\n')
     return t
 
 

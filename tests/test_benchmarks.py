@@ -237,3 +237,20 @@ def test_memory_benchmark_night_changes_electrodes_in_turn_and_its_control_has_n
     out = [f.electrode for f in scenes[True].faults if not f.connected]
     assert len(set(out)) == 24 and out.count(memory.FLICKER) == 14    # 23 spells' electrodes; 256 twice in 7
     assert len(scenes[True].faults) == 73
+
+
+def test_hospital_transport_benchmark_runs_a_small_case(tmp_path):
+    """Both paths on a real three-node engine: nothing is confirmed without a quorum, every natively confirmed
+    alarm is in the ward's stream once across a leader's kill, and the report carries the figures."""
+    bench = load("hospital_transport")
+    out = tmp_path / "report.md"
+    bench.main(["--alarms", "20", "--probe", "2", "--kill-alarms", "20", "--kill-rounds", "1", "--out", str(out),
+                "--dir", str(tmp_path / "engine")])
+    text = out.read_text()
+    assert "| MQTT QoS 1 | 0 of 2 |" in text and "| native JetStream | 0 of 2 |" in text
+    rows = {line.split(" | ")[0]: line.split(" | ") for line in text.splitlines()
+            if line.startswith(("| mqtt", "| native"))}
+    assert rows["| mqtt"][3] == "20" and 0 <= int(rows["| mqtt"][4]) <= 20      # the listener may lose some
+    assert rows["| native"][3:6] == ["20", "0", "0"]                            # the native path never does
+    healthy = [line for line in text.splitlines() if line.startswith(("| MQTT 3.1.1", "| native JetStream publish"))]
+    assert len(healthy) == 2 and all(line.endswith("| 20 |") for line in healthy)   # every alarm stored

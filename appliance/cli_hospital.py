@@ -1,0 +1,121 @@
+"""``appliance hospital``: the hospital engine, a NATS cluster with JetStream for the beds of many wards
+(``appliance.hospital``).
+
+``config`` writes each node's nats-server configuration and everyone's passwords from the hospital
+description; ``streams`` creates or updates every ward's replicated alarm stream on a running cluster;
+``start-local`` runs a whole cluster on loopback for trials, until Ctrl-C, and writes its description beside
+it for the other two.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import signal
+import tempfile
+from pathlib import Path
+
+from appliance.cli_args import whole_within
+
+
+def add_parsers(sub) -> None:
+    p = sub.add_parser("hospital", help="the hospital engine: a replicated NATS cluster for many wards' beds")
+    hospital = p.add_subparsers(dest="hospital_command", required=True, metavar="HOSPITAL_COMMAND")
+
+    p = hospital.add_parser("config", help="write each node's nats-server configuration and the users' passwords "
+                                           "from the hospital description")
+    p.add_argument("--description", type=Path, required=True, help="the hospital description (TOML: [hospital], "
+                                                                   "[[node]], [[ward]])")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="the folder for <node>.conf and secrets/ (made if missing; earlier passwords are kept)")
+    p.set_defaults(run=_config)
+
+    p = hospital.add_parser("streams", help="create or update every ward's alarm stream on the running cluster")
+    p.add_argument("--description", type=Path, required=True, help="the hospital description")
+    p.add_argument("--secrets", type=Path, required=True, metavar="DIR",
+                   help="the secrets/ folder `appliance hospital config` wrote (for the administrator's password)")
+    p.set_defaults(run=_streams)
+
+    p = hospital.add_parser("start-local", help="run a three-node cluster on loopback, with one trial ward, until "
+                                                "Ctrl-C")
+    p.add_argument("--dir", type=Path, default=None, help="where the configurations, passwords, stores and logs go "
+                                                          "(default: a new temporary folder)")
+    p.add_argument("--beds", type=whole_within(1, 1000), default=4, help="beds in the trial ward (default 4)")
+    p.set_defaults(run=_start_local)
+
+
+def _config(args) -> int:
+    from appliance.hospital.description import load_hospital
+    from appliance.hospital.nodeconfig import write_node_configs
+
+    hospital = load_hospital(args.description)
+    written = write_node_configs(hospital, args.out)
+    users = sum(len(ward.beds) + len(ward.stations) for ward in hospital.wards)
+    print(f"hospital engine {hospital.cluster}: {len(hospital.nodes)} node(s), {len(hospital.wards)} ward(s), "
+          f"{users} bed and station user(s)")
+    for name, path in written.files.items():
+        print(f"  {path}  node {name}: nats-server -c {path}")
+    print(f"  {written.secrets_folder}/USER.password  each user's password; added: "
+          f"{', '.join(written.added) or 'none'}; removed: {', '.join(written.removed) or 'none'}")
+    print("a running node reads its file again, with its users and permissions, on: nats-server --signal reload")
+    return 0
+
+
+def _streams(args) -> int:
+    from appliance.hospital.description import load_hospital
+
+    hospital = load_hospital(args.description)
+    names = asyncio.run(_ensure_streams(hospital, [node.client_url for node in hospital.nodes], args.secrets))
+    print(f"{len(names)} ward stream(s), {hospital.replicas} replica(s) each: {', '.join(names)}")
+    return 0
+
+
+def _start_local(args) -> int:
+    from appliance.files import write_atomic
+    from appliance.hospital.cluster import LocalCluster, loopback_hospital, server_version
+    from appliance.hospital.description import Ward, description_text
+    from appliance.hospital.nodeconfig import ADMIN
+
+    folder = args.dir or Path(tempfile.mkdtemp(prefix="appliance-hospital-"))
+    folder.mkdir(parents=True, exist_ok=True)
+    ward = Ward("trial", tuple(f"bed{i:02d}" for i in range(1, args.beds + 1)), ("trial-station",))
+    hospital = loopback_hospital(folder / "store", [ward])
+    description = folder / "hospital.toml"
+    write_atomic(description, description_text(hospital))
+    signal.signal(signal.SIGTERM, _stop)
+    with LocalCluster(hospital, folder / "config") as cluster:
+        names = asyncio.run(_ensure_streams(hospital, cluster.urls, cluster.configs.secrets_folder))
+        print(f"hospital engine: nats-server {server_version(cluster.binary)}, {len(hospital.nodes)} nodes on "
+              f"loopback, stream {names[0]} with {hospital.replicas} replicas")
+        for node in hospital.nodes:
+            print(f"  {node.name}: {node.client_url}  mqtt://{node.host}:{node.mqtt_port}  "
+                  f"http://{node.host}:{node.monitor_port}/jsz  log {folder / 'config' / f'{node.name}.log'}")
+        print(f"users {ADMIN}, {', '.join(ward.beds)}, {', '.join(ward.stations)}: passwords in "
+              f"{cluster.configs.secrets_folder}; the description in {description}; Ctrl-C stops the cluster",
+              flush=True)
+        with contextlib.suppress(KeyboardInterrupt):
+            signal.pause()
+    return 0
+
+
+async def _ensure_streams(hospital, urls: list[str], secrets: Path) -> list[str]:
+    import nats.errors
+
+    from appliance.errors import ConfigError
+    from appliance.hospital.engine import connect, ensure_ward_streams
+    from appliance.hospital.nodeconfig import ADMIN, read_password
+
+    try:
+        connection = await connect(urls, ADMIN, read_password(secrets, ADMIN), attempts=3)
+    except nats.errors.NoServersError:
+        raise ConfigError(f"no node of {', '.join(urls)} let {ADMIN} in: are they running, and is {secrets} the "
+                          f"secrets folder of their configuration?") from None
+    try:
+        return await ensure_ward_streams(connection, hospital)
+    finally:
+        await connection.close()
+
+
+def _stop(signum, frame):
+    """SIGTERM stops the cluster the way Ctrl-C does."""
+    raise KeyboardInterrupt

@@ -1,0 +1,199 @@
+"""The hospital description: its engine's nodes and its wards, beds and stations, in one TOML file, checked.
+
+::
+
+    [hospital]
+    cluster = "st-mary"            # the NATS cluster's name
+    store_dir = "/var/lib/appliance-hospital"   # each node keeps its JetStream files in <store_dir>/<node>
+    replicas = 3                   # copies of every ward's alarm stream (1 or 3; 3 survives a node's loss)
+
+    [[node]]                       # three nodes: a stream of 3 replicas needs 2 of them up to take a write
+    name = "n1"
+    host = "10.20.0.11"            # the address the node listens on and the others reach it at
+    client_port = 4222             # beds, stations and tools (default 4222)
+    cluster_port = 6222            # the other nodes (default 6222)
+    monitor_port = 8222            # /healthz and /jsz over HTTP (default 8222)
+    mqtt_port = 1883               # omit for no MQTT listener
+
+    [[ward]]
+    name = "ward3"
+    beds = ["w3-bed01", "w3-bed02"]
+    stations = ["ward3-station"]
+
+Names become tokens of NATS subjects and user names, so they may not hold '.', '*', '>', spaces or control
+characters; a bed id or station is unique in the hospital, not only in its ward.
+"""
+
+from __future__ import annotations
+
+import unicodedata
+from dataclasses import dataclass
+from pathlib import Path
+
+from appliance.core.toml_files import check_keys, read_toml_as, toml_value
+from appliance.errors import ConfigError
+
+MAX_NAME = 64
+NAME_FORBIDDEN = ".*>/\\\"'#+:$"
+"""Subject tokens may not hold '.', '*' or '>'; the rest would need quoting in the server's configuration, in a
+stream's name or in an MQTT topic."""
+REPLICAS = (1, 3)
+"""1 for a trial on one node; 3 for a stream that keeps taking writes, and loses none it acknowledged, when one
+node dies (a quorum of 2). 2 would stop at the loss of either node and is refused."""
+
+
+@dataclass(frozen=True)
+class Node:
+    name: str
+    host: str
+    client_port: int = 4222
+    cluster_port: int = 6222
+    monitor_port: int = 8222
+    mqtt_port: int | None = None
+
+    @property
+    def client_url(self) -> str:
+        return f"nats://{self.host}:{self.client_port}"
+
+
+@dataclass(frozen=True)
+class Ward:
+    name: str
+    beds: tuple[str, ...]
+    stations: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Hospital:
+    cluster: str
+    store_dir: Path
+    nodes: tuple[Node, ...]
+    wards: tuple[Ward, ...]
+    replicas: int = 3
+
+
+def load_hospital(path) -> Hospital:
+    """The hospital described in TOML file ``path``; a relative ``store_dir`` is relative to the file's folder."""
+    return read_toml_as(path, "hospital description", ConfigError, hospital_from_mapping)
+
+
+def hospital_from_mapping(data: dict, base: Path | None = None) -> Hospital:
+    check_keys(data, {"hospital", "node", "ward"}, "the hospital description", ConfigError)
+    top = _table(data.get("hospital"), "[hospital]")
+    check_keys(top, {"cluster", "store_dir", "replicas"}, "[hospital]", ConfigError)
+    cluster = check_name(_string(top, "cluster", "[hospital]"), "[hospital] cluster")
+    store_dir = Path(_string(top, "store_dir", "[hospital]"))
+    if not store_dir.is_absolute():
+        store_dir = (base or Path.cwd()) / store_dir
+    replicas = top.get("replicas", 3)
+    if replicas not in REPLICAS or isinstance(replicas, bool):
+        raise ConfigError(f"[hospital] replicas must be 1 or 3, got {replicas!r}")
+    nodes = tuple(_node(table, number) for number, table in enumerate(_array(data, "node"), start=1))
+    if len(nodes) < replicas:
+        raise ConfigError(f"[hospital] replicas = {replicas} needs at least {replicas} [[node]] tables, "
+                          f"got {len(nodes)}")
+    _unique([node.name for node in nodes], "node name")
+    _unique([(node.host, port) for node in nodes for port in _ports(node)], "host and port")
+    wards = tuple(_ward(table, number) for number, table in enumerate(_array(data, "ward"), start=1))
+    _unique([ward.name for ward in wards], "ward name")
+    _unique([name for ward in wards for name in (*ward.beds, *ward.stations)], "bed id or station")
+    return Hospital(cluster, store_dir, nodes, wards, replicas)
+
+
+def description_text(hospital: Hospital) -> str:
+    """``hospital`` as a description file that :func:`load_hospital` reads back to the same hospital."""
+    lines = ["[hospital]", f"cluster = {toml_value(hospital.cluster)}",
+             f"store_dir = {toml_value(str(hospital.store_dir))}", f"replicas = {hospital.replicas}"]
+    for node in hospital.nodes:
+        lines += ["", "[[node]]", f"name = {toml_value(node.name)}", f"host = {toml_value(node.host)}",
+                  f"client_port = {node.client_port}", f"cluster_port = {node.cluster_port}",
+                  f"monitor_port = {node.monitor_port}"]
+        if node.mqtt_port is not None:
+            lines.append(f"mqtt_port = {node.mqtt_port}")
+    for ward in hospital.wards:
+        lines += ["", "[[ward]]", f"name = {toml_value(ward.name)}", f"beds = {toml_value(ward.beds)}",
+                  f"stations = {toml_value(ward.stations)}"]
+    return "\n".join(lines) + "\n"
+
+
+def check_name(name: str, what: str) -> str:
+    """``name`` if it can be a subject token, a user name and part of a stream's name, else a ConfigError naming
+    ``what`` it is."""
+    if not isinstance(name, str) or not 1 <= len(name) <= MAX_NAME or any(
+            c in NAME_FORBIDDEN or c.isspace() or unicodedata.category(c) == "Cc" for c in name):
+        raise ConfigError(f"{what} {name!r}: must be 1-{MAX_NAME} characters without spaces, control characters "
+                          f"or any of {NAME_FORBIDDEN}")
+    return name
+
+
+def _node(table, number: int) -> Node:
+    where = f"[[node]] number {number}"
+    table = _table(table, where)
+    check_keys(table, {"name", "host", "client_port", "cluster_port", "monitor_port", "mqtt_port"}, where,
+               ConfigError)
+    name = check_name(_string(table, "name", where), f"{where} name")
+    host = _string(table, "host", where)
+    if any(c.isspace() or c in "/@" for c in host):
+        raise ConfigError(f"{where} host {host!r}: an address or host name, without spaces, '/' or '@'")
+    mqtt_port = table.get("mqtt_port")
+    return Node(name, host, _port(table, "client_port", 4222, where), _port(table, "cluster_port", 6222, where),
+                _port(table, "monitor_port", 8222, where),
+                None if mqtt_port is None else _port(table, "mqtt_port", 0, where))
+
+
+def _ward(table, number: int) -> Ward:
+    where = f"[[ward]] number {number}"
+    table = _table(table, where)
+    check_keys(table, {"name", "beds", "stations"}, where, ConfigError)
+    name = check_name(_string(table, "name", where), f"{where} name")
+    beds = tuple(check_name(bed, f"[[ward]] {name} bed id") for bed in _strings(table, "beds", f"[[ward]] {name}"))
+    stations = tuple(check_name(station, f"[[ward]] {name} station")
+                     for station in _strings(table, "stations", f"[[ward]] {name}"))
+    return Ward(name, beds, stations)
+
+
+def _ports(node: Node) -> list[int]:
+    return [port for port in (node.client_port, node.cluster_port, node.monitor_port, node.mqtt_port)
+            if port is not None]
+
+
+def _port(table: dict, key: str, default: int, where: str) -> int:
+    port = table.get(key, default)
+    if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
+        raise ConfigError(f"{where} {key} must be a port from 1 to 65535, got {port!r}")
+    return port
+
+
+def _table(value, where: str) -> dict:
+    if not isinstance(value, dict):
+        raise ConfigError(f"{where} is missing or not a table")
+    return value
+
+
+def _array(data: dict, key: str) -> list:
+    value = data.get(key)
+    if not isinstance(value, list) or not value:
+        raise ConfigError(f"no [[{key}]] tables: the hospital needs at least one")
+    return value
+
+
+def _string(table: dict, key: str, where: str) -> str:
+    value = table.get(key)
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f"{where}: '{key}' must be a non-empty string, got {value!r}")
+    return value
+
+
+def _strings(table: dict, key: str, where: str) -> list[str]:
+    value = table.get(key)
+    if not isinstance(value, list) or not value:
+        raise ConfigError(f"{where}: '{key}' must be a non-empty list of names, got {value!r}")
+    return value
+
+
+def _unique(values: list, what: str) -> None:
+    seen = set()
+    for value in values:
+        if value in seen:
+            raise ConfigError(f"{what} {value!r} is given twice in the hospital description")
+        seen.add(value)

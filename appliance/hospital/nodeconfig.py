@@ -1,0 +1,162 @@
+"""Each engine node's configuration, written from the hospital description, and everyone's passwords.
+
+``write_node_configs`` writes into one folder:
+
+- ``<node>.conf`` for every ``[[node]]``: the ``nats-server`` configuration of that node. JetStream writes to
+  disk with ``sync_interval: always``, an fsync before every acknowledgement (the default, every 2 minutes, let
+  Jepsen lose 14 % of acknowledged writes in a power cut of all nodes); routes to the other nodes, which log in
+  with the cluster's own password; an MQTT 3.1.1 listener where the node has an ``mqtt_port``; and one account,
+  HOSPITAL, holding every user with their permissions (file 0600: it holds the passwords).
+- ``secrets/<user>.password``: each user's password on its first line, for the bed, the station or the tools
+  (folder 0700, files 0600), and ``secrets/routes.password`` for the routes between nodes.
+
+Users and what they may do (``appliance.hospital.subjects`` names the subjects):
+
+- a bed (its id is its user name) publishes only ``hospital.<ward>.<bed>.{alarm,turn,episode,status,summary}``
+  and reads only its own ``confirm`` and its own inbox;
+- a station reads every subject of its ward, writes its beds' ``confirm``, and may only read its ward's
+  stream through a consumer (create, fetch, acknowledge), never change or delete it;
+- ``hospital-admin`` may do everything: it creates the streams (``appliance hospital streams``).
+
+Running it again keeps every existing password and adds or drops users. A running node reads its file again
+on ``nats-server --signal reload`` (SIGHUP), so a bed is added without a restart.
+"""
+
+from __future__ import annotations
+
+import json
+import secrets
+from dataclasses import dataclass
+from pathlib import Path
+
+from appliance.errors import ConfigError
+from appliance.files import read_secret, write_atomic
+from appliance.hospital.description import Hospital, Node, Ward
+from appliance.hospital.subjects import BED_KINDS, CONFIRM, ROOT, bed_subject, inbox_prefix, stream_name
+
+ADMIN = "hospital-admin"
+ROUTE_USER = "route"
+ACCOUNT = "HOSPITAL"
+PASSWORD_BYTES = 24
+DUPLICATE_WINDOW_S = 900.0
+"""How long each ward's stream remembers a message id: a bed's resends within it are stored once."""
+
+
+@dataclass(frozen=True)
+class NodeConfigs:
+    """What one run wrote: each node's configuration file, the secrets folder, and the users added and dropped."""
+
+    files: dict[str, Path]
+    secrets_folder: Path
+    added: tuple[str, ...]
+    removed: tuple[str, ...]
+
+
+def write_node_configs(hospital: Hospital, folder: Path) -> NodeConfigs:
+    """Write every node's configuration and the users' passwords into ``folder`` (made if missing)."""
+    users = [ADMIN, *(name for ward in hospital.wards for name in (*ward.beds, *ward.stations))]
+    if users.count(ADMIN) > 1:
+        raise ConfigError(f"{ADMIN!r} is the engine's administrator: no bed or station may take that name")
+    folder = Path(folder).absolute()
+    if folder.exists() and not folder.is_dir():
+        raise ConfigError(f"configuration folder {folder} is a file, not a folder")
+    if not folder.parent.is_dir():
+        raise ConfigError(f"configuration folder {folder}: the folder {folder.parent} does not exist")
+    folder.mkdir(mode=0o755, exist_ok=True)
+    secrets_folder = folder / "secrets"
+    secrets_folder.mkdir(mode=0o700, exist_ok=True)
+    secrets_folder.chmod(0o700)
+    existing = {path.name.removesuffix(".password") for path in secrets_folder.glob("*.password")}
+    passwords = {user: _password(secrets_folder / f"{user}.password") for user in [*users, "routes"]}
+    removed = sorted(existing - set(passwords))
+    for user in removed:
+        (secrets_folder / f"{user}.password").unlink()
+    files = {}
+    for node in hospital.nodes:
+        path = folder / f"{node.name}.conf"
+        write_atomic(path, node_config_text(hospital, node, passwords))
+        path.chmod(0o600)
+        files[node.name] = path
+    return NodeConfigs(files, secrets_folder, tuple(sorted(set(users) - existing)), tuple(removed))
+
+
+def node_config_text(hospital: Hospital, node: Node, passwords: dict[str, str]) -> str:
+    """``node``'s nats-server configuration; ``passwords`` holds every user's and the routes' ("routes")."""
+    route_password = passwords["routes"]
+    routes = [f"nats-route://{ROUTE_USER}:{route_password}@{other.host}:{other.cluster_port}"
+              for other in hospital.nodes if other is not node]
+    lines = [f"# Node {node.name} of the hospital engine {hospital.cluster}, written by `appliance hospital config`",
+             "# from the hospital description: edit that and run it again, then `nats-server --signal reload`.",
+             f"server_name: {_q(node.name)}",
+             f"listen: {_q(f'{node.host}:{node.client_port}')}",
+             f"http: {_q(f'{node.host}:{node.monitor_port}')}",
+             "jetstream {",
+             f"  store_dir: {_q(str(hospital.store_dir / node.name))}",
+             "  # fsync before every acknowledgement: an acknowledged alarm is on the disks of a quorum",
+             "  sync_interval: always",
+             "}",
+             "cluster {",
+             f"  name: {_q(hospital.cluster)}",
+             f"  listen: {_q(f'{node.host}:{node.cluster_port}')}",
+             f"  authorization {{ user: {_q(ROUTE_USER)}, password: {_q(route_password)} }}",
+             f"  routes: [{', '.join(_q(route) for route in routes)}]",
+             "}"]
+    if node.mqtt_port is not None:
+        lines += ["mqtt {",
+                  f"  listen: {_q(f'{node.host}:{node.mqtt_port}')}",
+                  f"  stream_replicas: {hospital.replicas}",
+                  "}"]
+    lines += ["accounts {", f"  {ACCOUNT}: {{", "    jetstream: enabled", "    users: [",
+              f"      {{user: {_q(ADMIN)}, password: {_q(passwords[ADMIN])}}}"]
+    for ward in hospital.wards:
+        lines += [f"      {_user(bed, passwords[bed], bed_permissions(ward, bed))}" for bed in ward.beds]
+        lines += [f"      {_user(station, passwords[station], station_permissions(ward, station))}"
+                  for station in ward.stations]
+    lines += ["    ]", "  }", "}"]
+    return "\n".join(lines) + "\n"
+
+
+def bed_permissions(ward: Ward, bed: str) -> dict:
+    """Publish its own subjects; read its own confirmations and the replies to its publishes."""
+    return {"publish": {"allow": [bed_subject(ward.name, bed, kind) for kind in BED_KINDS]},
+            "subscribe": {"allow": [bed_subject(ward.name, bed, CONFIRM), f"{inbox_prefix(bed)}.>"]}}
+
+
+def station_permissions(ward: Ward, station: str) -> dict:
+    """Read the ward, confirm to its beds, and consume (never change) the ward's stream."""
+    stream = stream_name(ward.name)
+    return {"publish": {"allow": [bed_subject(ward.name, "*", CONFIRM),
+                                  f"$JS.API.STREAM.INFO.{stream}",
+                                  f"$JS.API.CONSUMER.CREATE.{stream}.>",
+                                  f"$JS.API.CONSUMER.DURABLE.CREATE.{stream}.>",
+                                  f"$JS.API.CONSUMER.INFO.{stream}.>",
+                                  f"$JS.API.CONSUMER.MSG.NEXT.{stream}.>",
+                                  f"$JS.ACK.{stream}.>"]},
+            "subscribe": {"allow": [f"{ROOT}.{ward.name}.>", f"{inbox_prefix(station)}.>"]}}
+
+
+def read_password(secrets_folder: Path, user: str) -> str:
+    """``user``'s password from the secrets folder an earlier run wrote."""
+    path = Path(secrets_folder) / f"{user}.password"
+    if not path.exists():
+        raise ConfigError(f"{path} does not exist: is {user!r} in the hospital description, and was "
+                          f"`appliance hospital config` run?")
+    return read_secret(path, "delete it and run `appliance hospital config` for a new password")
+
+
+def _password(path: Path) -> str:
+    if path.exists():
+        return read_password(path.parent, path.name.removesuffix(".password"))
+    password = secrets.token_urlsafe(PASSWORD_BYTES)
+    write_atomic(path, password + "\n")
+    path.chmod(0o600)
+    return password
+
+
+def _user(name: str, password: str, permissions: dict) -> str:
+    return f"{{user: {_q(name)}, password: {_q(password)}, permissions: {json.dumps(permissions)}}}"
+
+
+def _q(text: str) -> str:
+    """A quoted string of the configuration format, which reads JSON's strings."""
+    return json.dumps(text)

