@@ -40,7 +40,7 @@ def _paragraphs():
         heading = section.splitlines()[0] if section.strip() else ""
         introduced: frozenset[str] = frozenset()
         for paragraph in re.split(r"\n\s*\n", section):
-            if not paragraph.lstrip().startswith(("*", "|")):
+            if not paragraph.lstrip().startswith(("* ", "|")):              # "**bold**" opens a paragraph
                 introduced = frozenset(REPORT.findall(paragraph))
                 yield heading, paragraph, introduced
                 continue
