@@ -13,16 +13,15 @@ two hosts' would. Each step's screenshot is written to ``docs/screenshots/walkth
 import io
 import subprocess
 import sys
-import textwrap
 import urllib.request
 
 import pytest
 from pypdf import PdfReader
-from test_browser import (_answers, _live, browser, fill, free_port, png_size, screenshot,  # noqa: F401
+from test_browser import (_answers, bedside, browser, fill, free_port, png_size, screenshot,  # noqa: F401
                           submit_and_wait, text, tiles, viewport, wait_for)
 from webui_client import PASSWORD
 
-BED = "ward3-bed12"
+BED = "ward3-bed12"                    # the bed test_browser.bedside runs
 PATIENT, NAME, BRADEN = "MRN-7731", "Grace Hopper", "12"
 SCENE = """
 [scene]
@@ -66,47 +65,10 @@ def ward(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def bedside(tmp_path_factory, bed_monitoring, model_cache, ward):
+def bedside_screen(tmp_path_factory, bed_monitoring, model_cache, ward):
     """The monitor reporting to the ward and its screen on one data directory: the screen's address."""
-    folder = tmp_path_factory.mktemp("bedside")
-    (folder / "scene.toml").write_text(SCENE)
-    (folder / "monitor.toml").write_text(textwrap.dedent(f"""
-        [monitor]
-        layout = "grid-8x16"
-        frame_interval_s = 60
-        bed_id = "{BED}"
-        data_dir = "data"
-        cache_dir = "{model_cache}"
-
-        [virtual]
-        scenario = "scene.toml"
-        speed = 60
-
-        [alerts]
-        alarm_dose = 0.05
-
-        [notify.mqtt]
-        host = "127.0.0.1"
-        port = {ward[0]}
-        """))
-    port = free_port()
-    # Open while the processes run; closed in the finally below.
-    logs = [open(folder / name, "w") for name in ("monitor.log", "screen.log")]  # noqa: SIM115
-    monitor = subprocess.Popen([sys.executable, "-m", "appliance", "run", "--config", str(folder / "monitor.toml")],
-                               stdout=logs[0], stderr=subprocess.STDOUT)
-    screen = subprocess.Popen([sys.executable, "-m", "webui", "--data-dir", str(folder / "data"), "--port", str(port),
-                               "--plain-http"], stdout=logs[1], stderr=subprocess.STDOUT)
-    try:
-        wait_for(lambda: "map" in (_live(folder / "data" / "live.json") or {}), 180, "the monitor's first frame")
-        wait_for(lambda: _answers(f"http://127.0.0.1:{port}/login"), 60, "the screen to listen")
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        for process in (screen, monitor):
-            process.terminate()
-        for process in (screen, monitor):
-            process.wait(timeout=30)
-        for log in logs:
-            log.close()
+    with bedside(tmp_path_factory.mktemp("bedside"), SCENE, model_cache, ward[0], first_frame_s=180) as (base, _):
+        yield base
 
 
 def live(driver) -> dict:
@@ -147,10 +109,10 @@ def pdf_text(data: bytes) -> str:
 
 
 def test_a_patient_admitted_alarmed_acknowledged_turned_from_the_ward_and_discharged_is_in_the_shift_report(
-        bedside, ward, browser):  # noqa: F811
+        bedside_screen, ward, browser):  # noqa: F811
     from selenium.webdriver.common.by import By
 
-    driver, base, station = browser, bedside, ward[1]
+    driver, base, station = browser, bedside_screen, ward[1]
     viewport(driver, 800, 480)
     driver.get(base + "/")
     fill(driver, "form", name="admin.ward3", password=PASSWORD, confirm=PASSWORD)
