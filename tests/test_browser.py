@@ -210,11 +210,33 @@ def fill(driver, form_css: str, **fields) -> None:
 
 def submit_and_wait(driver, button) -> None:
     """Click ``button`` and wait for the page it leads to (the old page's elements go stale)."""
-    from selenium.webdriver.support.expected_conditions import staleness_of
     from selenium.webdriver.support.ui import WebDriverWait
 
     button.click()
-    WebDriverWait(driver, 10).until(staleness_of(button))
+    WebDriverWait(driver, 30).until(lambda _: gone(button))
+
+
+def gone(element) -> bool:
+    """Whether ``element``'s page has been replaced. Asked while the next page loads, chromedriver may answer
+    that the node is not in the document instead of that it is stale: both mean gone."""
+    from selenium.common.exceptions import StaleElementReferenceException, WebDriverException
+
+    try:
+        element.is_enabled()
+    except StaleElementReferenceException:
+        return True
+    except WebDriverException as exc:
+        if not detached(exc):
+            raise
+        return True
+    return False
+
+
+def detached(exc) -> bool:
+    """Whether a WebDriver error says the element left the document (a redraw or the next page)."""
+    from selenium.common.exceptions import StaleElementReferenceException
+
+    return isinstance(exc, StaleElementReferenceException) or "does not belong to the document" in (exc.msg or "")
 
 
 def text(driver, css: str) -> str:

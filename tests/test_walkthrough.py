@@ -17,8 +17,9 @@ import urllib.request
 
 import pytest
 from pypdf import PdfReader
-from test_browser import (_answers, bedside, browser, fill, free_port, png_size, screenshot,  # noqa: F401
+from test_browser import (_answers, bedside, browser, detached, fill, free_port, png_size, screenshot,  # noqa: F401
                           submit_and_wait, text, tiles, viewport, wait_for)
+from test_browser_bedside import shown
 from webui_client import PASSWORD
 
 BED = "ward3-bed12"                    # the bed test_browser.bedside runs
@@ -88,7 +89,7 @@ def step(driver, n: int, about: str | None = None) -> None:
 def click_until(driver, find, done, what: str, timeout_s: float = 60) -> None:
     """Click what ``find()`` returns until ``done()``: a page redrawn by its stream may replace the button between
     finding and clicking it."""
-    from selenium.common.exceptions import ElementNotInteractableException, StaleElementReferenceException
+    from selenium.common.exceptions import ElementNotInteractableException, WebDriverException
 
     def attempt():
         if done():
@@ -97,8 +98,11 @@ def click_until(driver, find, done, what: str, timeout_s: float = 60) -> None:
             button = find()
             if button is not None:
                 button.click()
-        except (StaleElementReferenceException, ElementNotInteractableException):
+        except ElementNotInteractableException:
             pass
+        except WebDriverException as exc:
+            if not detached(exc):
+                raise
         return done()
     wait_for(attempt, timeout_s, what, poll_s=1.0)
 
@@ -142,19 +146,19 @@ def test_a_patient_admitted_alarmed_acknowledged_turned_from_the_ward_and_discha
     alarm = wait_for(new_sacral_alarm, 180, "the sacral alarm after the admission", poll_s=1.0)
     row = f"#alarms .alarm[data-alarm-id='{alarm['alarm_id']}']"
     row_path = f"//div[@id='alarms']/div[@data-alarm-id='{alarm['alarm_id']}']"
-    wait_for(lambda: "sacrum" in text(driver, row), 30, "the alarm on the live view")
-    assert PATIENT in text(driver, "#header-patient") and NAME in text(driver, "#header-patient")
-    assert text(driver, "#patient") == f"{PATIENT} ({NAME})"
+    wait_for(lambda: "sacrum" in shown(driver, row), 30, "the alarm on the live view")
+    assert PATIENT in shown(driver, "#header-patient") and NAME in shown(driver, "#header-patient")
+    assert shown(driver, "#patient") == f"{PATIENT} ({NAME})"
     step(driver, 1, row_path)
 
     # 3. Acknowledged with the live view's own button, at the bedside screen's size.
     def acknowledge_button():
         found = driver.find_elements(By.CSS_SELECTOR, row + " button.ack")
         return found[0] if found else None
-    click_until(driver, acknowledge_button, lambda: "acknowledged" in text(driver, "#alarm-answer")
-                or "acknowledged by" in text(driver, row),
+    click_until(driver, acknowledge_button, lambda: "acknowledged" in shown(driver, "#alarm-answer")
+                or "acknowledged by" in shown(driver, row),
                 "the acknowledgement sent")
-    wait_for(lambda: "acknowledged by nurse.jones" in text(driver, row), 60, "the acknowledgement shown")
+    wait_for(lambda: "acknowledged by nurse.jones" in shown(driver, row), 60, "the acknowledgement shown")
     step(driver, 2, row_path)
 
     # 4. The ward station: a ward nurse records the bed's turn with the tile's own button.
@@ -171,9 +175,9 @@ def test_a_patient_admitted_alarmed_acknowledged_turned_from_the_ward_and_discha
     def turn_button():
         found = driver.find_elements(By.CSS_SELECTOR, f'{tile} button[aria-label="Record a turn at bed {BED}"]')
         return found[0] if found else None
-    click_until(driver, turn_button, lambda: "Record turn by nurse.patel" in text(driver, tile), "the turn sent")
-    wait_for(lambda: "Record turn by nurse.patel: done" in text(driver, tile), 60, "the bed's answer: done")
-    assert f"record a turn at bed {BED}: sent" in text(driver, "#said")
+    click_until(driver, turn_button, lambda: "Record turn by nurse.patel" in shown(driver, tile), "the turn sent")
+    wait_for(lambda: "Record turn by nurse.patel: done" in shown(driver, tile), 60, "the bed's answer: done")
+    assert f"record a turn at bed {BED}: sent" in shown(driver, "#said")
     step(driver, 3, f"//article[@data-bed='{BED}']/p[contains(@class, 'command')]")
 
     # 5. Back at the bedside: the turn is the ward nurse's in the bed's turn list.
