@@ -11,6 +11,7 @@ and sees the map change with the turn. Screenshots at the bedside screen's 800 x
 station's 1920 x 1080 are written to ``docs/screenshots`` (or ``$SCREENSHOT_DIR``).
 """
 
+import contextlib
 import json
 import os
 import shutil
@@ -97,7 +98,16 @@ def appliance(tmp_path_factory, bed_monitoring, model_cache, ward_station):
     """The monitor (`appliance run`, reporting to the ward station) and the screen (`python -m webui`, waitress)
     on one data directory; the screen's address."""
     folder = tmp_path_factory.mktemp("appliance")
-    (folder / "scene.toml").write_text(SCENE)
+    with bedside(folder, SCENE, model_cache, ward_station[0], first_frame_s=120) as (base, monitor):
+        yield base, folder, monitor
+
+
+@contextlib.contextmanager
+def bedside(folder: Path, scene: str, model_cache, broker_port: int, first_frame_s: float):
+    """`appliance run` on the virtual bed playing ``scene`` at 60 simulated minutes per wall one, alarms at dose
+    0.05, reporting to the broker at ``broker_port``, and its screen, both in ``folder``: (the screen's address,
+    the monitor's process) once its first frame is written and the screen listens."""
+    (folder / "scene.toml").write_text(scene)
     (folder / "monitor.toml").write_text(textwrap.dedent(f"""
         [monitor]
         layout = "grid-8x16"
@@ -115,7 +125,7 @@ def appliance(tmp_path_factory, bed_monitoring, model_cache, ward_station):
 
         [notify.mqtt]
         host = "127.0.0.1"
-        port = {ward_station[0]}
+        port = {broker_port}
         """))
     port = free_port()
     # Open while the processes run; closed in the finally below.
@@ -125,9 +135,10 @@ def appliance(tmp_path_factory, bed_monitoring, model_cache, ward_station):
     screen = subprocess.Popen([sys.executable, "-m", "webui", "--data-dir", str(folder / "data"), "--port", str(port),
                                "--plain-http"], stdout=logs[1], stderr=subprocess.STDOUT)
     try:
-        wait_for(lambda: "map" in (_live(folder / "data" / "live.json") or {}), 120, "the monitor's first frame")
+        wait_for(lambda: "map" in (_live(folder / "data" / "live.json") or {}), first_frame_s,
+                 "the monitor's first frame")
         wait_for(lambda: _answers(f"http://127.0.0.1:{port}/login"), 30, "the screen to listen")
-        yield f"http://127.0.0.1:{port}", folder, monitor
+        yield f"http://127.0.0.1:{port}", monitor
     finally:
         for process in (screen, monitor):
             process.terminate()
@@ -199,11 +210,33 @@ def fill(driver, form_css: str, **fields) -> None:
 
 def submit_and_wait(driver, button) -> None:
     """Click ``button`` and wait for the page it leads to (the old page's elements go stale)."""
-    from selenium.webdriver.support.expected_conditions import staleness_of
     from selenium.webdriver.support.ui import WebDriverWait
 
     button.click()
-    WebDriverWait(driver, 10).until(staleness_of(button))
+    WebDriverWait(driver, 30).until(lambda _: gone(button))
+
+
+def gone(element) -> bool:
+    """Whether ``element``'s page has been replaced. Asked while the next page loads, chromedriver may answer
+    that the node is not in the document instead of that it is stale: both mean gone."""
+    from selenium.common.exceptions import StaleElementReferenceException, WebDriverException
+
+    try:
+        element.is_enabled()
+    except StaleElementReferenceException:
+        return True
+    except WebDriverException as exc:
+        if not detached(exc):
+            raise
+        return True
+    return False
+
+
+def detached(exc) -> bool:
+    """Whether a WebDriver error says the element left the document (a redraw or the next page)."""
+    from selenium.common.exceptions import StaleElementReferenceException
+
+    return isinstance(exc, StaleElementReferenceException) or "does not belong to the document" in (exc.msg or "")
 
 
 def text(driver, css: str) -> str:

@@ -240,6 +240,16 @@ def test_the_map_is_marked_as_a_body_and_the_turn_clock_changes_colour(screen, n
     assert re.search(r"\b0?1:30\b.*\bEDT\b", edt) and re.search(r"\b0?1:30\b.*\bEST\b", est)
 
 
+def test_the_header_names_the_patient_of_the_newest_frame_without_a_reload(screen, nurse):
+    _, data_dir = screen
+    assert shown(nurse, "#header-patient") == "Patient Ada Byron MRN-0042"
+    publish(data_dir, {**snapshot(), "sequence": 61, "patient": None})                 # discharged
+    wait_for(lambda: shown(nurse, "#header-patient") == "No patient admitted", 10, "the discharge in the header")
+    publish(data_dir, {**snapshot(), "sequence": 62, "patient": {"patient_id": "MRN-7731", "name": None}})
+    wait_for(lambda: shown(nurse, "#header-patient") == "Patient MRN-7731", 10, "the admission in the header")
+    assert nurse.find_element("id", "header-patient").get_attribute("class") == "patient"
+
+
 def test_a_nurse_acknowledges_an_alarm_from_the_live_view(screen, nurse):
     from selenium.webdriver.common.by import By
 

@@ -91,6 +91,24 @@ def test_the_screen_gives_the_pdf_and_csv_to_a_nurse(data_dir):
     assert nurse.get("/history/report.pdf?hours=200").status_code == 400
 
 
+def test_a_report_made_after_the_discharge_still_names_the_patient_and_the_stay(data_dir):
+    with Store.open(data_dir / "appliance.db", history_interval_s=0) as store:
+        store.record_events([Event(T0 + 3000, "episode", "discharged", message="discharged MRN-0042",
+                                   user="nurse.kim", patient="MRN-0042")])
+    live = LiveChannel(data_dir / "live.json")
+    live.publish({"bed_id": "ward3-bed12", "time_s": T0 + 7200, "sequence": 2})          # the bed is empty now
+    live.close()
+    text = pdf_text(client_as(create_app(data_dir, secure_cookies=False, TESTING=True), "nurse")
+                    .get("/history/report.pdf?hours=12").data)
+    assert "Patient: no patient admitted; discharged in the period: MRN-0042" in text
+    assert "Admissions and discharges" in text
+    assert "admitted MRN-0042 (Ada Lovelace) nurse.kim" in text and "discharged MRN-0042 nurse.kim" in text
+    later = pdf_text(client_as(create_app(data_dir, secure_cookies=False, TESTING=True), "nurse")
+                     .get("/history/report.pdf?hours=1").data)
+    assert "Patient: no patient admitted Period" in later                 # the discharge came before this period
+    assert "Admissions and discharges" not in later
+
+
 def test_the_report_covers_only_the_period(data_dir):
     app = create_app(data_dir, secure_cookies=False, TESTING=True)
     rows = list(csv.DictReader(io.StringIO(client_as(app, "nurse").get("/history/report.csv?hours=1")

@@ -1,9 +1,10 @@
 """The shift report as files: a PDF for the bed's paper record and a CSV of the same events for a spreadsheet.
 
-The PDF has what a handover reads on the screen's shift summary (turns, the
-alarms and who acknowledged them how fast, minutes at or above the threshold
-per region) and a chart of the peak pressure at each site over the period; the
-CSV lists every event the store logged in the period, one a row. Both come
+The PDF has who was in the bed (its admissions and discharges), what a
+handover reads on the screen's shift summary (turns, the alarms and who
+acknowledged them how fast, minutes at or above the threshold per region) and
+a chart of the peak pressure at each site over the period; the CSV lists
+every event the store logged in the period, one a row. Both come
 from the store and the live view alone, so the screen and ``appliance report``
 make the same files. Clock times are the site's time zone's (with its
 abbreviation, so the hour repeated when the clocks go back reads apart); the
@@ -43,8 +44,8 @@ SITE_COLOURS = ((31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (
 
 @dataclass(frozen=True)
 class ShiftReport:
-    """One bed's period: its history and summary, every event logged in it, the patient in the bed, and the zone
-    its clock times are written in."""
+    """One bed's period: its history and summary, every event logged in it, who was in the bed (see
+    :func:`patient_words`), and the zone its clock times are written in."""
 
     bed_id: str
     patient: str
@@ -63,14 +64,28 @@ def shift_report(s: Store, hours: float, live: dict, threshold: float, zone: Zon
     history = read_history(s, hours)
     if history is None:
         return None
-    admitted = [e for e in s.episodes() if e["time_s"] <= history.end_s]
-    patient_id = admitted[-1]["patient"] if admitted and admitted[-1]["kind"] == "admitted" else None
+    episodes = [e for e in s.episodes() if e["time_s"] <= history.end_s]
+    events = [e for e in s.events_since(history.start_s) if e["time_s"] <= history.end_s]
+    return ShiftReport(live.get("bed_id") or "unknown", patient_words(episodes, history.start_s, live), history,
+                       summarise(history, threshold), events, zone)
+
+
+def patient_words(episodes: list[dict], start_s: float, live: dict) -> str:
+    """Who was in the bed: the patient admitted at the period's end (named as the live view names them), and
+    those discharged within it, so a report made after a discharge still says whose stay it covers.
+
+    ``episodes`` are the store's admissions and discharges up to the period's end, oldest first.
+    """
+    earlier: list[str] = []
+    for e in episodes:
+        if e["kind"] == "discharged" and e["time_s"] >= start_s and e["patient"] not in earlier:
+            earlier.append(e["patient"])
+    patient_id = episodes[-1]["patient"] if episodes and episodes[-1]["kind"] == "admitted" else None
     named = live.get("patient") or {}
     name = named.get("name") if named.get("patient_id") == patient_id else None
-    patient = "no patient admitted" if patient_id is None else f"{name} ({patient_id})" if name else patient_id
-    events = [e for e in s.events_since(history.start_s) if e["time_s"] <= history.end_s]
-    return ShiftReport(live.get("bed_id") or "unknown", patient, history, summarise(history, threshold), events,
-                       zone)
+    now = "no patient admitted" if patient_id is None else f"{name} ({patient_id})" if name else patient_id
+    before = [p for p in earlier if p != patient_id]
+    return f"{now}; discharged in the period: {', '.join(before)}" if before else now
 
 
 def wall_time(time_s: float, zone: ZoneInfo) -> str:
@@ -103,6 +118,12 @@ def report_pdf(report: ShiftReport) -> bytes:
     pdf.set_font("Helvetica", size=10)
     line(pdf, f"Patient: {report.patient}")
     line(pdf, f"Period {report.clock(s.start_s)} to {report.clock(s.end_s)} ({duration(s.end_s - s.start_s)})")
+    stays = [e for e in report.events if e.get("type") == "episode"]
+    if stays:
+        heading(pdf, "Admissions and discharges")
+        table(pdf, ("Time", "Event", "By"),
+              [(report.clock(e["time_s"]), e.get("message") or e["kind"], e.get("user") or "") for e in stays],
+              (40, 110, 40))
     heading(pdf, "Turns")
     line(pdf, f"{s.turns} turn(s); longest time without a turn {duration(s.longest_without_turn_s)}; "
               f"{s.turn_reminders} turn reminder(s)")

@@ -100,6 +100,7 @@ function draw(snapshot) {
   const patient = snapshot.patient;
   document.getElementById("patient").textContent = patient ? patient.patient_id + (patient.name ? ` (${patient.name})` : "")
                                                            : "not admitted";
+  showHeaderPatient(patient);
   const posture = snapshot.posture_words || snapshot.posture || "-";
   document.getElementById("posture").textContent =
     snapshot.posture_sure === false ? `${posture} (kept: the latest map is unclear)` : posture;
@@ -117,6 +118,17 @@ function draw(snapshot) {
   if (link) document.getElementById("ward").textContent = wardWords(link);
   status.textContent = `bed ${snapshot.bed_id}, frame ${snapshot.sequence}, ${snapshot.status.faults} fault(s), ` +
                        `updated ${clockTime(snapshot, snapshot.time_s, true)} (${Math.round(snapshot.age_s)} s ago)`;
+}
+
+// The header's patient, as the server writes it on every page, kept current here: a screen left on the live view
+// must not go on naming a patient discharged (or not yet naming one admitted) since it was loaded.
+function showHeaderPatient(patient) {
+  const header = document.getElementById("header-patient");
+  if (!header) return;
+  if (!patient) { header.textContent = "No patient admitted"; return; }
+  const name = document.createElement("strong");
+  name.textContent = patient.name || "";
+  header.replaceChildren("Patient ", name, ` ${patient.patient_id}`);
 }
 
 // The start-up's progress bar and phase in words, shown until the first map replaces the start-up snapshot.
