@@ -184,10 +184,10 @@ def test_the_page_draws_one_chart_per_region_with_turns_and_alarms(filled, nurse
 
 
 def test_a_region_line_breaks_where_a_kept_map_lacked_it(filled):
-    with filled.app_context():
+    with filled.app_context():                  # the chart's turn marks read the site's clock
         history = load_history(12.0)
-    sacrum = region_series(history.regions)[0]
-    drawn = chart(sacrum, history, DEFAULT_THRESHOLD)
+        sacrum = region_series(history.regions)[0]
+        drawn = chart(sacrum, history, DEFAULT_THRESHOLD)
     assert [len(run.split()) for run in drawn.pressure] == [4, 1]            # 0-1800 s, then 3000 s alone
     assert [len(run.split()) for run in drawn.dose] == [3, 1]                # no dose yet at 0 s
     assert drawn.left < float(drawn.pressure[0].split()[0].split(",")[0]) + 1 and drawn.threshold_y < drawn.bottom
