@@ -7,6 +7,7 @@ selected, no contract that can break) fails here rather than passing quietly.
 
 import importlib.util
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -85,6 +86,6 @@ def test_lint_imports_reports_a_planted_import_of_each_kind(tmp_path):
     done = lint_imports(tmp_path)
     assert done.returncode == 1 and "Contracts: 0 kept, 3 broken." in done.stdout, done.stdout + done.stderr
     assert "appliance.store.database -> webui.live" in done.stdout, done.stdout
-    assert "webui.settings -> appliance.service.settings" in done.stdout, done.stdout
+    assert re.search(r"webui\.\w+ -> appliance\.service\.settings", done.stdout), done.stdout   # any page's chain
     assert "No cycles are allowed in appliance.drivers." in done.stdout and "- .bus -> .scan" in done.stdout, \
         done.stdout

@@ -77,3 +77,18 @@ def test_the_v_cycle_is_symmetric_and_positive_definite():
     operator = np.column_stack([cycle(column) for column in np.identity(stiffness.shape[0])])
     assert np.abs(operator - operator.T).max() <= 1e-12 * np.abs(operator).max()
     assert np.linalg.eigvalsh(operator).min() > 0
+
+
+def test_a_grid_always_gets_the_same_hierarchy_and_the_callers_random_state_is_kept():
+    """pyamg draws random start vectors while building a hierarchy; seeded, two builds are identical (so a
+    solve near rounding level behaves alike every run), and numpy's global generator goes on as before."""
+    n = 400
+    stiffness = sp.diags([-np.ones(n - 1), 2.5 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1], format="csr")
+    np.random.seed(7)
+    expected_next = np.random.rand()
+    np.random.seed(7)
+    first = multigrid.MembraneHierarchy(stiffness)
+    assert np.random.rand() == expected_next
+    second = multigrid.MembraneHierarchy(stiffness)
+    assert len(first.prolongators) == len(second.prolongators) > 0
+    assert all((p - q).count_nonzero() == 0 for p, q in zip(first.prolongators, second.prolongators))

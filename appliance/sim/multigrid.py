@@ -27,6 +27,8 @@ COARSEST_UNKNOWNS = 40
 """The hierarchy's coarsening stops at this many unknowns, whose system is factorised densely each step:
 a 40 x 40 Cholesky costs microseconds, and a smaller coarsest level only adds levels."""
 
+HIERARCHY_SEED = 2026
+"""Seed of the start vectors pyamg draws while building a hierarchy (see :class:`MembraneHierarchy`)."""
 MAX_ITERATIONS = 200
 """Conjugate-gradient iterations allowed for one system; preconditioned by the hierarchy a bed's systems take
 three on average and about twenty at the tightest, so this many mean the preconditioner has failed, not that
@@ -37,7 +39,16 @@ class MembraneHierarchy:
     """The multigrid prolongators of a grid's membrane stiffness (symmetric positive definite), made once."""
 
     def __init__(self, stiffness: sp.csr_matrix):
-        hierarchy = pyamg.smoothed_aggregation_solver(sp.csr_matrix(stiffness, copy=True), max_coarse=COARSEST_UNKNOWNS)
+        # pyamg estimates each level's spectral radius (for its Jacobi prolongation smoother) from a random start
+        # vector drawn from numpy's global generator; seeded here, and the caller's state given back, the same
+        # grid always gets the same hierarchy, so a solve near rounding level converges or not alike every run.
+        state = np.random.get_state()
+        np.random.seed(HIERARCHY_SEED)
+        try:
+            hierarchy = pyamg.smoothed_aggregation_solver(sp.csr_matrix(stiffness, copy=True),
+                                                          max_coarse=COARSEST_UNKNOWNS)
+        finally:
+            np.random.set_state(state)
         self.prolongators = [sp.csr_matrix(level.P) for level in hierarchy.levels[:-1]]
         self.restrictors = [sp.csr_matrix(p.T) for p in self.prolongators]
 
