@@ -120,17 +120,22 @@ CONTROLS = """return Array.from(document.querySelectorAll('a, button, input, sel
               return {what: e.outerHTML.slice(0, 80), width: r.width, height: r.height}; });"""
 
 
-def test_every_nurse_page_fits_the_bedside_screen_with_controls_a_finger_can_hit(screen, nurse):
+@pytest.mark.parametrize("width, height", [(800, 480), (1920, 1080)], ids=["bedside", "desktop"])
+def test_every_nurse_page_fits_the_screen_with_controls_a_finger_can_hit(screen, nurse, width, height):
     base, _ = screen
-    for path in NURSE_PAGES:
-        nurse.get(base + path)
-        sizes = nurse.execute_script("const d = document.documentElement; return [d.scrollWidth, d.clientWidth];")
-        assert sizes[0] <= sizes[1], f"{path} scrolls sideways at 800 x 480: {sizes}"
-        controls = nurse.execute_script(CONTROLS)
-        assert controls, f"no controls found on {path}"
-        small = [c for c in controls if c["width"] < 44 or c["height"] < 44]
-        assert small == [], f"controls under 44 x 44 px on {path}: {small}"
-        assert "Ada Byron" in shown(nurse, "header #header-patient")
+    viewport(nurse, width, height)
+    try:
+        for path in NURSE_PAGES:
+            nurse.get(base + path)
+            sizes = nurse.execute_script("const d = document.documentElement; return [d.scrollWidth, d.clientWidth];")
+            assert sizes[0] <= sizes[1], f"{path} scrolls sideways at {width} x {height}: {sizes}"
+            controls = nurse.execute_script(CONTROLS)
+            assert controls, f"no controls found on {path}"
+            small = [c for c in controls if c["width"] < 44 or c["height"] < 44]
+            assert small == [], f"controls under 44 x 44 px on {path} at {width} x {height}: {small}"
+            assert "Ada Byron" in shown(nurse, "header #header-patient")
+    finally:
+        viewport(nurse, 800, 480)                   # the other tests see the bedside screen
 
 
 FLASH = """return Array.from(document.querySelectorAll(arguments[0])).map(e => {
