@@ -127,11 +127,15 @@ def _midline(view: BodyView, frame: BodyFrame, s: np.ndarray) -> np.ndarray:
     if len(rows) == 0:
         return np.zeros_like(s)
     cs, cu = frame.body_fractions((rows + 0.5) * view.pitch_mm[0], (cols + 0.5) * view.pitch_mm[1])
-    near = np.abs(cs[None, :] - s[:, None]) <= MIDLINE_BAND
-    low = np.where(near, cu[None, :], np.inf).min(axis=1)
-    high = np.where(near, cu[None, :], -np.inf).max(axis=1)
-    touched = near.any(axis=1)
-    return np.where(touched, 0.5 * (np.where(touched, low, 0.0) + np.where(touched, high, 0.0)), 0.0)
+    order = np.argsort(cs)
+    cs, cu = cs[order], np.append(cu[order], 0.0)         # the sentinel lets a window end at the last cell
+    first = np.searchsorted(cs, s - MIDLINE_BAND, side="left")
+    end = np.searchsorted(cs, s + MIDLINE_BAND, side="right")
+    touched = end > first
+    bounds = np.column_stack([first, end]).ravel()        # reduceat over each [first, end) window in turn
+    low = np.minimum.reduceat(cu, bounds)[::2]
+    high = np.maximum.reduceat(cu, bounds)[::2]
+    return np.where(touched, 0.5 * (low + high), 0.0)
 
 
 def _pelvis(s: np.ndarray, weights: np.ndarray) -> float:
