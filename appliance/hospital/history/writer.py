@@ -22,6 +22,7 @@ import logging
 import time
 from collections.abc import Callable
 
+import nats.js.errors
 import psycopg
 from nats.aio.client import Client
 from nats.aio.msg import Msg
@@ -41,6 +42,7 @@ FETCH_BATCH = 500
 ACK_WAIT_S = 30.0
 FLUSH_EVERY_S = 10.0
 HOUSEKEEPING_S = 3600.0
+STREAM_WAIT_S = 10.0
 
 
 class HistoryWriter:
@@ -144,6 +146,9 @@ class HistoryWriter:
                 subscription = await self.subscribe(ward)
             except RETRYABLE:                       # the stream is electing a leader: ask again
                 await asyncio.sleep(1.0)
+            except nats.js.errors.NotFoundError:
+                log.warning("history: ward %s has no stream yet (appliance hospital streams makes it)", ward)
+                await asyncio.sleep(STREAM_WAIT_S)
         while True:
             await self.step(subscription, ward)
 
