@@ -30,10 +30,11 @@ def binaries() -> Path | None:
 
 class PostgresServer:
     """One server in its own folder; ``dsn(database, user)`` to reach it, ``psql(sql)`` to run SQL as the
-    superuser the way an install script does."""
+    superuser the way an install script does. ``fsync`` off (the tests) trades durability for speed; a benchmark
+    that times writes keeps it on."""
 
-    def __init__(self, bin_dir: Path):
-        self.bin = bin_dir
+    def __init__(self, bin_dir: Path, fsync: bool = False):
+        self.bin, self.fsync = bin_dir, fsync
         self.folder = Path(tempfile.mkdtemp(prefix="appliance-pg-"))
         self.data = self.folder / "data"
         self.port = free_port()
@@ -44,7 +45,8 @@ class PostgresServer:
     def start(self) -> None:
         self._run(str(self.bin / "initdb"), "-D", str(self.data), "-U", SUPERUSER, "--auth=trust", "-E", "UTF8",
                   "--locale=C.UTF-8")
-        options = f"-c listen_addresses='' -c unix_socket_directories='{self.folder}' -p {self.port} -c fsync=off"
+        fsync = "on" if self.fsync else "off"
+        options = f"-c listen_addresses='' -c unix_socket_directories='{self.folder}' -p {self.port} -c fsync={fsync}"
         self._run(str(self.bin / "pg_ctl"), "-D", str(self.data), "-l", str(self.folder / "server.log"), "-w",
                   "-o", options, "start")
 
@@ -73,12 +75,12 @@ class PostgresServer:
 
 
 @contextlib.contextmanager
-def running_postgres():
+def running_postgres(fsync: bool = False):
     bin_dir = binaries()
     if bin_dir is None:
         import pytest
         pytest.skip("PostgreSQL is not installed (apt-get install postgresql): the history tests need its server")
-    server = PostgresServer(bin_dir)
+    server = PostgresServer(bin_dir, fsync)
     try:
         server.start()
         yield server

@@ -4,6 +4,7 @@ PostgreSQL, and the script's steps with the system's tools replaced by recorders
 
 import datetime as dt
 import os
+import re
 import stat
 import subprocess
 import sys
@@ -16,7 +17,7 @@ from postgres_server import running_postgres
 
 from appliance.cli import main
 from appliance.errors import ConfigError
-from appliance.hospital.description import hospital_from_mapping, load_hospital
+from appliance.hospital.description import HistoryPolicy, hospital_from_mapping, load_hospital
 from appliance.hospital.history.reads import recent_events
 from appliance.hospital.history.schema import create_schema
 from appliance.hospital.history.store import StoredEvent, write_events
@@ -160,3 +161,13 @@ def test_the_install_script_runs_each_step_on_the_description(tmp_path, descript
     bad = subprocess.run(["bash", str(REPO / "deploy/install-hospital-server.sh"), "--node"], capture_output=True,
                          text=True, check=False, env=environment)
     assert bad.returncode != 0 and "--node needs a name" in bad.stderr
+
+
+def test_the_documented_history_table_is_a_policy_the_description_accepts():
+    text = (REPO / "docs/hospital-history.md").read_text()
+    [example] = re.findall(r"```toml\n(.*?)```", text, re.S)
+    hospital = hospital_from_mapping(tomllib.loads(DESCRIPTION.split("[history]")[0] + example))
+    assert hospital.history == HistoryPolicy(3650, 90, "appliance_history")
+    policy = text.split("## The policy")[1].split("\n## ")[0]
+    documented = set(re.findall(r"^\| `([a-z_]+)` \|", policy, re.M))
+    assert documented == {"database", "events_days", "pressure_days"}
