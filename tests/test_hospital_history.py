@@ -6,10 +6,16 @@ import asyncio
 import dataclasses
 import datetime as dt
 import json
+import re
+import signal
+import subprocess
+import sys
+import threading
 
 import psycopg
 import pytest
 from hospital_engine import logged_in, make_streams, running_cluster
+from mqtt_broker import wait_until
 from postgres_server import running_postgres
 
 from appliance.errors import ConfigError
@@ -238,3 +244,54 @@ def test_a_good_policy_is_read_written_back_and_the_writer_refuses_to_start_with
     assert load_hospital(tmp_path / "h.toml") == hospital
     with pytest.raises(ValueError, match=r"no \[history\] table: the history writer needs its retention policy"):
         HistoryWriter(db, object(), dataclasses.replace(hospital, history=None))
+
+
+def test_the_history_command_sigkilled_and_started_again_stores_every_event_once(tmp_path, postgres):
+    """The writer as systemd runs it, SIGKILLed while a bed publishes and started again: every acknowledged
+    event in the table once; SIGTERM then stops it cleanly with its counts."""
+    postgres.psql("CREATE DATABASE killed_writer")
+    dsn = postgres.dsn("killed_writer")
+    total = 120
+
+    def count():
+        with psycopg.connect(dsn) as db:
+            exists = db.execute("SELECT to_regclass('event')").fetchone()[0]
+            return db.execute("SELECT count(*) FROM event").fetchone()[0] if exists else 0
+
+    async def publish(cluster, seqs):
+        async with logged_in(cluster, "bed2") as bed:
+            for seq in seqs:
+                await BedPublisher(bed, "ward1", "bed2").send("alarm", seq, {"type": "alarm", "kind": "raised",
+                                                                             "priority": "medium"})
+                await asyncio.sleep(0.01)
+
+    with running_cluster(tmp_path) as cluster:
+        asyncio.run(make_streams(cluster))
+        path = tmp_path / "hospital.toml"
+        path.write_text(description_text(dataclasses.replace(cluster.hospital, history=POLICY)))
+        command = [sys.executable, "-m", "appliance", "hospital", "history", "--description", str(path), "--secrets",
+                   str(cluster.configs.secrets_folder), "--dsn", dsn]
+        writer = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        try:
+            publisher = threading.Thread(target=lambda: asyncio.run(publish(cluster, range(1, total + 1))))
+            publisher.start()
+            assert wait_until(lambda: count() >= 20, timeout_s=30)
+            writer.send_signal(signal.SIGKILL)
+            writer.communicate(timeout=10)
+            killed_at = count()
+            writer = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            publisher.join(60)
+            assert wait_until(lambda: count() == total, timeout_s=40), count()
+            writer.send_signal(signal.SIGTERM)
+            output = writer.communicate(timeout=30)[0]
+        finally:
+            if writer.poll() is None:
+                writer.kill()
+                writer.communicate(timeout=10)
+    assert writer.returncode == 0, output
+    assert 0 < killed_at < total
+    with psycopg.connect(dsn) as db:
+        assert db.execute("SELECT seq, count(*) FROM event WHERE bed_id = 'bed2' GROUP BY seq ORDER BY seq") \
+            .fetchall() == [(seq, 1) for seq in range(1, total + 1)]
+    stored = int(re.search(r"stopped: (\d+) event\(s\) stored", output).group(1))
+    assert stored == total - killed_at          # the second writer stored exactly what the first had not
