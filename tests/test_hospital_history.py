@@ -12,6 +12,7 @@ import subprocess
 import sys
 import threading
 
+import nats.errors
 import psycopg
 import pytest
 from hospital_engine import logged_in, make_streams, running_cluster
@@ -21,7 +22,7 @@ from postgres_server import running_postgres
 from appliance.errors import ConfigError
 from appliance.hospital.description import HistoryPolicy, description_text, hospital_from_mapping, load_hospital
 from appliance.hospital.engine import BedPublisher
-from appliance.hospital.history.reads import alarm_counts, pressure_trend, recent_events
+from appliance.hospital.history.reads import alarm_counts, pressure_trend, recent_events, ward_trends
 from appliance.hospital.history.schema import EVENTS, PRESSURE, create_schema, drop_expired, ensure_ahead, partitions
 from appliance.hospital.history.store import StoredEvent, write_events, write_minutes
 from appliance.hospital.history.trend import MinuteTrend
@@ -103,6 +104,30 @@ def test_each_event_is_stored_once_when_the_writer_dies_between_commit_and_ackno
     assert [e["seq"] for e in recent_events(db, dt.datetime.now(UTC) - dt.timedelta(hours=1), ward="ward2")] == \
         list(range(turns, 0, -1))
     assert alarm_counts(db, dt.datetime.now(UTC) - dt.timedelta(hours=1)) == {"ward1": {"high": alarms}}
+
+
+def test_the_history_user_reads_but_cannot_publish_events_or_change_a_stream(tmp_path):
+    async def run(cluster):
+        await make_streams(cluster)
+        errors = []
+
+        async def on_error(error):
+            errors.append(str(error))
+
+        async with logged_in(cluster, HISTORY, on_error=on_error) as connection:
+            with pytest.raises(TimeoutError, match="not acknowledged"):
+                await BedPublisher(connection, "ward1", "bed1").send("alarm", 1, {"kind": "forged"}, deadline_s=1)
+            with pytest.raises(nats.errors.Error):
+                await connection.jetstream(timeout=1).delete_stream("ALARMS_ward1")
+        async with logged_in(cluster, "hospital-admin") as admin:
+            info = await admin.jetstream().stream_info("ALARMS_ward1")
+        return errors, info.state.messages
+
+    with running_cluster(tmp_path) as cluster:
+        errors, stored = asyncio.run(run(cluster))
+    assert stored == 0
+    assert any('publish to "hospital.ward1.bed1.alarm"' in error for error in errors)
+    assert any('publish to "$js.api.stream.delete.alarms_ward1"' in error.lower() for error in errors), errors
 
 
 def test_a_resend_stored_again_by_the_engine_on_another_month_is_kept_once(db):
@@ -203,6 +228,9 @@ def test_the_writer_turns_summaries_heard_on_the_engine_into_minutes(tmp_path, d
         [(0, 10, 10, 29.0, 29.0), (1, 2, 2, 31.0, 31.0)]
     assert [r["region_max_mmhg"] for r in rows] == [{"heel-left": 19.0}, {"heel-left": 21.0}]
     assert writer.rejected == 0
+    eight = dt.datetime(2026, 11, 26, 8, tzinfo=UTC)
+    assert ward_trends(db, "ward1", eight) == {"bed2": [(eight, 29.0), (eight + dt.timedelta(minutes=1), 31.0)]}
+    assert ward_trends(db, "ward2", dt.datetime(2026, 11, 26, 8, tzinfo=UTC)) == {}
 
 
 def description(history):
@@ -251,7 +279,7 @@ def test_the_history_command_sigkilled_and_started_again_stores_every_event_once
     event in the table once; SIGTERM then stops it cleanly with its counts."""
     postgres.psql("CREATE DATABASE killed_writer")
     dsn = postgres.dsn("killed_writer")
-    total = 120
+    total = 200
 
     def count():
         with psycopg.connect(dsn) as db:
@@ -263,7 +291,7 @@ def test_the_history_command_sigkilled_and_started_again_stores_every_event_once
             for seq in seqs:
                 await BedPublisher(bed, "ward1", "bed2").send("alarm", seq, {"type": "alarm", "kind": "raised",
                                                                              "priority": "medium"})
-                await asyncio.sleep(0.01)
+                await asyncio.sleep(0.025)                 # 5 s in all: the kill falls while it publishes
 
     with running_cluster(tmp_path) as cluster:
         asyncio.run(make_streams(cluster))
@@ -275,11 +303,12 @@ def test_the_history_command_sigkilled_and_started_again_stores_every_event_once
         try:
             publisher = threading.Thread(target=lambda: asyncio.run(publish(cluster, range(1, total + 1))))
             publisher.start()
-            assert wait_until(lambda: count() >= 20, timeout_s=30)
+            assert wait_until(lambda: count() >= 1, timeout_s=30)
             writer.send_signal(signal.SIGKILL)
             writer.communicate(timeout=10)
             killed_at = count()
             writer = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            assert writer.stdout.readline().startswith("history writer: 2 ward stream(s)")   # SIGTERM handled now
             publisher.join(60)
             assert wait_until(lambda: count() == total, timeout_s=40), count()
             writer.send_signal(signal.SIGTERM)

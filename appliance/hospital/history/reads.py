@@ -1,4 +1,5 @@
-"""What the ward and hospital screens ask of the history: recent events, alarm counts per ward, a bed's pressure.
+"""What the ward and hospital screens ask of the history: recent events, alarm counts per ward, a bed's pressure
+and a ward's pressure trends.
 
 Each is one indexed query on the partitioned tables, with the time bound that lets PostgreSQL skip every
 partition outside it.
@@ -42,3 +43,14 @@ def pressure_trend(db: psycopg.Connection, bed_id: str, since: dt.datetime,
                               "region_dose FROM pressure_minute WHERE bed_id = %s AND minute >= %s "
                               "AND minute < coalesce(%s, 'infinity'::timestamptz) ORDER BY minute",
                               (bed_id, since, until)).fetchall()
+
+
+def ward_trends(db: psycopg.Connection, ward: str,
+                since: dt.datetime) -> dict[str, list[tuple[dt.datetime, float | None]]]:
+    """For the ward screen's sparklines: each of ``ward``'s beds' minutes since ``since`` as (minute, highest
+    peak in mmHg, None for a minute without a map), oldest first."""
+    trends: dict[str, list[tuple[dt.datetime, float | None]]] = {}
+    for bed, minute, peak in db.execute("SELECT bed_id, minute, peak_max_mmhg FROM pressure_minute WHERE ward = %s "
+                                        "AND minute >= %s ORDER BY bed_id, minute", (ward, since)):
+        trends.setdefault(bed, []).append((minute, peak))
+    return trends
