@@ -9,7 +9,7 @@ killed in between gets the batch again after ``ack_wait_s`` and the keys already
 second on three fsyncing nodes would cost the engine more than the alarms it is there for, and a trend may
 miss the seconds a writer was down, which its ``samples`` column then shows. Finished minutes are written
 every ``flush_every_s``; the partitions ahead are made and the expired ones dropped every ``housekeeping_s``.
-The database work runs on a thread, one statement at a time on the one connection.
+The database work runs on threads, one transaction at a time on the one connection.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import contextlib
 import datetime as dt
 import json
 import logging
+import threading
 import time
 from collections.abc import Callable
 
@@ -67,7 +68,7 @@ class HistoryWriter:
         self.trend = MinuteTrend()
         self.unwritten: list[Minute] = []
         self.stored = self.duplicates = self.heard = self.rejected = 0
-        self._db_lock = asyncio.Lock()
+        self._db_lock = threading.Lock()
         self._stopping = asyncio.Event()
 
     async def run(self) -> None:
@@ -186,6 +187,11 @@ class HistoryWriter:
             log.warning("history: summary on %s not counted: %s", message.subject, exc)
 
     async def _on_db(self, work, *args):
-        async with self._db_lock:
-            return await asyncio.to_thread(work, *args)
+        return await asyncio.to_thread(self._locked, work, *args)
+
+    def _locked(self, work, *args):
+        """One piece of database work at a time: a thread lock, because a task cancelled on the way out leaves its
+        thread running, and the last flush must not begin a transaction inside that thread's."""
+        with self._db_lock:
+            return work(*args)
 
