@@ -37,7 +37,7 @@ apt-get install -y -qq "${packages[@]}"
 # The account, then the units (templates: one node instance per node this server runs).
 install -D -m 0644 "$repo/systemd/appliance-hospital.sysusers" "$root/usr/lib/sysusers.d/appliance-hospital.conf"
 systemd-sysusers --root="$root" "$root/usr/lib/sysusers.d/appliance-hospital.conf"
-install -D -m 0644 -t "$root/etc/systemd/system" "$repo/systemd/appliance-hospital-node@.service" \
+install -D -m 0644 -t "$root/usr/lib/systemd/system" "$repo/systemd/appliance-hospital-node@.service" \
     "$repo/systemd/appliance-hospital-history.service"
 
 install_args=(--description "$description" --root "$root" "${nodes[@]}")

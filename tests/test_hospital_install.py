@@ -153,7 +153,7 @@ def test_the_install_script_runs_each_step_on_the_description(tmp_path, descript
         "systemctl daemon-reload",
         "systemctl enable --now appliance-hospital-node@n1.service appliance-hospital-history.service"]
     for unit in ("appliance-hospital-node@.service", "appliance-hospital-history.service"):
-        assert (root / "etc/systemd/system" / unit).read_text() == (REPO / "systemd" / unit).read_text()
+        assert (root / "usr/lib/systemd/system" / unit).read_text() == (REPO / "systemd" / unit).read_text()
     assert (root / "etc/appliance/hospital/n1.conf").exists()
     assert "installed and started: appliance-hospital-node@n1.service appliance-hospital-history.service" \
         in result.stdout
