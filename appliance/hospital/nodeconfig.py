@@ -16,7 +16,9 @@ Users and what they may do (``appliance.hospital.subjects`` names the subjects):
   and reads only its own ``confirm`` and its own inbox;
 - a station reads every subject of its ward, writes its beds' ``confirm``, and may only read its ward's
   stream through a consumer (create, fetch, acknowledge), never change or delete it;
-- ``hospital-admin`` may do everything: it creates the streams (``appliance hospital streams``).
+- ``hospital-admin`` may do everything: it creates the streams (``appliance hospital streams``);
+- ``hospital-history``, the history writer, reads every ward's stream through its own consumers and hears every
+  bed's summary (``appliance.hospital.history``).
 
 Running it again keeps every existing password and adds or drops users. A running node reads its file again
 on ``nats-server --signal reload`` (SIGHUP), so a bed is added without a restart.
@@ -32,9 +34,11 @@ from pathlib import Path
 from appliance.errors import ConfigError
 from appliance.files import read_secret, write_atomic
 from appliance.hospital.description import Hospital, Node, Ward
-from appliance.hospital.subjects import BED_KINDS, CONFIRM, ROOT, bed_subject, inbox_prefix, stream_name
+from appliance.hospital.subjects import BED_KINDS, CONFIRM, ROOT, SUMMARY, bed_subject, inbox_prefix, stream_name
 
 ADMIN = "hospital-admin"
+HISTORY = "hospital-history"
+"""The history writer's user: it reads every ward's stream and the beds' summaries, and publishes nothing else."""
 ROUTE_USER = "route"
 ACCOUNT = "HOSPITAL"
 PASSWORD_BYTES = 24
@@ -54,9 +58,11 @@ class NodeConfigs:
 
 def write_node_configs(hospital: Hospital, folder: Path) -> NodeConfigs:
     """Write every node's configuration and the users' passwords into ``folder`` (made if missing)."""
-    users = [ADMIN, *(name for ward in hospital.wards for name in (*ward.beds, *ward.stations))]
+    users = [ADMIN, HISTORY, *(name for ward in hospital.wards for name in (*ward.beds, *ward.stations))]
     if users.count(ADMIN) > 1:
         raise ConfigError(f"{ADMIN!r} is the engine's administrator: no bed or station may take that name")
+    if users.count(HISTORY) > 1:
+        raise ConfigError(f"{HISTORY!r} is the history writer: no bed or station may take that name")
     folder = Path(folder).absolute()
     if folder.exists() and not folder.is_dir():
         raise ConfigError(f"configuration folder {folder} is a file, not a folder")
@@ -107,7 +113,8 @@ def node_config_text(hospital: Hospital, node: Node, passwords: dict[str, str]) 
                   f"  stream_replicas: {hospital.replicas}",
                   "}"]
     lines += ["accounts {", f"  {ACCOUNT}: {{", "    jetstream: enabled", "    users: [",
-              f"      {{user: {_q(ADMIN)}, password: {_q(passwords[ADMIN])}}}"]
+              f"      {{user: {_q(ADMIN)}, password: {_q(passwords[ADMIN])}}}",
+              f"      {_user(HISTORY, passwords[HISTORY], history_permissions(hospital))}"]
     for ward in hospital.wards:
         lines += [f"      {_user(bed, passwords[bed], bed_permissions(ward, bed))}" for bed in ward.beds]
         lines += [f"      {_user(station, passwords[station], station_permissions(ward, station))}"
@@ -133,6 +140,16 @@ def station_permissions(ward: Ward, station: str) -> dict:
                                   f"$JS.API.CONSUMER.MSG.NEXT.{stream}.>",
                                   f"$JS.ACK.{stream}.>"]},
             "subscribe": {"allow": [f"{ROOT}.{ward.name}.>", f"{inbox_prefix(station)}.>"]}}
+
+
+def history_permissions(hospital: Hospital) -> dict:
+    """Consume (never change) every ward's stream through its own durable consumers, and hear every summary."""
+    allow = [f"$JS.API.{call}.{stream_name(ward.name)}{rest}" for ward in hospital.wards
+             for call, rest in (("STREAM.INFO", ""), ("CONSUMER.CREATE", ".>"), ("CONSUMER.DURABLE.CREATE", ".>"),
+                                ("CONSUMER.INFO", ".>"), ("CONSUMER.MSG.NEXT", ".>"))]
+    allow += [f"$JS.ACK.{stream_name(ward.name)}.>" for ward in hospital.wards]
+    return {"publish": {"allow": allow},
+            "subscribe": {"allow": [bed_subject("*", "*", SUMMARY), f"{inbox_prefix(HISTORY)}.>"]}}
 
 
 def read_password(secrets_folder: Path, user: str) -> str:

@@ -21,7 +21,8 @@ from __future__ import annotations
 from appliance.alerts.events import EVENT_TYPES
 
 ROOT = "hospital"
-BED_KINDS = (*EVENT_TYPES, "status", "summary")
+SUMMARY = "summary"
+BED_KINDS = (*EVENT_TYPES, "status", SUMMARY)
 """What a bed publishes; the events (EVENT_TYPES) are the ones the ward's stream keeps."""
 CONFIRM = "confirm"
 MSG_ID = "Nats-Msg-Id"

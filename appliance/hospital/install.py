@@ -1,0 +1,84 @@
+"""What a hospital server needs from the description, written under a root folder: every node's configuration
+and the passwords, the description itself for the history writer, and the SQL that makes the history's role
+and database; and the systemd units to enable there.
+
+``deploy/install-hospital-server.sh`` runs it on Debian as root (``appliance hospital install --root /``), then
+runs the SQL as PostgreSQL's superuser and enables the units it printed. The units are templates from
+``systemd/``: ``appliance-hospital-node@<node>.service`` reads ``/etc/appliance/hospital/<node>.conf``, and
+``appliance-hospital-history.service`` runs the writer. Both run as the account ``appliance-hospital``, whose
+state folder holds the nodes' stores, and the writer reaches PostgreSQL on its Unix socket as the role of the
+same name (Debian's peer authentication: no password to keep).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+
+from appliance.errors import ConfigError
+from appliance.files import write_atomic
+from appliance.hospital.description import Hospital, HistoryPolicy, description_text
+from appliance.hospital.nodeconfig import write_node_configs
+
+CONFIG_DIR = PurePosixPath("/etc/appliance/hospital")
+STATE_DIR = PurePosixPath("/var/lib/appliance-hospital")
+ACCOUNT = "appliance-hospital"
+"""The system account of the units (systemd/appliance-hospital.sysusers) and the writer's PostgreSQL role."""
+HISTORY_UNIT = "appliance-hospital-history.service"
+SETUP_SQL = "history-setup.sql"
+
+
+@dataclass(frozen=True)
+class Installed:
+    """The folder written (under the root), the SQL file in it, and the units to enable, in start order."""
+
+    folder: Path
+    sql: Path | None
+    units: tuple[str, ...]
+
+
+def node_unit(name: str) -> str:
+    return f"appliance-hospital-node@{name}.service"
+
+
+def setup_sql(policy: HistoryPolicy) -> str:
+    """psql input, safe to run again, that makes the writer's role and the history's database it owns; nobody
+    else may connect."""
+    return "\n".join([
+        "-- The history's role and database, for appliance-hospital-history.service: run as PostgreSQL's superuser",
+        "-- (runuser -u postgres -- psql -v ON_ERROR_STOP=1 -f - < this-file). It can be run again.",
+        f"SELECT format('CREATE ROLE %I LOGIN', '{ACCOUNT}') WHERE NOT EXISTS "
+        f"(SELECT FROM pg_roles WHERE rolname = '{ACCOUNT}') \\gexec",
+        f"SELECT format('CREATE DATABASE %I OWNER %I', '{policy.database}', '{ACCOUNT}') WHERE NOT EXISTS "
+        f"(SELECT FROM pg_database WHERE datname = '{policy.database}') \\gexec",
+        f'REVOKE ALL ON DATABASE "{policy.database}" FROM PUBLIC;',
+        f'GRANT ALL ON DATABASE "{policy.database}" TO "{ACCOUNT}";',
+        ""])
+
+
+def install(hospital: Hospital, root: Path, nodes: list[str] | None = None, history: bool = True) -> Installed:
+    """Write what the server runs into ``root`` (``/`` on the server itself): ``nodes`` (all by default) are the
+    ones this server runs; ``history`` whether it runs the history writer too."""
+    names = [node.name for node in hospital.nodes]
+    chosen = names if nodes is None else nodes
+    for name in chosen:
+        if name not in names:
+            raise ConfigError(f"node {name!r} is not in the hospital description; its nodes: {', '.join(names)}")
+    store = PurePosixPath(hospital.store_dir)
+    if chosen and store != STATE_DIR and STATE_DIR not in store.parents:
+        raise ConfigError(f"[hospital] store_dir {str(store)!r} must be {STATE_DIR} or a folder in it: the node's "
+                          f"unit may write nowhere else")
+    if history and hospital.history is None:
+        raise ConfigError("the hospital description has no [history] table (events_days, pressure_days): add the "
+                          "hospital's retention policy, or install without the history writer")
+    folder = Path(root) / CONFIG_DIR.relative_to("/")
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    write_node_configs(hospital, folder)
+    write_atomic(folder / "hospital.toml", description_text(hospital))
+    sql = None
+    if history:
+        assert hospital.history is not None
+        sql = folder / SETUP_SQL
+        write_atomic(sql, setup_sql(hospital.history))
+    units = tuple(node_unit(name) for name in chosen) + ((HISTORY_UNIT,) if history else ())
+    return Installed(folder, sql, units)
