@@ -5,7 +5,7 @@
 description; ``streams`` creates or updates every ward's replicated alarm stream on a running cluster;
 ``start-local`` runs a whole cluster on loopback for trials, until Ctrl-C, and writes its description beside
 it for the other two; ``history`` runs the history writer into PostgreSQL until stopped; ``install`` writes what
-a hospital server runs, for ``deploy/install-hospital-server.sh``.
+a hospital server runs, for ``systemd/install-hospital-server.sh``.
 """
 
 from __future__ import annotations

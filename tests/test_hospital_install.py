@@ -1,5 +1,5 @@
 """Installing a hospital server from its description (appliance.hospital.install and
-deploy/install-hospital-server.sh), without systemd: the files written, the units named, the SQL run on a real
+systemd/install-hospital-server.sh), without systemd: the files written, the units named, the SQL run on a real
 PostgreSQL, and the script's steps with the system's tools replaced by recorders."""
 
 import datetime as dt
@@ -139,7 +139,7 @@ def test_the_install_script_runs_each_step_on_the_description(tmp_path, descript
     record = tmp_path / "record"
     environment = {**os.environ, "PATH": f"{tools}:{os.environ['PATH']}", "RECORD": str(record),
                    "PYTHONPATH": str(REPO)}
-    result = subprocess.run(["bash", str(REPO / "deploy/install-hospital-server.sh"), "--description",
+    result = subprocess.run(["bash", str(REPO / "systemd/install-hospital-server.sh"), "--description",
                              str(description), "--node", "n1", "--prefix", str(prefix), "--root", str(root)],
                             capture_output=True, text=True, check=False, env=environment)
     assert result.returncode == 0, result.stderr
@@ -158,7 +158,7 @@ def test_the_install_script_runs_each_step_on_the_description(tmp_path, descript
     assert "installed and started: appliance-hospital-node@n1.service appliance-hospital-history.service" \
         in result.stdout
 
-    bad = subprocess.run(["bash", str(REPO / "deploy/install-hospital-server.sh"), "--node"], capture_output=True,
+    bad = subprocess.run(["bash", str(REPO / "systemd/install-hospital-server.sh"), "--node"], capture_output=True,
                          text=True, check=False, env=environment)
     assert bad.returncode != 0 and "--node needs a name" in bad.stderr
 

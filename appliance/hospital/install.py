@@ -2,7 +2,7 @@
 and the passwords, the description itself for the history writer, and the SQL that makes the history's role
 and database; and the systemd units to enable there.
 
-``deploy/install-hospital-server.sh`` runs it on Debian as root (``appliance hospital install --root /``), then
+``systemd/install-hospital-server.sh`` runs it on Debian as root (``appliance hospital install --root /``), then
 runs the SQL as PostgreSQL's superuser and enables the units it printed. The units are templates from
 ``systemd/``: ``appliance-hospital-node@<node>.service`` reads ``/etc/appliance/hospital/<node>.conf``, and
 ``appliance-hospital-history.service`` runs the writer. Both run as the account ``appliance-hospital``, whose

@@ -2,7 +2,7 @@
 # Install a hospital server on Debian from the hospital description: its engine node(s) and, where PostgreSQL
 # runs, the history writer, as systemd units of the account appliance-hospital. Run as root from a checkout:
 #
-#   deploy/install-hospital-server.sh --description hospital.toml [--node NAME]... [--no-history]
+#   systemd/install-hospital-server.sh --description hospital.toml [--node NAME]... [--no-history]
 #                                     [--prefix DIR] [--root DIR]
 #
 # --node (repeat) names the description's nodes this server runs (default: all of them, a one-server trial);
