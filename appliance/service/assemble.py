@@ -137,6 +137,7 @@ def _notifiers(config: MonitorConfig, data_dir: Path, closers: list) -> list:
     """The ward link (with its outbox), the webhook and the charting link (with its queue), each added to
     ``closers`` as soon as it is made."""
     from appliance.alerts.notifiers import WebhookNotifier
+    from appliance.alerts.ward_mqtt import mqtt_ward_link
     from appliance.alerts.wardlink import WardLink
     from appliance.charting.link import ChartingLink
     from appliance.service.charting_target import charting_link
@@ -147,9 +148,10 @@ def _notifiers(config: MonitorConfig, data_dir: Path, closers: list) -> list:
         m, c = config.mqtt, config.confirmation
         outbox = Outbox(data_dir / OUTBOX_FILE)
         try:
-            link = WardLink(m.host, m.port, config.bed_id, outbox, client_id=f"appliance-{config.bed_id}",
-                            topic_prefix=m.topic_prefix, keepalive_s=m.keepalive_s, username=m.username,
-                            password=m.password(), ca_file=m.ca_file, confirm=c.confirm, confirm_timeout_s=c.timeout_s)
+            link = mqtt_ward_link(m.host, m.port, config.bed_id, outbox, client_id=f"appliance-{config.bed_id}",
+                                  topic_prefix=m.topic_prefix, keepalive_s=m.keepalive_s, username=m.username,
+                                  password=m.password(), ca_file=m.ca_file, confirm=c.confirm,
+                                  confirm_timeout_s=c.timeout_s)
         except BaseException:
             outbox.close()
             raise
