@@ -693,7 +693,7 @@ STOP_NAMES = {"frozen": "SIGSTOP: hung monitor, connection held", "killed": "SIG
 
 
 def report(result: dict, command: str) -> str:
-    from appliance.ward.station import STALE_MARGIN_S
+    from appliance.ward.board import STALE_MARGIN_S
 
     rows = [["new alarm: notify() to the ward view's stream", stats_ms(result["latencies_s"].values())],
             ["acknowledgement: notify() to the ward view's stream", stats_ms(result["ack_latencies_s"])]]

@@ -24,7 +24,8 @@ from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.loads import square_load_scene
 from appliance.store import Store
 from appliance.store.outbox import Outbox
-from appliance.ward.station import BedState, WardStation
+from appliance.ward.board import BedState
+from appliance.ward.station import WardStation
 
 
 class Publisher:
