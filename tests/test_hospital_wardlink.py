@@ -119,8 +119,8 @@ def stop_confirmations(bed, fault, heal, n) -> tuple[float, set[str]]:
     assert wait_until(lambda: confirmed_by_station(bed, bed.outbox.last_seq), 30), f"round {n}: not confirmed"
     assert wait_until(lambda: not technical(bed), 30), f"round {n}: {bed.conditions()} before the fault"
     fault()
+    queued = time.monotonic()                          # at most the link's own queueing time
     bed.notify(alarm(2 * n + 1))
-    queued = time.monotonic()
     seq = bed.outbox.last_seq
     assert wait_until(lambda: technical(bed), RAISED_WITHIN_S + 5), f"round {n}: no technical alarm"
     raised_after, raised = time.monotonic() - queued, technical(bed)
