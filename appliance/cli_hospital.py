@@ -2,8 +2,8 @@
 (``appliance.hospital``).
 
 ``config`` writes each node's nats-server configuration and everyone's passwords from the hospital
-description; ``streams`` creates or updates every ward's replicated alarm stream on a running cluster;
-``start-local`` runs a whole cluster on loopback for trials, until Ctrl-C, and writes its description beside
+description; ``streams`` creates or updates every ward's replicated alarm and confirmation streams on a running
+cluster; ``start-local`` runs a whole cluster on loopback for trials, until Ctrl-C, and writes its description beside
 it for the other two; ``history`` runs the history writer into PostgreSQL until stopped; ``install`` writes what
 a hospital server runs, for ``systemd/install-hospital-server.sh``.
 """
@@ -31,7 +31,8 @@ def add_parsers(sub) -> None:
                    help="the folder for <node>.conf and secrets/ (made if missing; earlier passwords are kept)")
     p.set_defaults(run=_config)
 
-    p = hospital.add_parser("streams", help="create or update every ward's alarm stream on the running cluster")
+    p = hospital.add_parser("streams", help="create or update every ward's alarm and confirmation streams on the "
+                                            "running cluster")
     p.add_argument("--description", type=Path, required=True, help="the hospital description")
     p.add_argument("--secrets", type=Path, required=True, metavar="DIR",
                    help="the secrets/ folder `appliance hospital config` wrote (for the administrator's password)")
@@ -85,7 +86,8 @@ def _streams(args) -> int:
 
     hospital = load_hospital(args.description)
     names = asyncio.run(_ensure_streams(hospital, [node.client_url for node in hospital.nodes], args.secrets))
-    print(f"{len(names)} ward stream(s), {hospital.replicas} replica(s) each: {', '.join(names)}")
+    print(f"{len(hospital.wards)} ward(s), their event and confirmation streams with {hospital.replicas} replica(s) "
+          f"each: {', '.join(names)}")
     return 0
 
 

@@ -2,7 +2,8 @@
 ``appliance ward-broker``: the ward broker's logins and ACL (``appliance.ward.broker``).
 
 It subscribes to the ward's MQTT broker (``appliance.ward.station``) with the
-broker settings of its configuration file (``appliance.ward.config``) and serves
+broker settings of its configuration file (``appliance.ward.config``), or reads
+its ward from the hospital engine (``appliance.ward.engine_station``), and serves
 the ward's screen (``webui.create_ward_app``) with waitress until SIGTERM. The
 screen's accounts are its own, kept in the data directory with the journal of
 the commands its nurses send to beds; the first visit sets up the admin. Put it behind a TLS proxy as a bed's screen is.
@@ -18,6 +19,7 @@ DEFAULT_THREADS = 16        # a few station screens and their event streams
 MAX_THREADS = 1000          # far more screens than a ward has
 DEFAULT_STATION = "ward-station"
 JOURNAL = "ward-commands.db"
+APPLIED = "ward-applied.db"
 
 
 def add_parsers(sub) -> None:
@@ -65,8 +67,6 @@ def _ward(args) -> int:
     from appliance.errors import ConfigError
     from appliance.service.config_sections import default_data_dir
     from appliance.ward.config import load_ward_config
-    from appliance.ward.journal import CommandJournal
-    from appliance.ward.station import WardStation
     from webui import create_ward_app
     from webui.server import serve
 
@@ -80,14 +80,33 @@ def _ward(args) -> int:
     data_dir = args.data_dir or default_data_dir() / "ward"
     signal.signal(signal.SIGTERM, _stop)
     data_dir.mkdir(parents=True, exist_ok=True)
-    with WardStation.from_config(config, CommandJournal(data_dir / JOURNAL)) as station:
+    with contextlib.ExitStack() as stack:
+        station, source = _station(config, data_dir, stack)
         app = create_ward_app(data_dir, station, config, secure_cookies=not args.plain_http)
-        b = config.broker
-        print(f"ward station: beds under {b.topic_prefix}/ on {b.host}:{b.port}{' (TLS)' if b.ca_file else ''}; "
-              f"the screen on http://{host}:{port}/ (accounts in {data_dir})", flush=True)
+        print(f"ward station: beds {source}; the screen on http://{host}:{port}/ (accounts in {data_dir})",
+              flush=True)
         with contextlib.suppress(KeyboardInterrupt):
             serve(app, host, port, threads=args.threads, ident="appliance-ward", behind_proxy=args.behind_proxy)
     return 0
+
+
+def _station(config, data_dir: Path, stack: contextlib.ExitStack):
+    """The station the configuration names, closed with ``stack``, and where it reads its beds, in words."""
+    from appliance.ward.applied import AppliedJournal
+    from appliance.ward.engine_station import EngineStation
+    from appliance.ward.journal import CommandJournal
+    from appliance.ward.station import WardStation
+
+    if config.engine is not None:
+        journal = AppliedJournal(data_dir / APPLIED)
+        stack.callback(journal.close)
+        e = config.engine
+        return (stack.enter_context(EngineStation.from_config(config, journal)),
+                f"of {e.ward} on the hospital engine ({', '.join(e.servers)}) as {config.client_id}")
+    b = config.broker
+    assert b is not None
+    return (stack.enter_context(WardStation.from_config(config, CommandJournal(data_dir / JOURNAL))),
+            f"under {b.topic_prefix}/ on {b.host}:{b.port}{' (TLS)' if b.ca_file else ''}")
 
 
 def _ward_broker(args) -> int:

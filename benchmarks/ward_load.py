@@ -159,10 +159,10 @@ class EmulatedBed:
 
 
 def ward_link(port: int, bed_id: str, folder: Path):
-    from appliance.alerts.wardlink import WardLink
+    from appliance.alerts.ward_mqtt import mqtt_ward_link
     from appliance.store.outbox import Outbox
 
-    return WardLink("127.0.0.1", port, bed_id, Outbox(folder / f"{bed_id}-outbox.db"), client_id=f"{bed_id}-monitor",
+    return mqtt_ward_link("127.0.0.1", port, bed_id, Outbox(folder / f"{bed_id}-outbox.db"), client_id=f"{bed_id}-monitor",
                     keepalive_s=BED_KEEPALIVE_S, summary_interval_s=SUMMARY_INTERVAL_S)
 
 
@@ -693,7 +693,7 @@ STOP_NAMES = {"frozen": "SIGSTOP: hung monitor, connection held", "killed": "SIG
 
 
 def report(result: dict, command: str) -> str:
-    from appliance.ward.station import STALE_MARGIN_S
+    from appliance.ward.board import STALE_MARGIN_S
 
     rows = [["new alarm: notify() to the ward view's stream", stats_ms(result["latencies_s"].values())],
             ["acknowledgement: notify() to the ward view's stream", stats_ms(result["ack_latencies_s"])]]

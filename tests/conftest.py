@@ -163,14 +163,14 @@ def beds(broker, tmp_path):
     the test."""
     from mqtt_broker import wait_until
 
-    from appliance.alerts.wardlink import WardLink
+    from appliance.alerts.ward_mqtt import mqtt_ward_link
     from appliance.store.outbox import Outbox
 
     made = []
 
     def make(bed_id, **options):
         options = {"summary_interval_s": 0.1, "resend_after_s": 0.5, **options}
-        made.append(WardLink("127.0.0.1", broker.port, bed_id, Outbox(tmp_path / f"{bed_id}-outbox.db"),
+        made.append(mqtt_ward_link("127.0.0.1", broker.port, bed_id, Outbox(tmp_path / f"{bed_id}-outbox.db"),
                              client_id=f"{bed_id}-link", **options))
         assert wait_until(lambda: made[-1].status()["connected"])
         return made[-1]

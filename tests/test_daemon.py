@@ -75,6 +75,16 @@ def test_a_ward_file_is_read_with_paths_relative_to_it(tmp_path):
     ('[notify.mqtt]\nhost = "b"\nconfirm_timeout_s = 0\n', "confirm_timeout_s"),
     ('[notify.webhook]\nurl = "ftp://x"\n', "url must start with http:// or https://"),
     ('[notify.gpio]\n', "[notify.gpio] needs a board: the virtual bed has no buzzer"),
+    ('[notify.engine]\nconfirm_timeout_s = 5\n', "[notify.engine] is missing 'servers'"),
+    ('[notify.engine]\nservers = []\nward = "w"\n', "servers must be a non-empty list"),
+    ('[notify.engine]\nservers = ["n1:4222"]\nward = "w"\n', "server 'n1:4222' must be nats://HOST:PORT"),
+    ('[notify.engine]\nservers = ["nats://bed:pw@n1:4222"]\nward = "w"\n', "without a login"),
+    ('[notify.engine]\nservers = ["nats://n1:4222"]\nward = "ward.3"\n', "ward must be the ward's name"),
+    ('[notify.engine]\nservers = ["nats://n1:4222"]\nward = "w"\n', "missing 'password_file'"),
+    ('[notify.engine]\nservers = ["nats://n1:4222"]\nward = "w"\npassword_file = "none"\n',
+     "[notify.engine] password_file: no file"),
+    ('[notify.engine]\nservers = ["nats://n1:4222"]\nward = "w"\nconfirm_timeout_s = 0\n', "confirm_timeout_s"),
+    ('[notify.mqtt]\nhost = "b"\n[notify.engine]\nservers = ["nats://n1:4222"]\n', "both given"),
     ('[board]\nprofile = "nonesuch"\n', "[board]:"),
     ('[virtual]\nscenario = "no-such-night"\n', "neither a built-in scenario"),
     ('[monitor]\nsource = "hardware"\n[virtual]\nspeed = 0\n', "[virtual] is only for source = \"virtual\""),
@@ -86,6 +96,18 @@ def test_a_bad_configuration_is_refused_naming_the_section_and_key(tmp_path, tex
     with pytest.raises(ConfigError) as caught:
         load_config(path)
     assert message in str(caught.value) and str(path) in str(caught.value)
+
+
+def test_the_engine_instead_of_the_broker_is_chosen_by_its_own_table(tmp_path):
+    (tmp_path / "engine-password").write_text("secret\n")
+    path = tmp_path / "appliance.toml"
+    path.write_text('[notify.engine]\nservers = ["nats://10.0.0.1:4222", "nats://10.0.0.2:4222"]\nward = "ward3"\n'
+                    'password_file = "engine-password"\nconfirm_timeout_s = 4\n')
+    config = load_config(path)
+    assert config.mqtt is None
+    assert config.engine.servers == ("nats://10.0.0.1:4222", "nats://10.0.0.2:4222") and config.engine.ward == "ward3"
+    assert config.engine.password() == "secret"
+    assert config.confirmation.confirm is True and config.confirmation.timeout_s == 4
 
 
 def test_run_check_config_prints_the_configuration_and_refuses_a_bad_one(tmp_path, capsys):

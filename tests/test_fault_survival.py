@@ -305,7 +305,7 @@ def test_the_screen_goes_stale_when_the_monitor_stops_even_if_the_clock_was_set_
 
 
 def test_the_ward_station_judges_a_bed_silent_on_the_monotonic_clock():
-    from appliance.ward.station import BedState
+    from appliance.ward.board import BedState
 
     bed = BedState("bed7", status="online", last_heard_at=1_780_000_000.0, last_heard_steady=100.0)
     assert bed.online(101.0, stale_after_s=5.0)

@@ -202,7 +202,8 @@ def _use_local_cluster(command, folder, capsys):
     secrets = folder / "config" / "secrets"
     assert main(["hospital", "streams", "--description", str(folder / "hospital.toml"), "--secrets",
                  str(secrets)]) == 0
-    assert "1 ward stream(s), 3 replica(s) each: ALARMS_trial" in capsys.readouterr().out
+    assert "1 ward(s), their event and confirmation streams with 3 replica(s) each: ALARMS_trial, CONFIRMS_trial" \
+        in capsys.readouterr().out
 
     async def bed_publishes():
         connection = await connect([node.client_url for node in hospital.nodes], "bed02",

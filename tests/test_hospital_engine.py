@@ -19,7 +19,7 @@ def cluster(tmp_path):
 
 
 def test_the_cluster_forms_and_each_ward_stream_has_three_replicas_on_fsynced_nodes(cluster):
-    assert asyncio.run(make_streams(cluster)) == ["ALARMS_ward1", "ALARMS_ward2"]
+    assert asyncio.run(make_streams(cluster)) == ["ALARMS_ward1", "CONFIRMS_ward1", "ALARMS_ward2", "CONFIRMS_ward2"]
     for node in cluster.hospital.nodes:
         varz = cluster.monitor(node.name, "varz")
         assert varz["version"] == "2.15.1"

@@ -8,7 +8,7 @@ from mqtt_broker import Broker, wait_until
 
 from appliance.alerts.alarms import AlarmEvent
 from appliance.alerts.events import as_event
-from appliance.alerts.wardlink import WardLink
+from appliance.alerts.ward_mqtt import mqtt_ward_link
 from appliance.errors import ConfigError
 from appliance.service.config import config_from_mapping
 from appliance.store.outbox import Outbox
@@ -60,7 +60,7 @@ def test_a_bed_logged_in_over_tls_reaches_the_station(secure_broker, tmp_path):
     broker, ca = secure_broker
     ward = station(broker, ca)
     assert ward.wait_subscribed(10)
-    bed = WardLink("localhost", broker.port, "ward3-bed12", Outbox(tmp_path / "outbox.db"),
+    bed = mqtt_ward_link("localhost", broker.port, "ward3-bed12", Outbox(tmp_path / "outbox.db"),
                    client_id="appliance-ward3-bed12", username="ward3-bed12", password=BED_PASSWORD, ca_file=ca)
     try:
         bed.notify(alarm())
@@ -79,7 +79,7 @@ def test_a_bed_without_the_right_login_or_tls_is_refused_and_its_alarm_is_kept(s
     login = {"wrong password": {"username": "ward3-bed12", "password": "guess", "ca_file": ca},
              "no password": {"ca_file": ca},
              "no TLS": {"username": "ward3-bed12", "password": BED_PASSWORD}}[how]
-    bed = WardLink("localhost", broker.port, "ward3-bed12", Outbox(tmp_path / "outbox.db"),
+    bed = mqtt_ward_link("localhost", broker.port, "ward3-bed12", Outbox(tmp_path / "outbox.db"),
                    client_id="appliance-ward3-bed12", confirm_timeout_s=1.0, **login)
     try:
         bed.notify(alarm())

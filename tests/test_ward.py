@@ -15,7 +15,7 @@ import pytest
 from mqtt_broker import free_port, subscribed_station, wait_until
 from ward_payloads import alarm, as_sent, summary
 
-from appliance.alerts.wardlink import WardLink, release
+from appliance.alerts.ward_mqtt import mqtt_ward_link, release
 from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.service.config import config_from_mapping
@@ -24,7 +24,8 @@ from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.loads import square_load_scene
 from appliance.store import Store
 from appliance.store.outbox import Outbox
-from appliance.ward.station import BedState, WardStation
+from appliance.ward.board import BedState
+from appliance.ward.station import WardStation
 
 
 class Publisher:
@@ -420,7 +421,7 @@ def test_an_unreachable_broker_never_holds_up_the_daemons_frames(small_mat_calib
             network_calls.append((_name, threading.get_ident(), stepping.is_set()))
             return _original(self, *args)
         monkeypatch.setattr(socket.socket, name, watched)
-    unreachable = WardLink("10.255.255.1", free_port(), "ward-bed", Outbox(tmp_path / "unreachable-outbox.db"),
+    unreachable = mqtt_ward_link("10.255.255.1", free_port(), "ward-bed", Outbox(tmp_path / "unreachable-outbox.db"),
                            client_id="unreachable", summary_interval_s=0.001)
     daemon = ward_daemon(small_mat_calibration, tmp_path, [unreachable])
     loop = threading.get_ident()

@@ -20,7 +20,7 @@ from test_mqtt_security import make_certificates
 from ward_payloads import alarm, summary
 
 from appliance.alerts.events import Event
-from appliance.alerts.wardlink import WardLink
+from appliance.alerts.ward_mqtt import mqtt_ward_link
 from appliance.cli import main
 from appliance.errors import ConfigError
 from appliance.service.config import config_from_mapping
@@ -133,7 +133,7 @@ def test_a_bed_and_the_station_log_in_with_their_generated_passwords_and_others_
                              "password_file": str(files.secrets_folder / f"{BED1}.password")}}})
     with WardStation.from_config(station_config) as station:
         assert station.wait_subscribed(10)
-        notifier = WardLink("127.0.0.1", broker.port, BED1, Outbox(tmp_path / "outbox.db"),
+        notifier = mqtt_ward_link("127.0.0.1", broker.port, BED1, Outbox(tmp_path / "outbox.db"),
                             client_id=f"appliance-{BED1}", username=BED1, password=bed_config.mqtt.password())
         try:
             notifier.notify(alarm(1))

@@ -13,7 +13,7 @@ from mqtt_broker import subscribed_station, wait_until
 from test_ward import ward_daemon
 
 from appliance.alerts.ward_commands import WardCommand, new_command, parse_command, parse_result
-from appliance.alerts.wardlink import WardLink, release
+from appliance.alerts.ward_mqtt import mqtt_ward_link, release
 from appliance.store import Store
 from appliance.store.outbox import Outbox
 from appliance.ward.journal import CommandJournal
@@ -37,7 +37,7 @@ def repeater(broker):
 
 
 def bed_link(broker, tmp_path):
-    link = WardLink("127.0.0.1", broker.port, BED, Outbox(tmp_path / "outbox.db"), client_id=f"{BED}-link",
+    link = mqtt_ward_link("127.0.0.1", broker.port, BED, Outbox(tmp_path / "outbox.db"), client_id=f"{BED}-link",
                     summary_interval_s=0.05, resend_after_s=0.5)
     assert wait_until(lambda: link.status()["connected"])
     return link

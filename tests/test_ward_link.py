@@ -16,7 +16,7 @@ from mqtt_broker import wait_until
 from appliance.alerts.alarms import AlarmEvent
 from appliance.alerts.events import Event, as_event
 from appliance.alerts.turns import TurnEvent
-from appliance.alerts.wardlink import WardLink, release
+from appliance.alerts.ward_mqtt import mqtt_ward_link, release
 from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.errors import StoreCorrupt
@@ -88,7 +88,7 @@ def peer(broker):
 
 def link(broker, tmp_path, **options):
     options = {"resend_after_s": 0.2, "summary_interval_s": 0.1, **options}
-    return WardLink("127.0.0.1", broker.port, "bed7", Outbox(tmp_path / "outbox.db"), client_id="bed7-link",
+    return mqtt_ward_link("127.0.0.1", broker.port, "bed7", Outbox(tmp_path / "outbox.db"), client_id="bed7-link",
                     **options)
 
 
@@ -200,7 +200,7 @@ def test_status_is_retained_online_and_last_will_is_offline(broker, peer, tmp_pa
         assert watcher.next("appliance/bed7/status")[3] == "online"
         late = peer("appliance/bed7/status", client_id="late")    # a retained message reaches late subscribers
         assert late.next("appliance/bed7/status")[2:] == (True, "online")
-        bed._client.socket().shutdown(socket.SHUT_RDWR)          # a crash or a pulled cable: no DISCONNECT
+        bed.transport.client.socket().shutdown(socket.SHUT_RDWR)          # a crash or a pulled cable: no DISCONNECT
         assert watcher.next("appliance/bed7/status")[3] == "offline"
         assert watcher.next("appliance/bed7/status")[3] == "online"  # and it reconnects
     finally:

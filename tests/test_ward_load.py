@@ -12,7 +12,7 @@ import statistics
 import pytest
 import ward_load  # benchmarks/, on the path by conftest
 
-from appliance.ward.station import STALE_MARGIN_S
+from appliance.ward.board import STALE_MARGIN_S
 
 pytestmark = pytest.mark.slow
 

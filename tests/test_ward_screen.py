@@ -94,6 +94,10 @@ def test_the_ward_says_when_it_has_no_broker(tmp_path):
     ({"broker": {"host": "b"}, "station": {"summary_interval_s": 0}}, "summary_interval_s must be from 0.1"),
     ({"broker": {"host": "b", "password_file": "pw"}}, "[broker]: password_file needs a username"),
     ({"broker": {"host": "b"}, "station": {"command_expiry_s": 1}}, "command_expiry_s must be from 5 to 3600"),
+    ({"engine": {"servers": ["nats://n1:4222"]}}, "[engine] is missing 'ward'"),
+    ({"engine": {"servers": ["n1"], "ward": "w"}}, "[engine]: server 'n1' must be nats://HOST:PORT"),
+    ({"broker": {"host": "b"}, "engine": {"servers": ["nats://n1:4222"], "ward": "w", "password_file": "pw"}},
+     "[engine] password_file: no file"),
 ])
 def test_a_bad_station_configuration_names_the_key(table, message):
     with pytest.raises(ConfigError) as caught:

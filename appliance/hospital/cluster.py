@@ -125,6 +125,14 @@ class LocalCluster:
         process.send_signal(signal.SIGKILL)
         process.wait(10)
 
+    def pause(self, name: str) -> None:
+        """SIGSTOP node ``name``: a hung server, holding its connections open and answering nothing."""
+        self.processes[name].send_signal(signal.SIGSTOP)
+
+    def resume(self, name: str) -> None:
+        """SIGCONT node ``name`` after :meth:`pause`."""
+        self.processes[name].send_signal(signal.SIGCONT)
+
     def running(self, name: str) -> bool:
         process = self.processes.get(name)
         return process is not None and process.poll() is None
@@ -155,6 +163,7 @@ class LocalCluster:
         for name in list(self.processes):
             process = self.processes.pop(name)
             if process.poll() is None:
+                process.send_signal(signal.SIGCONT)             # a paused node would not see the SIGTERM
                 process.terminate()
                 try:
                     process.wait(10)

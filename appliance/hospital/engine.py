@@ -17,6 +17,7 @@ import json
 import logging
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import nats
 import nats.errors
@@ -26,8 +27,8 @@ from nats.js import JetStreamContext, api
 
 from appliance.hospital.description import Hospital, Ward
 from appliance.hospital.nodeconfig import DUPLICATE_WINDOW_S
-from appliance.hospital.subjects import (MSG_ID, bed_subject, inbox_prefix, parse_message_id, stream_name,
-                                         stream_subjects)
+from appliance.hospital.subjects import (CONFIRMED, MSG_ID, bed_subject, confirms_stream_name, inbox_prefix,
+                                         parse_message_id, stream_name, stream_subjects)
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +36,12 @@ RECONNECT_WAIT_S = 0.25
 PUBLISH_TIMEOUT_S = 2.0
 """How long one publish waits for the stream's acknowledgement before it is sent again: a leader's election
 after a node's death takes a few seconds, during which publishes time out."""
+ACK_WAIT_S = 5.0
+"""How long the ward's stream waits for a station's acknowledgement before it gives the message again: a
+station that could not confirm (no quorum) takes it up again this soon after the engine is whole."""
+CONFIRMS_KEPT_S = 7 * 86400.0
+"""How long a confirmation stays in the engine: far longer than a bed resends an event (it resends every minute
+at most), so a bed back after a long cut still finds the confirmations it missed."""
 RETRYABLE = (nats.errors.TimeoutError, nats.errors.NoRespondersError, nats.errors.ConnectionClosedError,
              nats.errors.ConnectionReconnectingError, nats.js.errors.NoStreamResponseError,
              nats.js.errors.ServiceUnavailableError, nats.js.errors.ServerError, TimeoutError)
@@ -43,15 +50,29 @@ a stream that does not take the subject) is a fault to raise, not to retry."""
 
 
 async def connect(urls: Sequence[str], user: str, password: str, *,
-                  on_error: Callable[[Exception], Awaitable[None]] | None = None, attempts: int = -1) -> Client:
+                  on_error: Callable[[Exception], Awaitable[None]] | None = None, attempts: int = -1,
+                  on_disconnected: Callable[[], Awaitable[None]] | None = None,
+                  on_reconnected: Callable[[], Awaitable[None]] | None = None) -> Client:
     """A connection as ``user`` to whichever node of ``urls`` answers, reconnecting to the others for ever (or
     ``attempts`` times, a refused login included, then NoServersError), with replies on the user's own inbox
     (the only one its permissions let it read). The server's complaints (a permissions violation, which drops
-    the publish) go to ``on_error``, or to the log."""
+    the publish) go to ``on_error``, or to the log; ``on_disconnected`` and ``on_reconnected`` are told when the
+    connection goes and comes back."""
+    callbacks = {name: cb for name, cb in (("disconnected_cb", on_disconnected), ("reconnected_cb", on_reconnected))
+                 if cb is not None}
     return await nats.connect(servers=list(urls), user=user, password=password, inbox_prefix=inbox_prefix(user),
                               name=user, allow_reconnect=True, max_reconnect_attempts=attempts,
                               reconnect_time_wait=RECONNECT_WAIT_S, connect_timeout=2, ping_interval=5,
-                              max_outstanding_pings=2, error_cb=on_error or _log_error)
+                              max_outstanding_pings=2, error_cb=on_error or _log_error, **callbacks)
+
+
+async def cancel_the_rest() -> None:
+    """Cancel every other task of the running loop and wait for them to end: a client on a loop of its own
+    leaves nothing pending when it stops that loop."""
+    others = [task for task in asyncio.all_tasks() if task is not asyncio.current_task()]
+    for task in others:
+        task.cancel()
+    await asyncio.gather(*others, return_exceptions=True)
 
 
 async def _log_error(error: Exception) -> None:
@@ -65,21 +86,30 @@ def ward_stream_config(ward: Ward, replicas: int) -> api.StreamConfig:
                             retention=api.RetentionPolicy.LIMITS, duplicate_window=DUPLICATE_WINDOW_S)
 
 
+def confirms_stream_config(ward: Ward, replicas: int) -> api.StreamConfig:
+    """The ward's confirmation stream: on disk, ``replicas`` copies, the latest confirmation of each event, for
+    ``CONFIRMS_KEPT_S``, which a bed may read one by one (direct get, answered by any replica)."""
+    return api.StreamConfig(name=confirms_stream_name(ward.name), subjects=[bed_subject(ward.name, "*", CONFIRMED)
+                                                                            + ".*"],
+                            storage=api.StorageType.FILE, num_replicas=replicas, retention=api.RetentionPolicy.LIMITS,
+                            max_msgs_per_subject=1, max_age=CONFIRMS_KEPT_S, allow_direct=True)
+
+
 async def ensure_ward_streams(connection: Client, hospital: Hospital) -> list[str]:
-    """Create every ward's stream, or bring an existing one to the description; needs the administrator's
-    connection. The names of the streams, in the order of the wards."""
+    """Create every ward's event and confirmation streams, or bring existing ones to the description; needs the
+    administrator's connection. The names of the streams, each ward's two in the order of the wards."""
     js = connection.jetstream()
     names = []
     for ward in hospital.wards:
-        name = stream_name(ward.name)
-        config = ward_stream_config(ward, hospital.replicas)
-        try:
-            await js.stream_info(name)
-        except nats.js.errors.NotFoundError:
-            await js.add_stream(config)
-        else:
-            await js.update_stream(config)
-        names.append(name)
+        for name, config in ((stream_name(ward.name), ward_stream_config(ward, hospital.replicas)),
+                             (confirms_stream_name(ward.name), confirms_stream_config(ward, hospital.replicas))):
+            try:
+                await js.stream_info(name)
+            except nats.js.errors.NotFoundError:
+                await js.add_stream(config)
+            else:
+                await js.update_stream(config)
+            names.append(name)
     return names
 
 
@@ -119,29 +149,56 @@ class BedPublisher:
                 await asyncio.sleep(RECONNECT_WAIT_S)
 
 
+class Ledger(Protocol):
+    """What a station has applied: ``take`` records a delivery and says whether it is new (False for a number of
+    that bed applied before); a station that must survive its restart keeps it on disk before it answers."""
+
+    def take(self, delivery: Delivery) -> bool:
+        """Record ``delivery``; True if its bed's number had not been taken before."""
+
+
+class MemoryLedger:
+    """The bed numbers taken, in memory: for tools and trials, forgotten at a restart."""
+
+    def __init__(self) -> None:
+        self._seen: dict[str, set[int]] = {}
+
+    def take(self, delivery: Delivery) -> bool:
+        seen = self._seen.setdefault(delivery.bed, set())
+        if delivery.seq in seen:
+            return False
+        seen.add(delivery.seq)
+        return True
+
+
 class WardReader:
     """A station's durable pull consumer on its ward's stream: every event once, in stream order per bed.
 
-    ``delivered`` counts messages received (redeliveries included), ``duplicates`` those dropped because that
-    bed's number had been applied; ``applied`` maps each bed to its numbers in the order applied."""
+    Each message is acknowledged to the stream only after ``ledger`` has taken it and ``handle`` (if given) has
+    dealt with it, so a station that dies in between is given it again and its ledger says it was applied.
+    ``delivered`` counts messages received (redeliveries included), ``duplicates`` those whose bed's number had
+    been taken, ``bad`` those that are not a bed's event (dropped); ``applied`` maps each bed to its numbers in the
+    order taken by this reader."""
 
-    def __init__(self, connection: Client, ward: str, station: str):
+    def __init__(self, connection: Client, ward: str, station: str, ledger: Ledger | None = None):
         self.connection, self.ward, self.station = connection, ward, station
+        self.ledger: Ledger = ledger or MemoryLedger()
         self.js = connection.jetstream()
         self.subscription: JetStreamContext.PullSubscription | None = None
         self.applied: dict[str, list[int]] = {}
-        self._seen: dict[str, set[int]] = {}
-        self.delivered = 0
-        self.duplicates = 0
+        self.delivered = self.duplicates = self.bad = 0
 
     async def open(self) -> None:
-        config = api.ConsumerConfig(ack_policy=api.AckPolicy.EXPLICIT, ack_wait=10.0, max_ack_pending=1000)
+        config = api.ConsumerConfig(ack_policy=api.AckPolicy.EXPLICIT, ack_wait=ACK_WAIT_S, max_ack_pending=1000)
         self.subscription = await self.js.pull_subscribe(
             stream_subjects(self.ward)[0].rpartition(".")[0] + ".>", durable=self.station,
             stream=stream_name(self.ward), config=config)
 
-    async def read(self, batch: int = 100, timeout_s: float = 1.0) -> list[Delivery]:
-        """The events new to this station among the next ``batch`` messages (none within ``timeout_s``: [])."""
+    async def read(self, batch: int = 100, timeout_s: float = 1.0,
+                   handle: Callable[[Delivery, bool], Awaitable[None]] | None = None) -> list[Delivery]:
+        """The events new to this station among the next ``batch`` messages (none within ``timeout_s``: []);
+        ``handle(delivery, fresh)`` is awaited for each message, repeats included, before it is acknowledged. A
+        message ``handle`` fails on, and those after it, are left unacknowledged: the stream gives them again."""
         try:
             if self.subscription is None:
                 await self.open()
@@ -152,12 +209,38 @@ class WardReader:
         fresh = []
         for message in messages:
             self.delivered += 1
-            bed, seq = parse_message_id((message.headers or {}).get(MSG_ID, ""))
-            if seq in self._seen.setdefault(bed, set()):
-                self.duplicates += 1
+            try:
+                delivery = self._delivery(message)
+            except ValueError as exc:               # json's errors are ValueErrors
+                self.bad += 1
+                log.warning("ward %s: message on %s dropped: %s", self.ward, message.subject, exc)
+                await message.ack()                 # given again, it would be as bad
+                continue
+            new = self.ledger.take(delivery)
+            if new:
+                self.applied.setdefault(delivery.bed, []).append(delivery.seq)
+                fresh.append(delivery)
             else:
-                self._seen[bed].add(seq)
-                self.applied.setdefault(bed, []).append(seq)
-                fresh.append(Delivery(bed, seq, message.subject.rpartition(".")[2], json.loads(message.data)))
+                self.duplicates += 1
+            if handle is not None:
+                try:
+                    await handle(delivery, new)
+                except RETRYABLE as exc:
+                    log.warning("ward %s: %s's event %d not handled yet (%r): given again later", self.ward,
+                                delivery.bed, delivery.seq, exc)
+                    break
             await message.ack()
         return fresh
+
+    @staticmethod
+    def _delivery(message) -> Delivery:
+        """The event in ``message``; a ValueError when it is not one. The bed is the one whose subject it came on
+        (each bed may publish only its own), so a bed cannot spend another's numbers."""
+        _, _, bed, kind = message.subject.split(".", 3)
+        sender, seq = parse_message_id((message.headers or {}).get(MSG_ID, ""))
+        if sender != bed:
+            raise ValueError(f"{MSG_ID} names bed {sender!r}, but it came on {bed!r}'s subject")
+        event = json.loads(message.data)
+        if not isinstance(event, dict):
+            raise ValueError(f"an event must be a JSON object, got {type(event).__name__}")
+        return Delivery(bed, seq, kind, event)

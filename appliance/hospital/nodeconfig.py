@@ -5,17 +5,21 @@
 - ``<node>.conf`` for every ``[[node]]``: the ``nats-server`` configuration of that node. JetStream writes to
   disk with ``sync_interval: always``, an fsync before every acknowledgement (the default, every 2 minutes, let
   Jepsen lose 14 % of acknowledged writes in a power cut of all nodes); routes to the other nodes, which log in
-  with the cluster's own password; an MQTT 3.1.1 listener where the node has an ``mqtt_port``; and one account,
+  with the cluster's own password, and tell no client of the other nodes' addresses (a bed or station reaches
+  the nodes its own configuration names, through whatever firewall ward IT set for them); an MQTT 3.1.1 listener
+  where the node has an ``mqtt_port``; and one account,
   HOSPITAL, holding every user with their permissions (file 0600: it holds the passwords).
 - ``secrets/<user>.password``: each user's password on its first line, for the bed, the station or the tools
   (folder 0700, files 0600), and ``secrets/routes.password`` for the routes between nodes.
 
 Users and what they may do (``appliance.hospital.subjects`` names the subjects):
 
-- a bed (its id is its user name) publishes only ``hospital.<ward>.<bed>.{alarm,turn,episode,status,summary}``
-  and reads only its own ``confirm`` and its own inbox;
-- a station reads every subject of its ward, writes its beds' ``confirm``, and may only read its ward's
-  stream through a consumer (create, fetch, acknowledge), never change or delete it;
+- a bed (its id is its user name) publishes only ``hospital.<ward>.<bed>.{alarm,turn,episode,status,summary}``,
+  reads only its own ``confirm`` and its own inbox, and may look up its own confirmations in the ward's
+  confirmation stream;
+- a station reads every subject of its ward, writes its beds' ``confirm`` and the ward's confirmation stream,
+  and may only read its ward's event stream through a consumer (create, fetch, acknowledge), never change or
+  delete it;
 - ``hospital-admin`` may do everything: it creates the streams (``appliance hospital streams``);
 - ``hospital-history``, the history writer, reads every ward's stream through its own consumers and hears every
   bed's summary (``appliance.hospital.history``).
@@ -34,7 +38,8 @@ from pathlib import Path
 from appliance.errors import ConfigError
 from appliance.files import read_secret, write_atomic
 from appliance.hospital.description import Hospital, Node, Ward
-from appliance.hospital.subjects import BED_KINDS, CONFIRM, ROOT, SUMMARY, bed_subject, inbox_prefix, stream_name
+from appliance.hospital.subjects import (BED_KINDS, CONFIRM, CONFIRMED, ROOT, SUMMARY, bed_subject,
+                                         confirms_stream_name, inbox_prefix, stream_name)
 
 ADMIN = "hospital-admin"
 HISTORY = "hospital-history"
@@ -106,6 +111,8 @@ def node_config_text(hospital: Hospital, node: Node, passwords: dict[str, str]) 
              f"  listen: {_q(f'{node.host}:{node.cluster_port}')}",
              f"  authorization {{ user: {_q(ROUTE_USER)}, password: {_q(route_password)} }}",
              f"  routes: [{', '.join(_q(route) for route in routes)}]",
+             "  # clients use the addresses they are configured with, never others a node tells them of",
+             "  no_advertise: true",
              "}"]
     if node.mqtt_port is not None:
         lines += ["mqtt {",
@@ -124,15 +131,18 @@ def node_config_text(hospital: Hospital, node: Node, passwords: dict[str, str]) 
 
 
 def bed_permissions(ward: Ward, bed: str) -> dict:
-    """Publish its own subjects; read its own confirmations and the replies to its publishes."""
-    return {"publish": {"allow": [bed_subject(ward.name, bed, kind) for kind in BED_KINDS]},
+    """Publish its own subjects; read its own confirmations (sent, or kept in the engine) and the replies to its
+    publishes."""
+    return {"publish": {"allow": [*(bed_subject(ward.name, bed, kind) for kind in BED_KINDS),
+                                  f"$JS.API.DIRECT.GET.{confirms_stream_name(ward.name)}."
+                                  f"{bed_subject(ward.name, bed, CONFIRMED)}.*"]},
             "subscribe": {"allow": [bed_subject(ward.name, bed, CONFIRM), f"{inbox_prefix(bed)}.>"]}}
 
 
 def station_permissions(ward: Ward, station: str) -> dict:
     """Read the ward, confirm to its beds, and consume (never change) the ward's stream."""
     stream = stream_name(ward.name)
-    return {"publish": {"allow": [bed_subject(ward.name, "*", CONFIRM),
+    return {"publish": {"allow": [bed_subject(ward.name, "*", CONFIRM), f"{bed_subject(ward.name, '*', CONFIRMED)}.*",
                                   f"$JS.API.STREAM.INFO.{stream}",
                                   f"$JS.API.CONSUMER.CREATE.{stream}.>",
                                   f"$JS.API.CONSUMER.DURABLE.CREATE.{stream}.>",

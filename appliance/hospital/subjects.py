@@ -1,7 +1,9 @@
 """Where a hospital's messages go: one subject per bed and kind, one replicated alarm stream per ward.
 
 ``hospital.<ward>.<bed>.<kind>``: a bed publishes its ``alarm``, ``turn`` and ``episode`` events (kept in the
-ward's stream), its ``status`` and ``summary``, and reads its ``confirm``. Over MQTT the same subject is the
+ward's stream), its ``status`` and ``summary``, and reads its ``confirm``. A station stores each confirmation
+first as ``hospital.<ward>.<bed>.confirmed.<seq>`` in the ward's confirmation stream, and only once that is
+acknowledged sends it to the bed on ``confirm``. Over MQTT the same subject is the
 topic ``hospital/<ward>/<bed>/<kind>``. Every event carries the header ``Nats-Msg-Id: <bed>:<seq>`` (the bed's
 own sequence number), so the stream keeps one copy of a resend inside its duplicate window and a station
 applies each number once after it.
@@ -14,6 +16,8 @@ applies each number once after it.
 'w3-bed01:17'
 >>> parse_message_id("w3-bed01:17")
 ('w3-bed01', 17)
+>>> confirmation_subject("ward3", "w3-bed01", 17)
+'hospital.ward3.w3-bed01.confirmed.17'
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ SUMMARY = "summary"
 BED_KINDS = (*EVENT_TYPES, "status", SUMMARY)
 """What a bed publishes; the events (EVENT_TYPES) are the ones the ward's stream keeps."""
 CONFIRM = "confirm"
+CONFIRMED = "confirmed"
 MSG_ID = "Nats-Msg-Id"
 """JetStream's de-duplication header: a second publish with an id the stream has seen inside its window is
 acknowledged as a duplicate and not stored again."""
@@ -41,6 +46,16 @@ def stream_name(ward: str) -> str:
 def stream_subjects(ward: str) -> list[str]:
     """The subjects the ward's stream keeps: every bed's events, not its status or summary."""
     return [bed_subject(ward, "*", kind) for kind in EVENT_TYPES]
+
+
+def confirms_stream_name(ward: str) -> str:
+    return f"CONFIRMS_{ward}"
+
+
+def confirmation_subject(ward: str, bed: str, seq: int) -> str:
+    """Where the confirmation of ``bed``'s event ``seq`` is kept: one subject per event, so a bed can look its
+    own up by number."""
+    return f"{bed_subject(ward, bed, CONFIRMED)}.{seq}"
 
 
 def inbox_prefix(user: str) -> str:

@@ -140,19 +140,10 @@ def _notifiers(config: MonitorConfig, data_dir: Path, closers: list) -> list:
     from appliance.alerts.wardlink import WardLink
     from appliance.charting.link import ChartingLink
     from appliance.service.charting_target import charting_link
-    from appliance.store.outbox import Outbox
 
     notifiers: list[WardLink | WebhookNotifier | ChartingLink] = []
-    if config.mqtt is not None:
-        m, c = config.mqtt, config.confirmation
-        outbox = Outbox(data_dir / OUTBOX_FILE)
-        try:
-            link = WardLink(m.host, m.port, config.bed_id, outbox, client_id=f"appliance-{config.bed_id}",
-                            topic_prefix=m.topic_prefix, keepalive_s=m.keepalive_s, username=m.username,
-                            password=m.password(), ca_file=m.ca_file, confirm=c.confirm, confirm_timeout_s=c.timeout_s)
-        except BaseException:
-            outbox.close()
-            raise
+    if config.mqtt is not None or config.engine is not None:
+        link = _ward_link(config, data_dir)
         notifiers.append(link)
         closers.append(link.close)                  # closes the outbox too
     if config.webhook is not None:
@@ -164,6 +155,30 @@ def _notifiers(config: MonitorConfig, data_dir: Path, closers: list) -> list:
         notifiers.append(charting)
         closers.append(charting.close)              # closes the queue too
     return notifiers
+
+
+def _ward_link(config: MonitorConfig, data_dir: Path):
+    """The ward link with its outbox, over the ward's broker or the hospital engine, as the configuration says."""
+    from appliance.alerts.ward_mqtt import mqtt_ward_link
+    from appliance.hospital.bedlink import engine_ward_link
+    from appliance.store.outbox import Outbox
+
+    c = config.confirmation
+    outbox = Outbox(data_dir / OUTBOX_FILE)
+    try:
+        if config.engine is not None:
+            e = config.engine
+            return engine_ward_link(e.servers, e.ward, config.bed_id, e.password(), outbox, confirm=c.confirm,
+                                    confirm_timeout_s=c.timeout_s)
+        m = config.mqtt
+        assert m is not None
+        return mqtt_ward_link(m.host, m.port, config.bed_id, outbox, client_id=f"appliance-{config.bed_id}",
+                              topic_prefix=m.topic_prefix, keepalive_s=m.keepalive_s, username=m.username,
+                              password=m.password(), ca_file=m.ca_file, confirm=c.confirm,
+                              confirm_timeout_s=c.timeout_s)
+    except BaseException:
+        outbox.close()
+        raise
 
 
 def _gpio(config: MonitorConfig, source):

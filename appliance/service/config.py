@@ -50,6 +50,12 @@ runs, not after it silently ignored it::
     confirm = true                # each alarm change resent until a ward station confirms it end to end
     confirm_timeout_s = 10        # unconfirmed (or the link down) this long: a technical alarm at the bed
 
+    [notify.engine]               # instead of [notify.mqtt]: the hospital engine (appliance.hospital)
+    servers = ["nats://10.20.0.11:4222", "nats://10.20.0.12:4222", "nats://10.20.0.13:4222"]
+    ward = "ward3"                # the bed's ward in the hospital description; the bed logs in as its bed_id
+    password_file = "/etc/appliance/engine-password"   # secrets/<bed_id>.password of appliance hospital config
+    confirm = true                # and confirm_timeout_s: as for [notify.mqtt]
+
     [notify.webhook]
     url = "https://station.ward/alarms"
 

@@ -71,6 +71,24 @@ class MqttSettings:
 
 
 @dataclass(frozen=True)
+class EngineSettings:
+    """The hospital engine (``appliance.hospital``): its nodes' client addresses, the bed's ward, and the file
+    holding the bed's password (its user name is its ``bed_id``), as ``appliance hospital config`` wrote them."""
+
+    servers: tuple[str, ...]
+    ward: str
+    password_file: Path
+
+    def password(self) -> str:
+        """The password file's first line; a missing or unreadable file is a ConfigError naming it."""
+        try:
+            return self.password_file.read_text(encoding="utf-8").splitlines()[0]
+        except (OSError, IndexError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"the hospital engine's password_file {self.password_file}: cannot read a password "
+                              f"({exc or 'the file is empty'})") from None
+
+
+@dataclass(frozen=True)
 class ConfirmSettings:
     """End-to-end confirmation of the ward link: ``confirm`` off counts the broker's acknowledgement as delivery
     (a broker with no ward station behind it); either way a technical alarm comes after ``timeout_s``."""
@@ -141,6 +159,7 @@ class MonitorConfig:
     alerts: AlertSettings = AlertSettings()
     store: StoreSettings = StoreSettings()
     mqtt: MqttSettings | None = None
+    engine: EngineSettings | None = None
     confirmation: ConfirmSettings = ConfirmSettings()
     webhook: WebhookSettings | None = None
     gpio: GpioSettings | None = None
@@ -176,7 +195,7 @@ def read_sections(data: dict, base: Path | None = None) -> MonitorConfig:
     if virtual and source != "virtual":
         raise ConfigError(f"[virtual] is only for source = \"virtual\", but [monitor] source = {source!r}")
     notify = _section(data, "notify")
-    _only(notify, {"mqtt", "webhook", "gpio", "nurse_call"}, "[notify]")
+    _only(notify, {"mqtt", "engine", "webhook", "gpio", "nurse_call"}, "[notify]")
     gpio = _gpio(_section(notify, "gpio", "notify.gpio")) if "gpio" in notify else None
     if gpio is not None and source == "virtual":
         raise ConfigError("[notify.gpio] needs a board: the virtual bed has no buzzer or LED lines")
@@ -184,10 +203,14 @@ def read_sections(data: dict, base: Path | None = None) -> MonitorConfig:
     if nurse_call is not None and source == "virtual":
         raise ConfigError("[notify.nurse_call] needs a board: the virtual bed has no relay lines")
     mqtt = dict(_section(notify, "mqtt", "notify.mqtt"))
-    confirming = {key: mqtt.pop(key) for key in ("confirm", "confirm_timeout_s") if key in mqtt}
-    if confirming and not mqtt:
-        raise ConfigError("[notify.mqtt] is missing 'host'")
-    confirmation = _confirmation(confirming)
+    engine = dict(_section(notify, "engine", "notify.engine"))
+    if mqtt and engine:
+        raise ConfigError("[notify.mqtt] and [notify.engine] are both given: a bed reaches its ward through one")
+    link, where, needed = (engine, "[notify.engine]", "servers") if engine else (mqtt, "[notify.mqtt]", "host")
+    confirming = {key: link.pop(key) for key in ("confirm", "confirm_timeout_s") if key in link}
+    if confirming and not link:
+        raise ConfigError(f"{where} is missing {needed!r}")
+    confirmation = _confirmation(confirming, where)
     board = _section(data, "board")
     return MonitorConfig(
         layout=_text(monitor, "layout", "grid-16x32", "[monitor]"),
@@ -205,6 +228,7 @@ def read_sections(data: dict, base: Path | None = None) -> MonitorConfig:
         alerts=_alerts(_section(data, "alerts")),
         store=_store(_section(data, "store")),
         mqtt=mqtt_settings(mqtt, base),
+        engine=engine_settings(engine, base),
         confirmation=confirmation,
         webhook=_webhook(_section(notify, "webhook", "notify.webhook")),
         gpio=gpio,
@@ -281,8 +305,31 @@ def mqtt_settings(table: dict, base: Path | None, where: str = "[notify.mqtt]") 
                         _text(table, "username", None, where) if "username" in table else None, **files)
 
 
-def _confirmation(table: dict) -> ConfirmSettings:
-    where = "[notify.mqtt]"
+def engine_settings(table: dict, base: Path | None, where: str = "[notify.engine]") -> EngineSettings | None:
+    """The engine table ``where`` (a bed's ``[notify.engine]``, the ward station's ``[engine]``); None if empty."""
+    if not table:
+        return None
+    _only(table, {"servers", "ward", "password_file"}, where)
+    servers = table.get("servers")
+    if not isinstance(servers, list) or not servers or not all(isinstance(s, str) and s.strip() for s in servers):
+        raise ConfigError(f"{where}: servers must be a non-empty list of the nodes' addresses, got {servers!r}")
+    for server in servers:
+        address = server.removeprefix("nats://")
+        if address == server or not address or any(c.isspace() or c in "@/" for c in address):
+            raise ConfigError(f"{where}: server {server!r} must be nats://HOST:PORT, without a login")
+    ward = _text(table, "ward", None, where)
+    if any(c in ward for c in ".*> ") or len(ward) > 64:
+        raise ConfigError(f"{where}: ward must be the ward's name in the hospital description, without '.', '*', "
+                          f"'>' or spaces, got {ward!r}")
+    password_file = _path(table, "password_file", base, where)
+    if password_file is None:
+        raise ConfigError(f"{where} is missing 'password_file' (from appliance hospital config)")
+    if not password_file.is_file():
+        raise ConfigError(f"{where} password_file: no file {password_file}")
+    return EngineSettings(tuple(servers), ward, password_file)
+
+
+def _confirmation(table: dict, where: str) -> ConfirmSettings:
     confirm = table.get("confirm", True)
     if not isinstance(confirm, bool):
         raise ConfigError(f"{where}: confirm must be true or false, got {confirm!r}")

@@ -11,8 +11,14 @@
     password_file = "/etc/appliance/ward-password"
     ca_file = "/etc/appliance/ward-ca.crt"
 
+    [engine]                      # instead of [broker]: the hospital engine (appliance.hospital)
+    servers = ["nats://10.20.0.11:4222", "nats://10.20.0.12:4222", "nats://10.20.0.13:4222"]
+    ward = "ward3"                # the ward in the hospital description
+    password_file = "/etc/appliance/engine-password"   # secrets/<client_id>.password of appliance hospital config
+
     [station]
-    client_id = "ward3-station"   # names the broker session that holds alarms while the station is away
+    client_id = "ward3-station"   # names the broker session that holds alarms while the station is away; on
+                                  # the engine, the station's name in the hospital description and its consumer
     summary_interval_s = 1.0      # the beds' summary interval: a bed silent for 3 of them (+2 s) is offline
     screen_url = "https://{bed_id}.ward3.example/"   # each bed's own screen; omit for no link
     command_expiry_s = 120.0      # a nurse's command a bed has not answered by then is given up, and refused
@@ -27,17 +33,19 @@ from urllib.parse import quote
 
 from appliance.core.toml_files import read_toml_as
 from appliance.errors import ConfigError
-from appliance.service.config_sections import MqttSettings, _number, _only, _section, _text, mqtt_settings
+from appliance.service.config_sections import (EngineSettings, MqttSettings, _number, _only, _section, _text,
+                                               engine_settings, mqtt_settings)
 from appliance.ward.commands import DEFAULT_EXPIRY_S
 
 
 @dataclass(frozen=True)
 class WardConfig:
-    broker: MqttSettings
+    broker: MqttSettings | None
     client_id: str = field(default_factory=lambda: f"ward-station-{socket.gethostname()}")
     summary_interval_s: float = 1.0
     screen_url: str | None = None
     command_expiry_s: float = DEFAULT_EXPIRY_S
+    engine: EngineSettings | None = None
 
     def screen_of(self, bed_id: str) -> str | None:
         """The bed's own screen, from the ``screen_url`` pattern (None without one)."""
@@ -50,10 +58,14 @@ def load_ward_config(path) -> WardConfig:
 
 
 def ward_config_from_mapping(data: dict, base: Path | None = None) -> WardConfig:
-    _only(data, {"broker", "station"}, "the ward station configuration")
+    _only(data, {"broker", "engine", "station"}, "the ward station configuration")
     broker = mqtt_settings(_section(data, "broker"), base, "[broker]")
-    if broker is None:
-        raise ConfigError("[broker] is missing: the station needs the ward's broker 'host'")
+    engine = engine_settings(_section(data, "engine"), base, "[engine]")
+    if broker is None and engine is None:
+        raise ConfigError("[broker] is missing: the station needs the ward's broker 'host' (or [engine], the "
+                          "hospital engine)")
+    if broker is not None and engine is not None:
+        raise ConfigError("[broker] and [engine] are both given: a station reads its ward from one")
     station = _section(data, "station")
     where = "[station]"
     _only(station, {"client_id", "summary_interval_s", "screen_url", "command_expiry_s"}, where)
@@ -66,7 +78,7 @@ def ward_config_from_mapping(data: dict, base: Path | None = None) -> WardConfig
         _check_screen_url(screen_url, where)
     return WardConfig(broker, client_id, _number(station, "summary_interval_s", 1.0, where, low=0.1, high=60.0),
                       screen_url, _number(station, "command_expiry_s", DEFAULT_EXPIRY_S, where, low=5.0,
-                                          high=3600.0))
+                                          high=3600.0), engine)
 
 
 def _check_screen_url(pattern: str, where: str) -> None:

@@ -1,0 +1,258 @@
+"""What a ward station knows of its beds, whatever carries their messages: one state per bed, kept from each
+bed's status, summary and events, for the station's screen.
+
+A summary carries the bed's whole set of open alarms and the highest ``seq``
+the bed had given when it was made; the alarms reflect every event up to it.
+Events with a higher ``seq`` are applied on top of it, so a new alarm shows as
+soon as its event arrives instead of at the next summary; a lower one is kept
+for the event list but not applied over the summary. Order is judged by ``seq``,
+never by the bed's ``time_s``, which a clock step can send back: each alarm
+remembers the ``seq`` of the last event applied to it, and an older event for it
+changes nothing.
+
+A bed is offline when its status says so or when nothing came from it for
+``stale_after_s``: a monitor whose loop has hung can still hold its connection.
+Payloads that are not what the bed promises are counted and logged, never
+raised: one broken bed must not blind the station to the rest of the ward.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+from appliance.alerts.alarms import AWAITING_ACK, PRIORITIES
+from appliance.alerts.events import EVENT_TYPES, Event
+
+log = logging.getLogger(__name__)
+
+STALE_MARGIN_S = 1.0
+"""Beyond three missed summaries, the time a late one may still be on its way. With 1 s summaries a hung bed
+shows offline 4 s after its last one, so within the least keep-alive a bed may set (5 s) even when it hung
+just after a summary and the screen looks a poll later."""
+
+EVENTS_KEPT = 50
+"""Latest events kept per bed (for the screen, the latency record, and to replay over a summary)."""
+
+SEEN_KEPT = 1000
+"""Event seqs remembered per bed to drop repeats: far more than a retry or a restart can repeat."""
+
+ALARM_FIELDS = ("alarm_id", "key", "priority", "state", "message", "acknowledged_by")
+
+
+@dataclass
+class BedState:
+    """What the station knows of one bed; times are the station's wall clock (``time.time()``), for display,
+    but whether a bed is still heard from is judged on the monotonic clock, which a clock set back cannot
+    stop."""
+
+    bed_id: str
+    status: str | None = None                 # "online" or "offline", as the bed (or its last will) said
+    last_heard_at: float | None = None        # any message at all
+    last_heard_steady: float | None = None    # the same moment on time.monotonic()
+    summary: dict | None = None
+    summary_at: float | None = None
+    open_alarms: dict[int, dict] = field(default_factory=dict)
+    alarm_seqs: dict[int, int] = field(default_factory=dict)  # alarm_id -> seq of the last event applied to it
+    events: deque = field(default_factory=lambda: deque(maxlen=EVENTS_KEPT))  # each with its "received_at"
+    seen: dict[int, None] = field(default_factory=dict)                       # an ordered set of event seqs
+    duplicates: int = 0
+
+    def online(self, steady_now: float, stale_after_s: float) -> bool:
+        """Not offline, and heard from within ``stale_after_s`` (``steady_now`` is ``time.monotonic()``)."""
+        return (self.status != "offline" and self.last_heard_steady is not None
+                and steady_now - self.last_heard_steady <= stale_after_s)
+
+    def highest_priority(self) -> str | None:
+        ranks = [PRIORITIES.index(a["priority"]) for a in self.open_alarms.values() if a["priority"] in PRIORITIES]
+        return PRIORITIES[max(ranks)] if ranks else None
+
+    def take_summary(self, summary: dict, now: float) -> None:
+        """The summary's alarms become the open set, with the events newer than it applied again on top, in
+        ``seq`` order."""
+        self.summary, self.summary_at = summary, now
+        self.open_alarms = {a["alarm_id"]: {k: a.get(k) for k in ALARM_FIELDS} for a in summary["alarms"]}
+        self.alarm_seqs = {}
+        for event in sorted((e for e in self.events if e["seq"] > summary["seq"]), key=lambda e: e["seq"]):
+            self.apply(event)
+
+    def take_event(self, event: dict) -> bool:
+        """Record ``event`` (with its ``received_at``); False for a repeat of its ``seq``, which changes nothing."""
+        if event["seq"] in self.seen:
+            self.duplicates += 1
+            return False
+        self.seen[event["seq"]] = None
+        if len(self.seen) > SEEN_KEPT:
+            del self.seen[next(iter(self.seen))]
+        self.events.append(event)
+        if self.summary is None or event["seq"] > self.summary["seq"]:
+            self.apply(event)
+        return True
+
+    def apply(self, event: dict) -> None:
+        """Change the open alarms as an alarm event says, unless its alarm already shows a later event; events of
+        no one alarm change nothing."""
+        if event["type"] != "alarm" or event["alarm_id"] is None:
+            return
+        if self.alarm_seqs.get(event["alarm_id"], 0) > event["seq"]:
+            return
+        self.alarm_seqs[event["alarm_id"]] = event["seq"]
+        if event["kind"] == "ended":
+            self.open_alarms.pop(event["alarm_id"], None)
+            return
+        alarm = self.open_alarms.setdefault(event["alarm_id"], {"alarm_id": event["alarm_id"], "key": event["key"],
+                                                                 "state": "active", "acknowledged_by": None})
+        alarm["priority"], alarm["message"] = event["priority"], event["message"]
+        if event["kind"] in ("raised", "reactivated"):
+            alarm["state"] = "active"
+        elif event["kind"] == AWAITING_ACK:
+            alarm["state"] = AWAITING_ACK
+        elif event["kind"] == "acknowledged":
+            alarm["acknowledged_by"] = event["user"]
+
+
+class WardBoard:
+    """Every bed's state as its messages come, from any thread. ``stale_after_s`` defaults to three summary
+    intervals plus ``STALE_MARGIN_S``. Counters: ``messages``, ``bad_payloads``; ``version`` grows with every
+    message taken, so a screen can tell that something changed without comparing the beds."""
+
+    def __init__(self, summary_interval_s: float = 1.0, stale_after_s: float | None = None):
+        self.stale_after_s = 3 * summary_interval_s + STALE_MARGIN_S if stale_after_s is None else stale_after_s
+        self.messages = self.bad_payloads = self.version = 0
+        self._beds: dict[str, BedState] = {}
+        self._lock = threading.Lock()
+
+    def take(self, bed_id: str, kind: str, payload: bytes, now: float | None = None) -> dict | str | None:
+        """Take bed ``bed_id``'s message of ``kind`` (``status``, ``summary`` or an event type): the status, the
+        checked summary or event, or None when it is bad (counted and logged, never raised)."""
+        now = time.time() if now is None else now
+        try:
+            if kind == "status":
+                body: dict | str = payload.decode()
+                if body not in ("online", "offline"):
+                    raise ValueError(f"status must be 'online' or 'offline', got {body[:40]!r}")
+            elif kind == "summary":
+                body = _summary(json.loads(payload), bed_id)
+            elif kind in EVENT_TYPES:
+                body = _event(json.loads(payload), bed_id, kind)
+            else:
+                raise ValueError(f"no message of kind {kind!r} is expected from a bed")
+        except (ValueError, TypeError, UnicodeDecodeError) as exc:  # json's errors are ValueErrors
+            self.refused(f"{bed_id}'s {kind}", exc)
+            return None
+        with self._lock:
+            self.messages += 1
+            self.version += 1
+            bed = self._beds.setdefault(bed_id, BedState(bed_id))
+            bed.last_heard_at, bed.last_heard_steady = now, time.monotonic()
+            if isinstance(body, str):
+                bed.status = body
+            elif kind == "summary":
+                bed.take_summary(body, now)
+            else:
+                bed.take_event({**body, "received_at": now})
+        return body
+
+    def restore(self, bed_id: str, event: dict) -> None:
+        """Show ``event`` again as the station had it before a restart, the bed not yet heard from."""
+        with self._lock:
+            self._beds.setdefault(bed_id, BedState(bed_id)).take_event(event)
+            self.version += 1
+
+    def refused(self, what: str, problem: Exception) -> None:
+        """Count and log a message that is not what a bed promises."""
+        with self._lock:
+            self.bad_payloads += 1
+        log.warning("ward: bad payload (%s) ignored: %s", what, problem)
+
+    def changed(self) -> None:
+        with self._lock:
+            self.version += 1
+
+    def beds(self, *, events: bool = True) -> list[dict]:
+        """Every bed as a plain dict: high, then medium, then low alarms first, then the offline beds, then the
+        rest, each group by bed id. ``events=False`` leaves out each bed's latest events, the costly part to
+        copy, for a screen that polls."""
+        with self._lock:
+            beds = [self._view(bed, time.monotonic(), events) for bed in self._beds.values()]
+        return sorted(beds, key=lambda b: (_rank(b), b["bed_id"]))
+
+    def online_flags(self) -> tuple[bool, ...]:
+        """Each bed's ``online``, in no particular order but stable: cheap enough to poll."""
+        with self._lock:
+            return tuple(bed.online(time.monotonic(), self.stale_after_s) for bed in self._beds.values())
+
+    def _view(self, bed: BedState, steady_now: float, events: bool) -> dict:
+        alarms = sorted(bed.open_alarms.values(),
+                        key=lambda a: (-PRIORITIES.index(a["priority"]) if a["priority"] in PRIORITIES else 1,
+                                       a["alarm_id"]))
+        return {"bed_id": bed.bed_id, "online": bed.online(steady_now, self.stale_after_s), "status": bed.status,
+                "last_heard_at": bed.last_heard_at, "summary": copy.deepcopy(bed.summary),
+                "summary_at": bed.summary_at, "alarms": copy.deepcopy(alarms),
+                "highest_priority": bed.highest_priority(),
+                "events": copy.deepcopy(list(bed.events)) if events else None,
+                "duplicates": bed.duplicates}
+
+
+def _rank(bed: dict) -> int:
+    """Sort rank: high 0, medium 1, low 2, offline 3, the rest 4."""
+    if bed["highest_priority"] is not None:
+        return len(PRIORITIES) - 1 - PRIORITIES.index(bed["highest_priority"])
+    return len(PRIORITIES) if not bed["online"] else len(PRIORITIES) + 1
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _check_seq(seq, least: int, what: str) -> None:
+    if not isinstance(seq, int) or isinstance(seq, bool) or seq < least:
+        raise ValueError(f"{what} seq must be an integer of {least} or more, got {seq!r}")
+
+
+def _summary(body, bed_id: str) -> dict:
+    """``body`` if it is a summary of ``bed_id`` as the notifier writes it; else ValueError saying what is wrong."""
+    if not isinstance(body, dict):
+        raise TypeError(f"a summary must be a JSON object, got {type(body).__name__}")
+    if body.get("bed_id") != bed_id:
+        raise ValueError(f"summary of bed {body.get('bed_id')!r} on bed {bed_id!r}'s topic")
+    _check_seq(body.get("seq"), 0, "summary")
+    if not _number(body.get("time_s")):
+        raise ValueError(f"summary time_s must be a number, got {body.get('time_s')!r}")
+    if body.get("peak_mmhg") is not None and not _number(body["peak_mmhg"]):
+        raise ValueError(f"summary peak_mmhg must be a number or null, got {body['peak_mmhg']!r}")
+    if not isinstance(body.get("regions"), list) or not all(isinstance(r, dict) for r in body["regions"]):
+        raise ValueError("summary regions must be a list of objects")
+    if not isinstance(body.get("alarms"), list):
+        raise TypeError("summary alarms must be a list")
+    for alarm in body["alarms"]:
+        if not isinstance(alarm, dict) or not isinstance(alarm.get("alarm_id"), int) \
+                or alarm.get("priority") not in PRIORITIES:
+            raise ValueError(f"summary alarm {alarm!r} needs an integer alarm_id and a priority in {PRIORITIES}")
+    return body
+
+
+def _event(body, bed_id: str, kind: str) -> dict:
+    """``body`` if it is an Event of type ``kind`` of ``bed_id`` as the notifier writes it, with its ``bed_id`` and
+    ``seq``; else ValueError saying what is wrong."""
+    if not isinstance(body, dict):
+        raise TypeError(f"an event must be a JSON object, got {type(body).__name__}")
+    if body.get("bed_id") != bed_id:
+        raise ValueError(f"event of bed {body.get('bed_id')!r} on bed {bed_id!r}'s topic")
+    _check_seq(body.get("seq"), 1, "event")
+    Event(**{k: v for k, v in body.items() if k not in ("bed_id", "seq")})  # TypeError on missing or unknown fields
+    if body["type"] != kind:
+        raise ValueError(f"{body['type']!r} event on the {kind} topic")
+    if not _number(body["time_s"]) or not isinstance(body["kind"], str):
+        raise ValueError(f"event time_s must be a number and kind a string, got {body['time_s']!r}, "
+                         f"{body['kind']!r}")
+    if body["alarm_id"] is not None and (not isinstance(body["alarm_id"], int) or isinstance(body["alarm_id"], bool)):
+        raise ValueError(f"event alarm_id must be an integer or null, got {body['alarm_id']!r}")
+    if kind == "alarm" and body["alarm_id"] is not None and body["priority"] not in PRIORITIES:
+        raise ValueError(f"alarm event priority must be one of {PRIORITIES}, got {body['priority']!r}")
+    return body

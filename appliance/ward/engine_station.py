@@ -1,0 +1,169 @@
+"""The ward station on the hospital engine: its ward's events from the ward's replicated stream, each applied
+once, journalled, and confirmed to its bed only once the confirmation is itself on a quorum.
+
+For each event the station reads through its durable consumer (``appliance.hospital.engine.WardReader``), in
+this order: the event is written to the station's journal (:class:`~appliance.ward.applied.AppliedJournal`, on
+disk), shown (:class:`~appliance.ward.board.WardBoard`), its confirmation stored in the ward's confirmation
+stream and acknowledged there by a quorum, then sent to the bed on its ``confirm`` subject, and only then is the
+event acknowledged to the stream. A station that dies anywhere in between is given the event again when it is
+back; its journal says it was applied, so it is confirmed again and not shown twice. A repeat (a resend of a bed
+that missed its confirmation) is confirmed again too.
+
+Status and summaries come as plain messages (each replaces the last; nothing is lost that matters when one is
+missed). Commands to beds are not carried by the engine yet: ``commands`` is None.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import sqlite3
+import threading
+import time
+from collections.abc import Sequence
+
+import nats.errors
+from nats.aio.client import Client
+
+from appliance.hospital.engine import RETRYABLE, Delivery, WardReader, cancel_the_rest, connect
+from appliance.hospital.subjects import CONFIRM, bed_subject, confirmation_subject, confirms_stream_name
+from appliance.ward.applied import AppliedJournal
+from appliance.ward.board import EVENTS_KEPT, WardBoard
+from appliance.ward.config import WardConfig
+
+log = logging.getLogger(__name__)
+
+CONFIRM_TIMEOUT_S = 2.0
+"""How long the station waits for the confirmation stream's acknowledgement before it leaves the event to be
+given again."""
+RETRY_S = 0.5
+CONNECT_RETRY_S = 2.0
+
+
+class EngineStation:
+    """Station ``station`` of ward ``ward`` on the engine's nodes at ``urls``, logged in with ``password``; what it
+    applied is kept in ``journal`` (which the caller closes). Counters: ``confirmations_sent``; ``board`` holds
+    the beds."""
+
+    commands = None
+
+    def __init__(self, urls: Sequence[str], ward: str, station: str, password: str, journal: AppliedJournal, *,
+                 summary_interval_s: float = 1.0, stale_after_s: float | None = None):
+        self.urls, self.ward, self.station, self._password, self.journal = list(urls), ward, station, password, \
+            journal
+        self.board = WardBoard(summary_interval_s, stale_after_s)
+        self.stale_after_s = self.board.stale_after_s
+        self.confirmations_sent = 0
+        for delivery in journal.latest(EVENTS_KEPT):         # what it showed before a restart
+            self.board.restore(delivery.bed, delivery.event)
+        self._ready = threading.Event()
+        self._stopping = False
+        self._connection: Client | None = None
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, name="ward-station-engine", daemon=True)
+        self._thread.start()
+        asyncio.run_coroutine_threadsafe(self._run(), self._loop)
+
+    @classmethod
+    def from_config(cls, config: WardConfig, journal: AppliedJournal) -> EngineStation:
+        engine = config.engine
+        if engine is None:
+            raise ValueError("the configuration names a broker, not the hospital engine: use WardStation")
+        return cls(engine.servers, engine.ward, config.client_id, engine.password(), journal,
+                   summary_interval_s=config.summary_interval_s)
+
+    @property
+    def connected(self) -> bool:
+        """Connected to the engine and reading the ward's stream."""
+        return self._ready.is_set()
+
+    @property
+    def version(self) -> int:
+        return self.board.version
+
+    def wait_subscribed(self, timeout_s: float = 10.0) -> bool:
+        """True once the station reads its ward, False if that took more than ``timeout_s``."""
+        return self._ready.wait(timeout_s)
+
+    def beds(self, *, events: bool = True) -> list[dict]:
+        """Every bed, alarming ones first (:meth:`WardBoard.beds`)."""
+        return self.board.beds(events=events)
+
+    def online_flags(self) -> tuple[bool, ...]:
+        return self.board.online_flags()
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop reading and disconnect; what was not acknowledged is given again at the next start."""
+        async def finish() -> None:
+            self._stopping = True                   # nats-py can turn a cancellation into a timeout
+            if self._connection is not None:
+                await self._connection.close()
+            await cancel_the_rest()
+
+        try:
+            asyncio.run_coroutine_threadsafe(finish(), self._loop).result(timeout_s)
+        except (TimeoutError, nats.errors.Error) as exc:
+            log.warning("ward: the engine connection did not close cleanly: %r", exc)
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join(timeout_s)
+        if not self._thread.is_alive():
+            self._loop.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # The engine's thread.
+
+    async def _run(self) -> None:
+        while not self._stopping:
+            try:
+                self._connection = connection = await connect(self.urls, self.station, self._password,
+                                                              on_disconnected=self._down, on_reconnected=self._up)
+                break
+            except (nats.errors.Error, OSError) as exc:      # a refused login: ward IT may be adding the station
+                log.error("ward: the hospital engine refused station %s: %r", self.station, exc)
+                await asyncio.sleep(CONNECT_RETRY_S)
+        else:
+            return
+        for kind in ("status", "summary"):
+            await connection.subscribe(bed_subject(self.ward, "*", kind), cb=self._on_bed_message)
+        reader = WardReader(connection, self.ward, self.station, ledger=self.journal)
+        while not self._stopping:
+            try:
+                if reader.subscription is None:
+                    await reader.open()
+                    self._ready.set()
+                await reader.read(handle=self._handle)
+            except RETRYABLE as exc:
+                log.warning("ward: the ward's stream is not readable now: %r", exc)
+                await asyncio.sleep(RETRY_S)
+            except sqlite3.Error as exc:        # what was not journalled is not acknowledged: given again
+                log.error("ward: the journal of applied events refuses writes: %s", exc)
+                await asyncio.sleep(CONNECT_RETRY_S)
+
+    async def _down(self) -> None:
+        self._ready.clear()
+
+    async def _up(self) -> None:
+        self._ready.set()
+
+    async def _on_bed_message(self, message) -> None:
+        _, _, bed, kind = message.subject.split(".", 3)
+        self.board.take(bed, kind, message.data)
+
+    async def _handle(self, delivery: Delivery, fresh: bool) -> None:
+        """Show a new event, then confirm it (a repeat too) durably, then to the bed; raises when the engine
+        cannot keep the confirmation, so the event is given again."""
+        if fresh and self.board.take(delivery.bed, delivery.kind, json.dumps(delivery.event).encode()) is None:
+            return                                  # refused as bad: never confirmed
+        assert self._connection is not None
+        payload = json.dumps({"seq": delivery.seq, "station": self.station, "confirmed_at": time.time()}).encode()
+        await self._connection.jetstream().publish(confirmation_subject(self.ward, delivery.bed, delivery.seq),
+                                                   payload, timeout=CONFIRM_TIMEOUT_S,
+                                                   stream=confirms_stream_name(self.ward))
+        await self._connection.publish(bed_subject(self.ward, delivery.bed, CONFIRM), payload)
+        self.confirmations_sent += 1
