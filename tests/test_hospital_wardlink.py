@@ -33,7 +33,8 @@ pytestmark = pytest.mark.filterwarnings(
     "ignore:Exception ignored in. <function StreamWriter.__del__:pytest.PytestUnraisableExceptionWarning")
 
 TIMEOUT_S = 2.0                         # the bed's confirm_timeout_s
-RAISED_WITHIN_S = 2 * TIMEOUT_S         # generous: the link raises it once an event waits TIMEOUT_S
+RAISED_WITHIN_S = TIMEOUT_S + 6.0       # the link raises it once an event waits TIMEOUT_S; the rest is a busy
+                                        # machine's scheduling of the test and the link, never the link's rule
 CLEARED_WITHIN_S = 60.0                 # the bed's resends back off to 60 s at most
 ROUNDS = 5
 TECHNICAL = ("technical:ward-link", "technical:ward-confirm")
