@@ -3,9 +3,10 @@
 
 ``config`` writes each node's nats-server configuration and everyone's passwords from the hospital
 description; ``streams`` creates or updates every ward's replicated alarm and confirmation streams on a running
-cluster; ``start-local`` runs a whole cluster on loopback for trials, until Ctrl-C, and writes its description beside
-it for the other two; ``history`` runs the history writer into PostgreSQL until stopped; ``install`` writes what
-a hospital server runs, for ``systemd/install-hospital-server.sh``.
+cluster; ``start-local`` runs a whole cluster on loopback for trials, until Ctrl-C, and writes its description
+beside it for the other two; ``history`` runs the history writer into PostgreSQL until stopped; ``overview``
+serves the hospital overview from it; ``install`` writes what a hospital server runs, for
+``systemd/install-hospital-server.sh``.
 """
 
 from __future__ import annotations
@@ -53,6 +54,20 @@ def add_parsers(sub) -> None:
     p.add_argument("--dsn", default=None, help="the PostgreSQL connection string (default: the [history] database "
                                                "on the local Unix socket, as the system user running this)")
     p.set_defaults(run=_history)
+
+    p = hospital.add_parser("overview", help="serve the hospital overview (every ward's beds and open alarms, "
+                                             "from the history) until stopped")
+    p.add_argument("--description", type=Path, required=True, help="the hospital description, with [history]")
+    p.add_argument("--dsn", default=None, help="the PostgreSQL connection string (default: the [history] database "
+                                               "on the local Unix socket, as the system user running this)")
+    p.add_argument("--data-dir", type=Path, default=None, metavar="DIR",
+                   help="the overview's accounts and session key (default: the data folder's hospital-overview/)")
+    p.add_argument("--listen", metavar="[HOST:]PORT", default="8095", help="the screen's address (default "
+                                                                           "127.0.0.1:8095)")
+    p.add_argument("--plain-http", action="store_true", help="session cookies without the Secure flag")
+    p.add_argument("--behind-proxy", action="store_true",
+                   help="trust one proxy's X-Forwarded-For and X-Forwarded-Proto (nginx in front)")
+    p.set_defaults(run=_overview)
 
     p = hospital.add_parser("install", help="write a server's node configurations, description and history SQL "
                                             "under a root folder, and print the units to enable")
@@ -161,6 +176,32 @@ async def _write_history(hospital, secrets: Path, db) -> None:
               f"dropped, {writer.heard} summaries heard, {writer.rejected} refused")
     finally:
         await connection.close()
+
+
+def _overview(args) -> int:
+    import psycopg
+
+    from appliance.cli_run import listen_address
+    from appliance.errors import ConfigError
+    from appliance.hospital.description import load_hospital
+    from appliance.service.config_sections import default_data_dir
+    from webui import create_hospital_app
+    from webui.server import serve
+
+    hospital = load_hospital(args.description)
+    if args.dsn is None and hospital.history is None:
+        raise ConfigError(f"{args.description} has no [history] table and no --dsn was given: the overview reads "
+                          f"the history's database")
+    dsn = args.dsn or f"dbname={hospital.history.database if hospital.history else ''}"
+    host, port = listen_address(args.listen, "--listen")
+    data_dir = args.data_dir or default_data_dir() / "hospital-overview"
+    app = create_hospital_app(data_dir, hospital, lambda: psycopg.connect(dsn), secure_cookies=not args.plain_http)
+    signal.signal(signal.SIGTERM, _stop)
+    print(f"hospital overview: {len(hospital.wards)} ward(s) from {dsn!r}; the screen on http://{host}:{port}/ "
+          f"(accounts in {data_dir})", flush=True)
+    with contextlib.suppress(KeyboardInterrupt):
+        serve(app, host, port, threads=4, ident="appliance-hospital", behind_proxy=args.behind_proxy)
+    return 0
 
 
 def _install(args) -> int:

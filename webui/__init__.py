@@ -3,7 +3,8 @@
 ``create_app(data_dir)`` is the app factory (the monitor's data directory: its
 ``live.json`` and ``appliance.db``, and ``webui.db`` with the accounts and audit
 log). ``create_ward_app`` makes the ward station's screen from the same parts:
-its own accounts, and the ward page instead of one bed's. The session key
+its own accounts, and the ward page instead of one bed's; ``create_hospital_app`` the
+hospital overview, from the history in PostgreSQL. The session key
 is made once and kept in ``webui.key`` (mode 0600) so a restart does not log
 everyone out. Cookies are HttpOnly, SameSite=Strict and, unless ``secure_cookies``
 is turned off for plain-HTTP tests, Secure; they name a session kept on the
@@ -32,7 +33,8 @@ SESSION_HOURS = 12          # one shift
 BLUEPRINTS = (auth.bp, accounts.bp, live.bp, alarms.bp, patient.bp, history.bp, report.bp, settings.bp,
               engineering.bp, charting.bp, fhir.bp)
 WARD_BLUEPRINTS = (auth.bp, accounts.bp, ward.bp)
-PAGES = (("ward.page", "Ward", "nurse"), ("live.page", "Live", "nurse"), ("alarms.page", "Alarms", "nurse"),
+PAGES = (("hospital.page", "Hospital", "nurse"), ("ward.page", "Ward", "nurse"), ("live.page", "Live", "nurse"),
+         ("alarms.page", "Alarms", "nurse"),
          ("patient.page", "Patient", "nurse"), ("history.page", "History", "nurse"),
          ("settings.page", "Settings", "nurse"), ("engineering.page", "Engineering", "engineer"),
          ("charting.page", "Charting", "admin"), ("accounts.page", "Accounts", "admin"))
@@ -70,6 +72,19 @@ def create_ward_app(data_dir, station, ward_config, *, secure_cookies: bool = Tr
                      WARD=ward_config, **config)
     app.extensions["ward_station"] = station
     app.add_url_rule("/", "home", lambda: redirect(url_for("ward.page")))
+    return app
+
+
+def create_hospital_app(data_dir, hospital, connect, *, secure_cookies: bool = True, **config) -> Flask:
+    """The hospital overview for ``hospital`` (its description), reading the history through ``connect()`` (a new
+    PostgreSQL connection, used as a context manager); accounts in ``data_dir``. Imported here, not above: the
+    overview needs the ``hospital`` extra's PostgreSQL driver, which a bed's screen does without."""
+    from webui import hospital as overview
+
+    app = create_app(data_dir, secure_cookies=secure_cookies, blueprints=(auth.bp, accounts.bp, overview.bp),
+                     HOME="hospital.page", **config)
+    app.extensions.update(hospital=hospital, history=connect)
+    app.add_url_rule("/", "home", lambda: redirect(url_for("hospital.page")))
     return app
 
 

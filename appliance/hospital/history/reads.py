@@ -54,3 +54,27 @@ def ward_trends(db: psycopg.Connection, ward: str,
                                         "AND minute >= %s ORDER BY bed_id, minute", (ward, since)):
         trends.setdefault(bed, []).append((minute, peak))
     return trends
+
+
+def open_alarms(db: psycopg.Connection, since: dt.datetime) -> list[dict]:
+    """Alarms whose latest event since ``since`` is not their end, across the hospital, highest priority first then
+    oldest first: each with its ward, bed, alarm id, priority (as last given), latest kind (raised, escalated,
+    acknowledged, ...), when it was raised and its words. An alarm raised before ``since`` and still open is not
+    seen: ``since`` is the overview's reach, a day by default, longer than any alarm stays unanswered."""
+    with db.cursor(row_factory=dict_row) as cursor:
+        rows = cursor.execute(
+            "SELECT DISTINCT ON (bed_id, alarm_id) ward, bed_id, alarm_id, kind, stored_at AS changed_at, "
+            "first_value(priority) OVER given AS priority, min(stored_at) OVER (PARTITION BY bed_id, alarm_id) "
+            "AS raised_at, body->>'message' AS message, body->>'site' AS site "
+            "FROM event WHERE type = 'alarm' AND alarm_id IS NOT NULL AND stored_at >= %s "
+            "WINDOW given AS (PARTITION BY bed_id, alarm_id ORDER BY priority IS NULL, stored_at DESC, seq DESC) "
+            "ORDER BY bed_id, alarm_id, stored_at DESC, seq DESC", (since,)).fetchall()
+    rank = {"high": 0, "medium": 1, "low": 2}
+    return sorted((row for row in rows if row["kind"] != "ended"),
+                  key=lambda alarm: (rank.get(alarm["priority"], 3), alarm["raised_at"]))
+
+
+def beds_heard(db: psycopg.Connection, since: dt.datetime) -> dict[str, dt.datetime]:
+    """Each bed's last summary heard since ``since``: a bed missing here has said nothing in that time."""
+    return dict(db.execute("SELECT bed_id, max(last_at) FROM pressure_minute WHERE minute >= %s GROUP BY bed_id",
+                           (since,)).fetchall())
