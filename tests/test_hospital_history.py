@@ -207,13 +207,21 @@ def test_the_writer_turns_summaries_heard_on_the_engine_into_minutes(tmp_path, d
         async with logged_in(cluster, HISTORY) as connection, logged_in(cluster, "bed2") as bed:
             writer = HistoryWriter(db, connection, hospital, flush_every_s=0.1, clock=lambda: clock[0])
             running = asyncio.create_task(writer.run())
-            await asyncio.sleep(1.0)                           # its subscription has reached every node
+            start, clock[0] = clock[0], clock[0] - 3600        # an hour before: probes until the writer hears them
+            while writer.heard == 0:                           # (its subscription has reached the bed's node)
+                await bed.publish(bed_subject("ward1", "bed2", "summary"), json.dumps(
+                    {"bed_id": "bed2", "peak_mmhg": 1.0, "posture": "supine", "regions": []}).encode())
+                await asyncio.sleep(0.2)
+            await bed.flush()                                  # every probe sent is at the server, and the server
+            await connection.flush()                           # has handed the writer's connection what it routed
+            await asyncio.sleep(0.5)                           # to it: the writer's callbacks have had their turn
+            clock[0], probes = start, writer.heard
             for second in range(12):
                 clock[0] += 5                                  # 08:00:10 ... 08:00:55, then 08:01:00 and 08:01:05
                 await bed.publish(bed_subject("ward1", "bed2", "summary"), json.dumps(
                     {"bed_id": "bed2", "peak_mmhg": 20.0 + second, "posture": "supine",
                      "regions": [{"zone": "heel-left", "peak_mmhg": 10.0 + second, "dose": 0.01}]}).encode())
-                await until(lambda second=second: writer.heard == second + 1)
+                await until(lambda second=second: writer.heard == probes + second + 1)
             await until(lambda: db_minutes() == 1)             # the finished minute, written while running
             writer.stop()
             await running
@@ -221,7 +229,8 @@ def test_the_writer_turns_summaries_heard_on_the_engine_into_minutes(tmp_path, d
 
     def db_minutes():
         with psycopg.connect(db.info.dsn) as other:
-            return other.execute("SELECT count(*) FROM pressure_minute").fetchone()[0]
+            return other.execute("SELECT count(*) FROM pressure_minute WHERE minute >= %s",
+                                 (dt.datetime(2026, 11, 26, 8, tzinfo=UTC),)).fetchone()[0]
 
     with running_cluster(tmp_path) as cluster:
         writer = asyncio.run(run(cluster, dataclasses.replace(cluster.hospital, history=POLICY)))

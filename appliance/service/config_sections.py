@@ -30,6 +30,10 @@ from appliance.time_zones import system_zone, time_zone
 SOURCES = ("virtual", "emulated", "hardware")
 FRAME_INTERVAL_RANGE_S = (0.05, 3600.0)
 """Seconds between frames, here and for the command line's --interval, which overrides it."""
+MQTT_KEYS = ("host", "port", "topic_prefix", "keepalive_s", "username", "password_file", "ca_file")
+ENGINE_KEYS = ("servers", "ward", "password_file")
+CONFIRMATION_KEYS = ("confirm", "confirm_timeout_s")
+"""The ward link's tables: ``[notify.mqtt]`` or ``[notify.engine]``, each with the confirmation's keys."""
 HL7_KEYS = ("host", "port", "enabled", "sending_facility", "sending_application", "receiving_application",
             "receiving_facility", "ack_timeout_s", "undelivered_alarm_s", "observation_interval_s")
 """The keys of ``[charting.hl7]``, in the order the screen shows them."""
@@ -207,7 +211,7 @@ def read_sections(data: dict, base: Path | None = None) -> MonitorConfig:
     if mqtt and engine:
         raise ConfigError("[notify.mqtt] and [notify.engine] are both given: a bed reaches its ward through one")
     link, where, needed = (engine, "[notify.engine]", "servers") if engine else (mqtt, "[notify.mqtt]", "host")
-    confirming = {key: link.pop(key) for key in ("confirm", "confirm_timeout_s") if key in link}
+    confirming = {key: link.pop(key) for key in CONFIRMATION_KEYS if key in link}
     if confirming and not link:
         raise ConfigError(f"{where} is missing {needed!r}")
     confirmation = _confirmation(confirming, where)
@@ -287,7 +291,7 @@ def mqtt_settings(table: dict, base: Path | None, where: str = "[notify.mqtt]") 
     """The broker table ``where`` (a bed's ``[notify.mqtt]``, the ward station's ``[broker]``); None if empty."""
     if not table:
         return None
-    _only(table, {"host", "port", "topic_prefix", "keepalive_s", "username", "password_file", "ca_file"}, where)
+    _only(table, set(MQTT_KEYS), where)
     if "host" not in table:
         raise ConfigError(f"{where} is missing 'host'")
     prefix = _text(table, "topic_prefix", "appliance", where)
@@ -309,7 +313,7 @@ def engine_settings(table: dict, base: Path | None, where: str = "[notify.engine
     """The engine table ``where`` (a bed's ``[notify.engine]``, the ward station's ``[engine]``); None if empty."""
     if not table:
         return None
-    _only(table, {"servers", "ward", "password_file"}, where)
+    _only(table, set(ENGINE_KEYS), where)
     servers = table.get("servers")
     if not isinstance(servers, list) or not servers or not all(isinstance(s, str) and s.strip() for s in servers):
         raise ConfigError(f"{where}: servers must be a non-empty list of the nodes' addresses, got {servers!r}")
