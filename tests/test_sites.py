@@ -69,6 +69,14 @@ def test_virtual_body_sites_found_where_they_lie(posture, across_mm, slid_mm, tu
         assert blade and min(math.hypot(blade[0].along_mm - a, blade[0].across_mm - c) for a, c in
                              (truth[f"scapula-{down}"], truth[f"shoulder-{down}"])) < 60.0
         sites = {s: sites[s] for s in MUST_FIND[posture]}
+    if LOCATOR_POSTURE[posture] == "inclined":
+        # The hand labels put the ischia 7-9 cm either side of the sacral peak and 5-10 cm below it; the virtual
+        # body's buttock patches lie 11 cm out: an ischium is checked to lie below the sacrum, on its own side.
+        for side, sign in (("left", 1), ("right", -1)):
+            if f"ischium-{side}" in sites:
+                ischium, sacrum = sites.pop(f"ischium-{side}"), sites["sacrum"]
+                assert 0.0 < ischium.along_mm - sacrum.along_mm < 150.0
+                assert 20.0 < sign * (ischium.across_mm - sacrum.across_mm) < 120.0
     for site, r in sites.items():
         along, across = truth[site]
         assert math.hypot(r.along_mm - along, r.across_mm - across) < 60.0, site
@@ -221,10 +229,10 @@ def test_a_side_lying_trochanter_is_its_hot_spot_and_the_hip_within_reach_of_it(
 # The learned table, on the training subjects' labels (S4, S6 and S11 are held out and never read here)
 
 LABELS = Path(__file__).resolve().parent / "data" / "site_labels"
-LOSO_ALL, LOSO_NAMED, LOSO_MARGIN = 0.804, 0.800, 0.02
+LOSO_ALL, LOSO_NAMED, LOSO_MARGIN = 0.824, 0.820, 0.02
 """Leave-one-subject-out accuracy measured on the loaded labelled spots (all, and those the hand named) when the
-locator's constants were chosen (the table alone: 0.779 and 0.771, which the margin, allowing for small changes to
-the frame fit, does not reach)."""
+locator's constants were chosen (``python benchmarks/site_labels.py --loso``). The margin allows for small changes
+to the frame fit; the locator before the relative load and the pelvic midline (0.8035 and 0.7996) falls below it."""
 
 
 @pytest.fixture(scope="module")

@@ -29,7 +29,7 @@ from scipy.ndimage import label, maximum_filter
 
 from appliance.alerts.anatomy import BodyView, check_posture
 from appliance.alerts.body_frame import BodyFrame, body_contact, body_coordinates, posture_frame
-from appliance.alerts.site_table import LABELLED_POSTURES, SiteTable, load_table
+from appliance.alerts.site_table import LABELLED_POSTURES, SiteTable, load_table, relative_load
 from appliance.calibration import BED_MIN_LENGTH_MM
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.errors import ModelInputInvalid
@@ -111,7 +111,7 @@ def label_cells(view: BodyView, posture: str, *, floor_kpa: float = FLOOR_KPA,
     frame = posture_frame(view, posture)
     s, u = body_coordinates(view, posture, (rows + 0.5) * view.pitch_mm[0], (cols + 0.5) * view.pitch_mm[1], frame)
     if posture in LABELLED_POSTURES:
-        names[rows, cols] = (table or load_table()).sites_at(posture, s, u)
+        names[rows, cols] = (table or load_table()).sites_at(posture, s, u, relative_load(view, rows, cols))
         _gather_trochanters(view, names, kpa >= floor_kpa)
         if posture in ("supine", "inclined"):
             _heels_by_the_pelvis(view, frame, names)
