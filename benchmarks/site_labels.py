@@ -2,6 +2,7 @@
 
     python benchmarks/site_labels.py           # the held-out score table (about 15 s)
     python benchmarks/site_labels.py --loso    # and the leave-one-subject-out study on the training subjects
+    python benchmarks/site_labels.py --chain ~/.cache/appliance   # and the maps read through the chain
 
 The labels were given by eye on the middle frame of each PmatData posture file (900 x 1900 mm mat, 10 mm
 cells), positions in the body view (along from the head end, across from the patient's right); a spot is
@@ -124,6 +125,31 @@ def leave_one_subject_out_pairs(pmat: Path) -> list[tuple[str | None, str | None
     return pairs
 
 
+def chain_pairs(cache: Path) -> list[tuple[str | None, str | None, str]]:
+    """As :func:`held_out_pairs` (posture estimated) for the maps the monitor reads through the whole chain
+    (virtual bed, board, reconstruction, calibration), as benchmarks/alerts.py reads them; loaded spots still
+    judged on the true map."""
+    from alerts import MINUTE, Chain, still_scene, true_frame
+
+    from appliance.alerts.anatomy import body_view
+    from appliance.alerts.posture import default_posture_model
+    from appliance.alerts.sites import label_cells
+    from appliance.sim.body import BED_GRID
+    from appliance.sim.true_maps import on_pixels
+
+    chain, model, spots = Chain(cache), default_posture_model(), labelled_spots()
+    pairs = []
+    for subject in HELD_OUT:
+        for posture_file in sorted({s.posture_file for s in spots if s.subject == subject}):
+            frame = true_frame(subject, posture_file)
+            true_view = body_view(on_pixels(frame, BED_GRID.pitch_mm, chain.grid), chain.grid)
+            read = body_view(list(chain.maps(still_scene(frame, 5 * MINUTE), [0.0, MINUTE]))[-1].pressure_kpa,
+                             chain.grid)
+            labelled = [s for s in spots if s.subject == subject and s.posture_file == posture_file]
+            pairs += labels_at_spots(true_view, label_cells(read, model.classify(read).posture), labelled)
+    return pairs
+
+
 def main(argv=None) -> None:
     """Print the held-out score table (true maps on the monitor's 30 mm pixels), and with ``--loso`` the
     leave-one-subject-out study over the training subjects."""
@@ -134,9 +160,13 @@ def main(argv=None) -> None:
     parser.add_argument("--pmat", type=Path, default=PMAT, help="the PmatData folder the labels were given on")
     parser.add_argument("--loso", action="store_true",
                         help="also the leave-one-subject-out study on the training subjects")
+    parser.add_argument("--chain", type=Path, metavar="MODEL_CACHE",
+                        help="also the maps read through the whole chain, with the model cached in this folder")
     args = parser.parse_args(argv)
     runs = [("held-out S4, S6, S11; posture recorded", lambda: held_out_pairs(args.pmat, False)),
             ("held-out S4, S6, S11; posture estimated", lambda: held_out_pairs(args.pmat, True))]
+    if args.chain:
+        runs.append(("held-out, read through the chain; posture estimated", lambda: chain_pairs(args.chain)))
     if args.loso:
         runs.insert(0, ("training, leave one subject out; posture recorded",
                         lambda: leave_one_subject_out_pairs(args.pmat)))

@@ -76,7 +76,8 @@ def posture_frame(view: BodyView, posture: str) -> BodyFrame:
 def body_coordinates(view: BodyView, posture: str, along_mm, across_mm,
                      frame: BodyFrame | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(s, u) of view points in the frame fitted for a lying ``posture`` (``frame``: that frame, if already
-    fitted); on the back (supine, inclined, prone) ``u`` is taken from the body's midline at each point's ``s``."""
+    fitted); on the back ``u`` is taken from the pelvis's midline (supine, inclined) or from the body's midline at
+    each point's ``s`` (prone)."""
     frame = frame or posture_frame(view, posture)
     s, u = frame.body_fractions(along_mm, across_mm)
     if posture in ("supine", "inclined"):
