@@ -2,7 +2,8 @@
 
     python benchmarks/site_labels.py           # the held-out score table (about 15 s)
     python benchmarks/site_labels.py --loso    # and the leave-one-subject-out study on the training subjects
-    python benchmarks/site_labels.py --chain ~/.cache/appliance   # and the maps read through the chain
+    python benchmarks/site_labels.py --chain ~/.cache/appliance   # and the maps read through the chain (7 min)
+    python benchmarks/site_labels.py --loso --chain ~/.cache/appliance   # and the study on those (20 min)
 
 The labels were given by eye on the middle frame of each PmatData posture file (900 x 1900 mm mat, 10 mm
 cells), positions in the body view (along from the head end, across from the patient's right); a spot is
@@ -108,46 +109,60 @@ def held_out_pairs(pmat: Path, estimated: bool) -> list[tuple[str | None, str | 
     return pairs
 
 
-def leave_one_subject_out_pairs(pmat: Path) -> list[tuple[str | None, str | None, str]]:
+def leave_one_subject_out_pairs(pmat: Path,
+                                chain_cache: Path | None = None) -> list[tuple[str | None, str | None, str]]:
     """As :func:`held_out_pairs` (posture recorded) for the training subjects, each map labelled by a table
-    fitted on the other training subjects only."""
+    fitted on the other training subjects only; with ``chain_cache``, the maps read through the chain are
+    labelled (:func:`read_through_chain`), the table still fitted on the true maps as shipped."""
     from appliance.alerts.site_table import SiteTable
     from appliance.alerts.site_table_fit import TRAINING_SUBJECTS, label_maps, labelled_points
     from appliance.alerts.sites import label_cells
 
     maps = list(label_maps(LABELS, pmat, TRAINING_SUBJECTS))
     points = [(m[0], labelled_points(*m)) for m in maps]
+    tables = {left_out: SiteTable.from_points([p for subject, ps in points if subject != left_out for p in ps])
+              for left_out in TRAINING_SUBJECTS}
     pairs = []
-    for left_out in TRAINING_SUBJECTS:
-        table = SiteTable.from_points([p for subject, ps in points if subject != left_out for p in ps])
-        for subject, posture, view, spots in (m for m in maps if m[0] == left_out):
-            pairs += labels_at_spots(view, label_cells(view, posture, table=table), _labelled(subject, posture, spots))
+    if chain_cache is None:
+        for subject, posture, view, spots in maps:
+            pairs += labels_at_spots(view, label_cells(view, posture, table=tables[subject]),
+                                     _labelled(subject, posture, spots))
+        return pairs
+    for true_view, read, labelled in read_through_chain(chain_cache, TRAINING_SUBJECTS):
+        subject, posture = labelled[0].subject, labelled[0].posture
+        pairs += labels_at_spots(true_view, label_cells(read, posture, table=tables[subject]), labelled)
     return pairs
 
 
-def chain_pairs(cache: Path) -> list[tuple[str | None, str | None, str]]:
-    """As :func:`held_out_pairs` (posture estimated) for the maps the monitor reads through the whole chain
-    (virtual bed, board, reconstruction, calibration), as benchmarks/alerts.py reads them; loaded spots still
-    judged on the true map."""
+def read_through_chain(cache: Path, subjects=HELD_OUT):
+    """(true view, view read, labelled spots) of every labelled map of ``subjects``: the map read through the whole
+    chain (virtual bed, board, reconstruction, calibration; the model cached in ``cache``) as benchmarks/alerts.py
+    reads it, and the true map on the monitor's pixels, which says which spots are loaded."""
     from alerts import MINUTE, Chain, still_scene, true_frame
 
     from appliance.alerts.anatomy import body_view
-    from appliance.alerts.posture import default_posture_model
-    from appliance.alerts.sites import label_cells
     from appliance.sim.body import BED_GRID
     from appliance.sim.true_maps import on_pixels
 
-    chain, model, spots = Chain(cache), default_posture_model(), labelled_spots()
-    pairs = []
-    for subject in HELD_OUT:
+    chain, spots = Chain(cache), labelled_spots(subjects)
+    for subject in subjects:
         for posture_file in sorted({s.posture_file for s in spots if s.subject == subject}):
             frame = true_frame(subject, posture_file)
             true_view = body_view(on_pixels(frame, BED_GRID.pitch_mm, chain.grid), chain.grid)
             read = body_view(list(chain.maps(still_scene(frame, 5 * MINUTE), [0.0, MINUTE]))[-1].pressure_kpa,
                              chain.grid)
-            labelled = [s for s in spots if s.subject == subject and s.posture_file == posture_file]
-            pairs += labels_at_spots(true_view, label_cells(read, model.classify(read).posture), labelled)
-    return pairs
+            yield true_view, read, [s for s in spots if s.subject == subject and s.posture_file == posture_file]
+
+
+def chain_pairs(cache: Path) -> list[tuple[str | None, str | None, str]]:
+    """As :func:`held_out_pairs` (posture estimated) for the held-out maps read through the chain
+    (:func:`read_through_chain`)."""
+    from appliance.alerts.posture import default_posture_model
+    from appliance.alerts.sites import label_cells
+
+    model = default_posture_model()
+    return [pair for true_view, read, labelled in read_through_chain(cache)
+            for pair in labels_at_spots(true_view, label_cells(read, model.classify(read).posture), labelled)]
 
 
 def main(argv=None) -> None:
@@ -170,6 +185,9 @@ def main(argv=None) -> None:
     if args.loso:
         runs.insert(0, ("training, leave one subject out; posture recorded",
                         lambda: leave_one_subject_out_pairs(args.pmat)))
+    if args.loso and args.chain:
+        runs.insert(1, ("training, leave one subject out, read through the chain; posture recorded",
+                        lambda: leave_one_subject_out_pairs(args.pmat, args.chain)))
     print("| true maps (30 mm pixels) | loaded spots | labelled right | named by hand | of those, right |\n"
           "|---|---|---|---|---|")
     wrong: dict[str, Counter] = {}

@@ -52,9 +52,10 @@ TROCHANTER_SEARCH_MM, TROCHANTER_SMOOTH_MM = 60.0, 18.0
 """The trochanter's peak is the highest place of the hip's load smoothed by a Gaussian of ``TROCHANTER_SMOOTH_MM``
 (one hot cell is no hip) among the loaded cells the table names it or leaves unnamed within
 ``TROCHANTER_SEARCH_MM`` of those it names: the table votes by where a place and its load lie, which puts the
-trochanter in the right hip but not always on its hot spot. Chosen by the leave-one-subject-out study (the table's
-highest trochanter cell: 0.824 of the loaded spots right; smoothing by 12-25 mm and searching 30-150 mm:
-0.826-0.839; without smoothing: 0.819-0.824; with this peak, a reach of 60 and 90 mm: 0.826 and 0.822)."""
+trochanter in the right hip but not always on its hot spot. Chosen by the leave-one-subject-out study (at a load
+weight of 0.05, site_table.py; the table's highest trochanter cell: 0.824 of the loaded spots right; smoothing by
+12-25 mm and searching 30-150 mm: 0.826-0.839; without smoothing: 0.819-0.824; with this peak, a reach of 60 and
+90 mm: 0.826 and 0.822)."""
 
 PELVIS_BAND = (0.40, 0.60)
 """Stretch of the body (fractions of its length from the head) whose load gives the trunk's midline for the heels."""
