@@ -1,5 +1,10 @@
 """The hand-labelled site maps (tests/data/site_labels) and how located sites are scored against them.
 
+    python benchmarks/site_labels.py           # the held-out score table (about 15 s)
+    python benchmarks/site_labels.py --loso    # and the leave-one-subject-out study on the training subjects
+    python benchmarks/site_labels.py --chain ~/.cache/appliance   # and the maps read through the chain (7 min)
+    python benchmarks/site_labels.py --loso --chain ~/.cache/appliance   # and the study on those (20 min)
+
 The labels were given by eye on the middle frame of each PmatData posture file (900 x 1900 mm mat, 10 mm
 cells), positions in the body view (along from the head end, across from the patient's right); a spot is
 named a site or left unnamed (``None``: a buttock, thigh, calf, hand). Subjects S4, S6 and S11 are the
@@ -23,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 LABELS = Path(__file__).resolve().parent.parent / "tests" / "data" / "site_labels"
+PMAT = Path(__file__).resolve().parents[2] / "shared" / "data" / "pmatdata"
 HELD_OUT = (4, 6, 11)
 MATCH_MM = 45.0
 """How near a true map's peak must lie to a labelled site to be its peak: one and a half 30 mm pixels."""
@@ -55,13 +61,14 @@ def site_positions(spots: list[LabelledSpot], subject: int, posture_file: int) -
     """Named sites of one labelled map: (along, across) mm; a site labelled twice keeps its higher spot."""
     out: dict[str, tuple[float, float, float]] = {}
     for s in spots:
-        if s.subject == subject and s.posture_file == posture_file and s.site:
-            if s.site not in out or s.peak_mmhg > out[s.site][2]:
-                out[s.site] = (s.along_mm, s.across_mm, s.peak_mmhg)
+        if (s.subject == subject and s.posture_file == posture_file and s.site
+                and (s.site not in out or s.peak_mmhg > out[s.site][2])):
+            out[s.site] = (s.along_mm, s.across_mm, s.peak_mmhg)
     return {site: (a, c) for site, (a, c, _) in out.items()}
 
 
-def labels_at_spots(true_view, cell_labels: np.ndarray, spots: list[LabelledSpot]) -> list[tuple[str | None, str | None, str]]:
+def labels_at_spots(true_view, cell_labels: np.ndarray,
+                    spots: list[LabelledSpot]) -> list[tuple[str | None, str | None, str]]:
     """(hand label, locator's label, posture) of each labelled spot of one map that is loaded on ``true_view``
     (a :class:`~appliance.alerts.anatomy.BodyView` of the true map on the monitor's pixels); ``cell_labels``:
     the locator's site for each pixel (:func:`~appliance.alerts.sites.label_cells`, on the true map or on a
@@ -73,3 +80,126 @@ def labels_at_spots(true_view, cell_labels: np.ndarray, spots: list[LabelledSpot
             continue
         out.append((spot.site, cell_labels[row, col], spot.posture))
     return out
+
+
+def score(pairs: list[tuple[str | None, str | None, str]]) -> tuple[int, float, int, float]:
+    """(loaded spots, share labelled right, spots named by hand, share of those right)."""
+    named = [(hand, found) for hand, found, _ in pairs if hand]
+    return (len(pairs), float(np.mean([hand == found for hand, found, _ in pairs])) if pairs else float("nan"),
+            len(named), float(np.mean([hand == found for hand, found in named])) if named else float("nan"))
+
+
+def _labelled(subject: int, posture: str, spots: list[dict]) -> list[LabelledSpot]:
+    return [LabelledSpot(subject, 0, posture, s["site"], s["along_mm"], s["across_mm"], s["peak_mmhg"]) for s in spots]
+
+
+def held_out_pairs(pmat: Path, estimated: bool) -> list[tuple[str | None, str | None, str]]:
+    """(hand label, locator's label, posture) of every loaded labelled spot of the held-out maps on the true map
+    seen by the monitor's pixels; the locator told the posture the maps were recorded in, or (``estimated``) the
+    one the shipped posture model reads from the map."""
+    from appliance.alerts.posture import default_posture_model
+    from appliance.alerts.site_table_fit import label_maps
+    from appliance.alerts.sites import label_cells
+
+    model = default_posture_model()
+    pairs = []
+    for subject, posture, view, spots in label_maps(LABELS, pmat, HELD_OUT):
+        told = model.classify(view).posture if estimated else posture
+        pairs += labels_at_spots(view, label_cells(view, told), _labelled(subject, posture, spots))
+    return pairs
+
+
+def leave_one_subject_out_pairs(pmat: Path,
+                                chain_cache: Path | None = None) -> list[tuple[str | None, str | None, str]]:
+    """As :func:`held_out_pairs` (posture recorded) for the training subjects, each map labelled by a table
+    fitted on the other training subjects only; with ``chain_cache``, the maps read through the chain are
+    labelled (:func:`read_through_chain`), the table still fitted on the true maps as shipped."""
+    from appliance.alerts.site_table import SiteTable
+    from appliance.alerts.site_table_fit import TRAINING_SUBJECTS, label_maps, labelled_points
+    from appliance.alerts.sites import label_cells
+
+    maps = list(label_maps(LABELS, pmat, TRAINING_SUBJECTS))
+    points = [(m[0], labelled_points(*m)) for m in maps]
+    tables = {left_out: SiteTable.from_points([p for subject, ps in points if subject != left_out for p in ps])
+              for left_out in TRAINING_SUBJECTS}
+    pairs = []
+    if chain_cache is None:
+        for subject, posture, view, spots in maps:
+            pairs += labels_at_spots(view, label_cells(view, posture, table=tables[subject]),
+                                     _labelled(subject, posture, spots))
+        return pairs
+    for true_view, read, labelled in read_through_chain(chain_cache, TRAINING_SUBJECTS):
+        subject, posture = labelled[0].subject, labelled[0].posture
+        pairs += labels_at_spots(true_view, label_cells(read, posture, table=tables[subject]), labelled)
+    return pairs
+
+
+def read_through_chain(cache: Path, subjects=HELD_OUT):
+    """(true view, view read, labelled spots) of every labelled map of ``subjects``: the map read through the whole
+    chain (virtual bed, board, reconstruction, calibration; the model cached in ``cache``) as benchmarks/alerts.py
+    reads it, and the true map on the monitor's pixels, which says which spots are loaded."""
+    from alerts import MINUTE, Chain, still_scene, true_frame
+
+    from appliance.alerts.anatomy import body_view
+    from appliance.sim.body import BED_GRID
+    from appliance.sim.true_maps import on_pixels
+
+    chain, spots = Chain(cache), labelled_spots(subjects)
+    for subject in subjects:
+        for posture_file in sorted({s.posture_file for s in spots if s.subject == subject}):
+            frame = true_frame(subject, posture_file)
+            true_view = body_view(on_pixels(frame, BED_GRID.pitch_mm, chain.grid), chain.grid)
+            read = body_view(list(chain.maps(still_scene(frame, 5 * MINUTE), [0.0, MINUTE]))[-1].pressure_kpa,
+                             chain.grid)
+            yield true_view, read, [s for s in spots if s.subject == subject and s.posture_file == posture_file]
+
+
+def chain_pairs(cache: Path) -> list[tuple[str | None, str | None, str]]:
+    """As :func:`held_out_pairs` (posture estimated) for the held-out maps read through the chain
+    (:func:`read_through_chain`)."""
+    from appliance.alerts.posture import default_posture_model
+    from appliance.alerts.sites import label_cells
+
+    model = default_posture_model()
+    return [pair for true_view, read, labelled in read_through_chain(cache)
+            for pair in labels_at_spots(true_view, label_cells(read, model.classify(read).posture), labelled)]
+
+
+def main(argv=None) -> None:
+    """Print the held-out score table (true maps on the monitor's 30 mm pixels), and with ``--loso`` the
+    leave-one-subject-out study over the training subjects."""
+    import argparse
+    from collections import Counter
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--pmat", type=Path, default=PMAT, help="the PmatData folder the labels were given on")
+    parser.add_argument("--loso", action="store_true",
+                        help="also the leave-one-subject-out study on the training subjects")
+    parser.add_argument("--chain", type=Path, metavar="MODEL_CACHE",
+                        help="also the maps read through the whole chain, with the model cached in this folder")
+    args = parser.parse_args(argv)
+    runs = [("held-out S4, S6, S11; posture recorded", lambda: held_out_pairs(args.pmat, False)),
+            ("held-out S4, S6, S11; posture estimated", lambda: held_out_pairs(args.pmat, True))]
+    if args.chain:
+        runs.append(("held-out, read through the chain; posture estimated", lambda: chain_pairs(args.chain)))
+    if args.loso:
+        runs.insert(0, ("training, leave one subject out; posture recorded",
+                        lambda: leave_one_subject_out_pairs(args.pmat)))
+    if args.loso and args.chain:
+        runs.insert(1, ("training, leave one subject out, read through the chain; posture recorded",
+                        lambda: leave_one_subject_out_pairs(args.pmat, args.chain)))
+    print("| true maps (30 mm pixels) | loaded spots | labelled right | named by hand | of those, right |\n"
+          "|---|---|---|---|---|")
+    wrong: dict[str, Counter] = {}
+    for name, run in runs:
+        pairs = run()
+        n, right, n_named, named_right = score(pairs)
+        print(f"| {name} | {n} | {right:.1%} | {n_named} | {named_right:.1%} |")
+        wrong[name] = Counter((hand, found) for hand, found, _ in pairs if hand != found)
+    for name, counts in wrong.items():
+        print(f"\nDisagreements, {name}: " + "; ".join(
+            f"{n} x {b or 'unnamed'} where the labels say {a or 'unnamed'}" for (a, b), n in counts.most_common(8)))
+
+
+if __name__ == "__main__":
+    main()

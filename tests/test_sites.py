@@ -69,6 +69,14 @@ def test_virtual_body_sites_found_where_they_lie(posture, across_mm, slid_mm, tu
         assert blade and min(math.hypot(blade[0].along_mm - a, blade[0].across_mm - c) for a, c in
                              (truth[f"scapula-{down}"], truth[f"shoulder-{down}"])) < 60.0
         sites = {s: sites[s] for s in MUST_FIND[posture]}
+    if LOCATOR_POSTURE[posture] == "inclined":
+        # The hand labels put the ischia 7-9 cm either side of the sacral peak and 5-10 cm below it; the virtual
+        # body's buttock patches lie 11 cm out: an ischium is checked to lie below the sacrum, on its own side.
+        for side, sign in (("left", 1), ("right", -1)):
+            if f"ischium-{side}" in sites:
+                ischium, sacrum = sites.pop(f"ischium-{side}"), sites["sacrum"]
+                assert 0.0 < ischium.along_mm - sacrum.along_mm < 150.0
+                assert 20.0 < sign * (ischium.across_mm - sacrum.across_mm) < 120.0
     for site, r in sites.items():
         along, across = truth[site]
         assert math.hypot(r.along_mm - along, r.across_mm - across) < 60.0, site
@@ -221,10 +229,11 @@ def test_a_side_lying_trochanter_is_its_hot_spot_and_the_hip_within_reach_of_it(
 # The learned table, on the training subjects' labels (S4, S6 and S11 are held out and never read here)
 
 LABELS = Path(__file__).resolve().parent / "data" / "site_labels"
-LOSO_ALL, LOSO_NAMED, LOSO_MARGIN = 0.804, 0.800, 0.02
+LOSO_ALL, LOSO_NAMED, LOSO_MARGIN = 0.841, 0.841, 0.02
 """Leave-one-subject-out accuracy measured on the loaded labelled spots (all, and those the hand named) when the
-locator's constants were chosen (the table alone: 0.779 and 0.771, which the margin, allowing for small changes to
-the frame fit, does not reach)."""
+locator's constants were chosen (``python benchmarks/site_labels.py --loso``). The margin allows for small changes
+to the frame fit; the locator before the relative load, the pelvic midline and the smoothed trochanter peak (0.804
+and 0.800) falls below it."""
 
 
 @pytest.fixture(scope="module")
@@ -235,13 +244,11 @@ def training_maps():
 
 
 @needs_pmat
-def test_the_shipped_table_rebuilds_from_the_label_files(training_maps):
-    import json
-
-    from appliance.alerts.site_table import TABLE_PATH, SiteTable
-    from appliance.alerts.site_table_fit import labelled_points
-    rebuilt = SiteTable.from_points([p for m in training_maps for p in labelled_points(*m)])
-    assert rebuilt.to_json() == json.loads(TABLE_PATH.read_text(encoding="utf-8"))["postures"]
+def test_the_fit_script_rebuilds_the_shipped_table(tmp_path):
+    from appliance.alerts.site_table import TABLE_PATH
+    from appliance.alerts.site_table_fit import main
+    main(["--fit", str(LABELS), "--pmat", str(PMAT), "--out", str(tmp_path / "table.json")])
+    assert (tmp_path / "table.json").read_bytes() == TABLE_PATH.read_bytes()
 
 
 @needs_pmat
@@ -277,3 +284,28 @@ def test_labels_follow_a_real_body_slid_along_and_across(posture_file, posture):
     for site in clear:
         assert math.hypot(slid[site].along_mm - still[site].along_mm - 50.0,
                           slid[site].across_mm - still[site].across_mm - 60.0) < 45.0, site
+
+
+# ---------------------------------------------------------------------------
+# The shipped locator on the held-out subjects' labels (S4, S6, S11): read to judge it, never to fit it
+
+HELD_OUT_RIGHT = {False: (0.792, 0.767), True: (0.760, 0.720)}
+"""Share of the loaded held-out spots labelled right (all, and those the hand named), the locator told the posture
+recorded (False) or the posture model's estimate (True), as measured by ``python benchmarks/site_labels.py``."""
+HELD_OUT_MARGIN = 0.015
+
+
+@needs_pmat
+@pytest.mark.parametrize("estimated", [False, True])
+def test_the_shipped_locator_holds_its_held_out_score(estimated):
+    import importlib.util
+    import sys
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "site_labels.py"
+    spec = importlib.util.spec_from_file_location("bench_site_labels", path)
+    bench = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = bench              # its dataclasses look themselves up there
+    spec.loader.exec_module(bench)
+    n, right, n_named, named_right = bench.score(bench.held_out_pairs(PMAT, estimated))
+    assert (n, n_named) == (371, 236)           # the loaded spots: fixed by the true maps and the labels
+    assert right >= HELD_OUT_RIGHT[estimated][0] - HELD_OUT_MARGIN
+    assert named_right >= HELD_OUT_RIGHT[estimated][1] - HELD_OUT_MARGIN

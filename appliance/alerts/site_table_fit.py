@@ -16,7 +16,7 @@ import numpy as np
 
 from appliance.alerts.anatomy import BodyView, body_view
 from appliance.alerts.body_frame import body_coordinates
-from appliance.alerts.site_table import TABLE_PATH, LabelledPoint, SiteTable
+from appliance.alerts.site_table import TABLE_PATH, LabelledPoint, SiteTable, relative_load
 from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
 from appliance.errors import DataFileInvalid
@@ -50,10 +50,14 @@ def label_maps(label_dir: Path, pmat_dir: Path, subjects=TRAINING_SUBJECTS):
 
 
 def labelled_points(subject: int, posture: str, view: BodyView, spots: list[dict]) -> list[LabelledPoint]:
-    """The spots of one labelled map as points in its body frame."""
-    s, u = body_coordinates(view, posture, np.array([p["along_mm"] for p in spots], float),
-                            np.array([p["across_mm"] for p in spots], float))
-    return [LabelledPoint(subject, posture, float(a), float(b), p["site"]) for a, b, p in zip(s, u, spots)]
+    """The spots of one labelled map as points: the pixel each lies in, as the locator sees that pixel (where its
+    centre lies in the body frame, its relative load)."""
+    rows = np.array([int(p["along_mm"] // view.pitch_mm[0]) for p in spots], dtype=int)
+    cols = np.array([int(p["across_mm"] // view.pitch_mm[1]) for p in spots], dtype=int)
+    s, u = body_coordinates(view, posture, (rows + 0.5) * view.pitch_mm[0], (cols + 0.5) * view.pitch_mm[1])
+    load = relative_load(view, rows, cols)
+    return [LabelledPoint(subject, posture, float(a), float(b), float(w), p["site"])
+            for a, b, w, p in zip(s, u, load, spots)]
 
 
 def fit_table(label_dir: Path, pmat_dir: Path, subjects=TRAINING_SUBJECTS) -> SiteTable:
@@ -69,8 +73,9 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, default=TABLE_PATH)
     args = parser.parse_args(argv)
     table = fit_table(args.fit, args.pmat)
-    data = {"about": "hand-labelled spots of PmatData training subjects in their body frames: "
-                     "[s, u, site]; rebuilt by python -m appliance.alerts.site_table_fit --fit LABEL_DIR",
+    data = {"about": "hand-labelled spots of PmatData training subjects, their pixels in their body frames: "
+                     "[s, u, relative load, site]; rebuilt by "
+                     "python -m appliance.alerts.site_table_fit --fit LABEL_DIR",
             "subjects": list(TRAINING_SUBJECTS), "postures": table.to_json()}
     args.out.write_text(json.dumps(data, separators=(",", ":")) + "\n", encoding="utf-8")
     print(f"{args.out}: {sum(len(v[1]) for v in table.points.values())} points")
