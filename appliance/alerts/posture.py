@@ -223,8 +223,18 @@ class PostureModel:
                 return PostureEstimate.certain(posture)
         p = self.probabilities(posture_features(view))[0]
         learnt = dict(zip(self.classes, p.tolist()))
-        best = int(np.argmax(p))
+        best = self._most_likely(p)
         return PostureEstimate(self.classes[best], float(p[best]), {q: learnt.get(q, 0.0) for q in POSTURES})
+
+    def _most_likely(self, p: np.ndarray) -> int:
+        """The class index of the most likely posture within the most likely group: the group is what the alerts
+        act on, and a side split between its tilts (0.3 at 30 degrees, 0.3 at 60) is likelier than a back at 0.4."""
+        groups = [posture_group(c) for c in self.classes]
+        totals: dict[str, float] = {}
+        for group, value in zip(groups, p):
+            totals[group] = totals.get(group, 0.0) + float(value)
+        best_group = max(totals, key=lambda g: totals[g])
+        return max((k for k, g in enumerate(groups) if g == best_group), key=lambda k: p[k])
 
     def save(self, path) -> None:
         """Write the model as a small .npz, its weights in float32 (half the size; a freshly trained model's
