@@ -17,7 +17,7 @@ shoulders have rolled, which is what separates 30, 60 and 90 degrees.
 
 The model is trained on maps as the default bed's pixel grid would see them,
 augmented with the errors of reconstruction (blur, gain, shift, rotation,
-noise; :mod:`appliance.alerts.posture_training`); ``benchmarks/posture.py``
+noise, light load read as none; :mod:`appliance.alerts.posture_training`); ``benchmarks/posture.py``
 reports how well it holds on subjects it never saw. The shipped model
 (``posture_model.npz``) never saw PmatData S4, S6 and S11.
 """
@@ -70,9 +70,10 @@ MODEL_FILE = "posture_model.npz"
 SURE_GROUP_PROBABILITY = 0.8
 """An estimate is sure when the postures of its group (back, left, right, front or other) together have at least
 this probability. Chosen on the leave-one-subject-out study over the eight training subjects alone (816 maps,
-clean and blurred): every wrong group there had at most 0.64, and 99 % of the right ones 0.83 or more. An unsure
-estimate must not count as a turn or rename the sites (a supine patient with the arms raised can read as lying
-on the side); the alert layer holds the last sure posture instead."""
+clean and blurred, with the model before the augmentation's low-pressure floor): every wrong group there had at
+most 0.64, and 99 % of the right ones 0.83 or more. An unsure estimate must not count as a turn or rename the
+sites (a supine patient with the arms raised can read as lying on the side); the alert layer holds the last sure
+posture instead."""
 
 
 @dataclass(frozen=True)
