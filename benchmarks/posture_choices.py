@@ -25,12 +25,13 @@ import numpy as np
 
 from appliance.alerts.anatomy import body_view, posture_group, tilt_deg
 from appliance.alerts.posture import posture_features
-from appliance.alerts.posture_training import FLOOR_KPA, L2, SHIPPED_PMAT_SUBJECTS, SHIPPED_POPU_VARIATIONS, bed_views, fit_logistic, recording_fields, training_features
+from appliance.alerts.posture_training import (FLOOR_KPA, L2, SHIPPED_PMAT_SUBJECTS, SHIPPED_POPU_VARIATIONS, bed_views,
+                                                fit_logistic, recording_fields, training_features)
 
 sys.path.insert(0, str(Path(__file__).parent))
-from alerts import MINUTE, POSTURE_OF_FILE, Chain, still_scene, true_frame  # noqa: E402
-from posture import blurred  # noqa: E402
-from report import machine, table  # noqa: E402
+from alerts import MINUTE, POSTURE_OF_FILE, Chain, still_scene, true_frame
+from posture import blurred
+from report import machine, table
 
 HERE = Path(__file__).resolve().parent
 CHOICES = ((0.0, 1e-3), (0.0, 1e-4), (0.3, 1e-3), (0.3, 1e-4), (0.5, 1e-4))
