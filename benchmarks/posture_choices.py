@@ -35,7 +35,8 @@ from report import machine, table
 
 HERE = Path(__file__).resolve().parent
 CHOICES = ((0.0, 1e-3), (0.0, 1e-4), (0.3, 1e-3), (0.3, 1e-4), (0.5, 1e-4))
-"""(augmentation floor kPa, L2 penalty): the model shipped before the floor, and the candidates."""
+"""(augmentation floor kPa, L2 penalty): no floor with the former L2 (its augmentation draws differ from the former
+model's, the floor's level being drawn even when it is 0), and the candidates."""
 
 
 def chain_reads(chain: Chain, subject: int) -> tuple[list[str], list]:
