@@ -7,7 +7,7 @@ import pytest
 
 from appliance.alerts.anatomy import POSTURES, BodyView, body_view, posture_group
 from appliance.alerts.posture import PostureModel, default_posture_model, is_sitting_on_edge, posture_features
-from appliance.alerts.posture_training import BED_PITCH_MM, bed_views, mirrored
+from appliance.alerts.posture_training import BED_PITCH_MM, augmented, bed_views, mirrored
 from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
 from appliance.errors import DataFileInvalid, ModelInputInvalid
@@ -162,3 +162,15 @@ def test_save_and_load_give_identical_predictions(tmp_path):
 def test_shipped_model_never_saw_the_validation_subjects():
     info = default_posture_model().info
     assert set(info["sources"]) == {"S1", "S2", "S3", "S5", "S7", "S8", "S9", "S10", "popu/v0", "popu/v1"}
+
+
+def test_augmented_maps_read_light_load_as_none_like_the_reconstruction():
+    """The same augmentation with a floor reads every cell under the floor it drew (up to 0.3 kPa) as zero and
+    leaves the others as they were."""
+    along, across = np.meshgrid(np.arange(200), np.arange(90), indexing="ij")
+    field = 6.0 * np.exp(-((along - 100) ** 2 / 2000 + (across - 45) ** 2 / 300))[None]      # 10 mm cells, kPa
+    floored = augmented(field, 10.0, np.random.default_rng(1), floor_kpa=0.3)[0].kpa
+    kept = augmented(field, 10.0, np.random.default_rng(1), floor_kpa=0.0)[0].kpa
+    level = floored[floored > 0].min()
+    assert kept[kept > 0].min() < level < 0.3 and (floored == 0).sum() > (kept == 0).sum()
+    assert np.array_equal(floored, np.where(kept >= level, kept, 0.0))
