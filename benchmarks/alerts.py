@@ -1,6 +1,7 @@
 """Alerts benchmark: posture, tissue sites and site alarms on held-out real bodies, reminders, and cost.
 
     python benchmarks/alerts.py        # writes benchmarks/alerts.md and alerts.png (about 15 min)
+    python benchmarks/alerts.py --posture   # prints the posture section's table only (a few minutes)
 
 Everything is judged on PmatData subjects S4, S6 and S11, which neither the posture
 model, nor the site locator's geometry, nor the bed's pressure calibration was fitted
@@ -359,9 +360,20 @@ def per_frame_ms(chain: Chain, repeats: int = 200) -> dict:
 
 # ---------------------------------------------------------------------------
 
+def posture_only(chain: Chain) -> None:
+    """Print the posture section's table, writing nothing: a check of a retrained posture model."""
+    print(table(["maps", "n", "group right", "tilt right", "posture right", "unsure (of them wrong)",
+                 "wrong and sure"], posture_rows(posture_and_sites(chain))))
+
+
 def main() -> None:
     cache = Path(tempfile.gettempdir()) / "appliance-bench-cache"
     chain = Chain(cache)
+    if sys.argv[1:] == ["--posture"]:
+        posture_only(chain)
+        return
+    if sys.argv[1:]:
+        raise SystemExit(f"usage: python benchmarks/alerts.py [--posture], got {' '.join(sys.argv[1:])}")
     spots = labelled_spots()
     started = time.perf_counter()
     sites = posture_and_sites(chain)

@@ -7,7 +7,7 @@ import pytest
 
 from appliance.alerts.anatomy import POSTURES, BodyView, body_view, posture_group
 from appliance.alerts.posture import PostureModel, default_posture_model, is_sitting_on_edge, posture_features
-from appliance.alerts.posture_training import BED_PITCH_MM, bed_views, mirrored
+from appliance.alerts.posture_training import BED_PITCH_MM, augmented, bed_views, mirrored
 from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
 from appliance.errors import DataFileInvalid, ModelInputInvalid
@@ -88,8 +88,25 @@ def test_estimate_is_a_distribution_over_every_posture(held_out_views):
     estimate = default_posture_model().classify(held_out_views[4, 1])
     assert set(estimate.probabilities) == set(POSTURES)
     assert 0.0 <= estimate.confidence <= 1.0
-    assert estimate.confidence == max(estimate.probabilities.values())
+    assert estimate.confidence == estimate.probabilities[estimate.posture]
     assert sum(estimate.probabilities.values()) == pytest.approx(1.0)
+
+
+def test_the_likeliest_group_wins_over_the_likeliest_posture():
+    """Left at 30 and at 60 degrees, 0.31 and 0.29, make a left side likelier than a back at 0.4: the estimate is the
+    likelier of the left postures, and it is sure of its group only when the group's sum reaches the floor."""
+    n_features = len(posture_features(sitting_view()))
+    classes = ("supine", "left-30", "left-60", "right-30")
+    for shares, posture, sure in (((0.4, 0.31, 0.29, 0.0), "left-30", False), ((0.1, 0.35, 0.55, 0.0), "left-60", True),
+                                  ((0.5, 0.2, 0.2, 0.1), "supine", False)):
+        bias = np.log(np.array(shares) + 1e-12)
+        estimate = PostureModel(classes, np.zeros((4, n_features)), bias).classify(sitting_view(along_mm=900.0,
+                                                                                             right_edge=True))
+        assert estimate.posture == "sitting-edge"        # the rules come first
+        view = bed_view_of([400.0, 900.0, 1500.0], [450.0, 450.0, 450.0], [6.0, 8.0, 4.0], [120.0, 150.0, 120.0])
+        estimate = PostureModel(classes, np.zeros((4, n_features)), bias).classify(view)
+        assert (estimate.posture, estimate.sure) == (posture, sure), shares
+        assert estimate.confidence == pytest.approx(shares[classes.index(posture)])
 
 
 @needs_data
@@ -145,3 +162,15 @@ def test_save_and_load_give_identical_predictions(tmp_path):
 def test_shipped_model_never_saw_the_validation_subjects():
     info = default_posture_model().info
     assert set(info["sources"]) == {"S1", "S2", "S3", "S5", "S7", "S8", "S9", "S10", "popu/v0", "popu/v1"}
+
+
+def test_augmented_maps_read_light_load_as_none_like_the_reconstruction():
+    """The same augmentation with a floor reads every cell under the floor it drew (up to 0.3 kPa) as zero and
+    leaves the others as they were."""
+    along, across = np.meshgrid(np.arange(200), np.arange(90), indexing="ij")
+    field = 6.0 * np.exp(-((along - 100) ** 2 / 2000 + (across - 45) ** 2 / 300))[None]      # 10 mm cells, kPa
+    floored = augmented(field, 10.0, np.random.default_rng(1), floor_kpa=0.3)[0].kpa
+    kept = augmented(field, 10.0, np.random.default_rng(1), floor_kpa=0.0)[0].kpa
+    level = floored[floored > 0].min()
+    assert kept[kept > 0].min() < level < 0.3 and (floored == 0).sum() > (kept == 0).sum()
+    assert np.array_equal(floored, np.where(kept >= level, kept, 0.0))

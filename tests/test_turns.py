@@ -60,6 +60,21 @@ def test_offloading_most_sites_at_risk_in_the_same_posture_is_a_turn_but_a_brief
     assert events[1].time_s == 50 * MIN and "heel-left" in events[1].how and "sacrum" in events[1].how
 
 
+def test_a_site_relieved_for_the_relief_time_has_recovered_and_no_longer_makes_a_small_shift_a_turn():
+    """Sites named for a few minutes (a misread posture: ear and trochanter) and long relieved since, then a shift
+    that lifts one heel: one of the four sites still at risk is no offloading, though three of six would be half;
+    floating the sacrum and the other heel then is."""
+    clock = TurnClock()
+    misread = {**LOADED, "ear-right": 6.0, "trochanter-right": 6.0}
+    one_heel_up = {**LOADED, "heel-left": 1.0}
+    events = run(clock, lying("supine", 30) + lying("supine", 8, peaks=misread, start=30)
+                 + lying("supine", 60, start=38) + lying("supine", 40, peaks=one_heel_up, start=98))
+    assert kinds(events) == ["lay-down"]
+    assert clock.at_risk == set(LOADED) - {"heel-left"} and not clock.relieved_since     # the heel recovered too
+    floated = run(clock, lying("supine", 20, peaks={"occiput": 5.0, "heel-left": 1.0}, start=138))
+    assert kinds(floated) == ["repositioned"] and floated[0].time_s == 138 * MIN
+
+
 def test_a_new_position_counts_only_once_held_for_the_relief_time_and_reminders_wait_meanwhile():
     clock = TurnClock()
     run(clock, lying("supine", 120))

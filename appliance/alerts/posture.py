@@ -17,7 +17,7 @@ shoulders have rolled, which is what separates 30, 60 and 90 degrees.
 
 The model is trained on maps as the default bed's pixel grid would see them,
 augmented with the errors of reconstruction (blur, gain, shift, rotation,
-noise; :mod:`appliance.alerts.posture_training`); ``benchmarks/posture.py``
+noise, light load read as none; :mod:`appliance.alerts.posture_training`); ``benchmarks/posture.py``
 reports how well it holds on subjects it never saw. The shipped model
 (``posture_model.npz``) never saw PmatData S4, S6 and S11.
 """
@@ -70,9 +70,10 @@ MODEL_FILE = "posture_model.npz"
 SURE_GROUP_PROBABILITY = 0.8
 """An estimate is sure when the postures of its group (back, left, right, front or other) together have at least
 this probability. Chosen on the leave-one-subject-out study over the eight training subjects alone (816 maps,
-clean and blurred): every wrong group there had at most 0.64, and 99 % of the right ones 0.83 or more. An unsure
-estimate must not count as a turn or rename the sites (a supine patient with the arms raised can read as lying
-on the side); the alert layer holds the last sure posture instead."""
+clean and blurred, with the model before the augmentation's low-pressure floor): every wrong group there had at
+most 0.64, and 99 % of the right ones 0.83 or more. An unsure estimate must not count as a turn or rename the
+sites (a supine patient with the arms raised can read as lying on the side); the alert layer holds the last sure
+posture instead."""
 
 
 @dataclass(frozen=True)
@@ -223,8 +224,18 @@ class PostureModel:
                 return PostureEstimate.certain(posture)
         p = self.probabilities(posture_features(view))[0]
         learnt = dict(zip(self.classes, p.tolist()))
-        best = int(np.argmax(p))
+        best = self._most_likely(p)
         return PostureEstimate(self.classes[best], float(p[best]), {q: learnt.get(q, 0.0) for q in POSTURES})
+
+    def _most_likely(self, p: np.ndarray) -> int:
+        """The class index of the most likely posture within the most likely group: the group is what the alerts
+        act on, and a side split between its tilts (0.3 at 30 degrees, 0.3 at 60) is likelier than a back at 0.4."""
+        groups = [posture_group(c) for c in self.classes]
+        totals: dict[str, float] = {}
+        for group, value in zip(groups, p):
+            totals[group] = totals.get(group, 0.0) + float(value)
+        best_group = max(totals, key=lambda g: totals[g])
+        return max((k for k, g in enumerate(groups) if g == best_group), key=lambda k: p[k])
 
     def save(self, path) -> None:
         """Write the model as a small .npz, its weights in float32 (half the size; a freshly trained model's

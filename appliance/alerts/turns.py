@@ -11,7 +11,10 @@ the side (arms raised), or rolled briefly and back, relieved nothing. It is seen
 - or, in the same posture, the offloading of the sites at risk (those loaded at or above the threshold for
   ``settle_s`` since the last turn): at least half of them below half the threshold, as a pillow that floats
   the heels and a small tilt the posture estimate misses do. A restless patient moves a few centimetres and
-  the sites move with the body, so nothing is offloaded;
+  the sites move with the body, so nothing is offloaded. A site at risk that has stayed below half the
+  threshold for ``hold_s`` while no offloading was being held has recovered and is no longer at risk: an elbow
+  loaded for a while after a shift, or a site named only while the posture was misread, must not make a
+  later small shift look like the offloading of half the sites;
 - or a nurse recording a turn by hand (who and when), which counts at once.
 
 While a change is being held no reminder is raised (the patient is being turned); if the patient goes back
@@ -82,6 +85,7 @@ class TurnClock:
         self.away_since: float | None = None
         self.loaded_since: dict[str, float] = {}    # sites at or above the threshold, since when
         self.at_risk: set[str] = set()              # sites loaded for settle_s since the last turn
+        self.relieved_since: dict[str, float] = {}  # sites at risk below half the threshold, since when
         self.offloaded_since: float | None = None
 
     @property
@@ -123,6 +127,7 @@ class TurnClock:
                 and now_s - self.away_since >= self.away_s:
             self.last_turn_s = self.reference = self.moved_since = self.offloaded_since = None
             self.at_risk.clear()
+            self.relieved_since.clear()
             events.append(TurnEvent(self.away_since, "bed-empty", "out-of-bed"))
         self.at_risk |= {s for s, since in self.loaded_since.items() if now_s - since >= self.settle_s}
         if any(e.kind in ("repositioned", "recorded") for e in events):
@@ -181,11 +186,18 @@ class TurnClock:
         return [TurnEvent(since, "repositioned", self.posture, before, "posture")]
 
     def _offloading(self, now_s: float, peaks: dict[str, float]) -> list[TurnEvent]:
-        """A turn in the same posture: most of the sites at risk below half the threshold for ``hold_s``."""
+        """A turn in the same posture: most of the sites at risk below half the threshold for ``hold_s``; a site
+        relieved for ``hold_s`` before any offloading was being held has recovered and leaves the sites at risk."""
+        below = {s for s in self.at_risk if peaks.get(s, 0.0) < self.at_risk_kpa / 2}
+        self.relieved_since = {s: self.relieved_since.get(s, now_s) for s in below}
+        if self.offloaded_since is None:
+            recovered = {s for s, since in self.relieved_since.items() if now_s - since >= self.hold_s}
+            self.at_risk -= recovered
+            self.relieved_since = {s: t for s, t in self.relieved_since.items() if s not in recovered}
         if not self.at_risk:
             self.offloaded_since = None
             return []
-        relieved = [s for s in self.at_risk if peaks.get(s, 0.0) < self.at_risk_kpa / 2]
+        relieved = sorted(self.relieved_since)
         if len(relieved) < OFFLOADED_SHARE * len(self.at_risk):
             self.offloaded_since = None
             return []
@@ -201,6 +213,7 @@ class TurnClock:
     def _turned(self, time_s: float) -> None:
         self.last_turn_s = time_s
         self.at_risk.clear()
+        self.relieved_since.clear()
         self.offloaded_since = self.moved_since = None
         self.loaded_since = {s: max(since, time_s) for s, since in self.loaded_since.items()}
 
@@ -213,6 +226,7 @@ class TurnClock:
                 "reference": self.reference, "moved_since": self.moved_since, "last_turn_s": self.last_turn_s,
                 "away_since": self.away_since,
                 "loaded_since": dict(self.loaded_since), "at_risk": sorted(self.at_risk),
+                "relieved_since": dict(self.relieved_since),
                 "offloaded_since": self.offloaded_since}
 
     def restore(self, state: dict) -> TurnClock:
@@ -222,4 +236,5 @@ class TurnClock:
             setattr(self, name, state.get(name))
         self.loaded_since = {str(s): float(t) for s, t in (state.get("loaded_since") or {}).items()}
         self.at_risk = set(state.get("at_risk") or ())
+        self.relieved_since = {str(s): float(t) for s, t in (state.get("relieved_since") or {}).items()}
         return self
