@@ -38,7 +38,7 @@ apt-get install -y -qq "${packages[@]}"
 install -D -m 0644 "$repo/systemd/appliance-hospital.sysusers" "$root/usr/lib/sysusers.d/appliance-hospital.conf"
 systemd-sysusers --root="$root" "$root/usr/lib/sysusers.d/appliance-hospital.conf"
 install -D -m 0644 -t "$root/usr/lib/systemd/system" "$repo/systemd/appliance-hospital-node@.service" \
-    "$repo/systemd/appliance-hospital-history.service"
+    "$repo/systemd/appliance-hospital-history.service" "$repo/systemd/appliance-hospital-overview.service"
 
 install_args=(--description "$description" --root "$root" "${nodes[@]}")
 [ "$history" = yes ] || install_args+=(--no-history)

@@ -66,7 +66,8 @@ def test_install_writes_the_nodes_files_the_description_and_the_sql_and_names_th
     root = tmp_path / "root"
     assert main(["hospital", "install", "--description", str(description), "--root", str(root)]) == 0
     assert capsys.readouterr().out.split() == [*(f"appliance-hospital-node@n{i}.service" for i in (1, 2, 3)),
-                                               "appliance-hospital-history.service"]
+                                               "appliance-hospital-history.service",
+                                               "appliance-hospital-overview.service"]
     folder = root / "etc/appliance/hospital"
     assert sorted(p.name for p in folder.iterdir()) == ["history-setup.sql", "hospital.toml", "n1.conf", "n2.conf",
                                                         "n3.conf", "secrets"]
@@ -151,12 +152,14 @@ def test_the_install_script_runs_each_step_on_the_description(tmp_path, descript
         f"chown -R appliance-hospital:appliance-hospital {root}/etc/appliance/hospital",
         "runuser -u postgres -- psql -X -q -v ON_ERROR_STOP=1 -f -",
         "systemctl daemon-reload",
-        "systemctl enable --now appliance-hospital-node@n1.service appliance-hospital-history.service"]
-    for unit in ("appliance-hospital-node@.service", "appliance-hospital-history.service"):
+        "systemctl enable --now appliance-hospital-node@n1.service appliance-hospital-history.service "
+        "appliance-hospital-overview.service"]
+    for unit in ("appliance-hospital-node@.service", "appliance-hospital-history.service",
+                 "appliance-hospital-overview.service"):
         assert (root / "usr/lib/systemd/system" / unit).read_text() == (REPO / "systemd" / unit).read_text()
     assert (root / "etc/appliance/hospital/n1.conf").exists()
-    assert "installed and started: appliance-hospital-node@n1.service appliance-hospital-history.service" \
-        in result.stdout
+    assert "installed and started: appliance-hospital-node@n1.service appliance-hospital-history.service " \
+        "appliance-hospital-overview.service" in result.stdout
 
     bad = subprocess.run(["bash", str(REPO / "systemd/install-hospital-server.sh"), "--node"], capture_output=True,
                          text=True, check=False, env=environment)

@@ -55,7 +55,7 @@ def directives(path: Path) -> dict[str, list[str]]:
 def test_every_unit_verifies_without_a_warning(tmp_path):
     assert {p.name for p in SERVICES} == {"appliance-monitor.service", "appliance-screen.service",
                                           "appliance-ward.service", "appliance-hospital-node@.service",
-                                          "appliance-hospital-history.service"}
+                                          "appliance-hospital-history.service", "appliance-hospital-overview.service"}
     result = verify({p.name: p.read_text() for p in SERVICES}, tmp_path)
     assert result.returncode == 0 and result.stdout + result.stderr == "", result.stdout + result.stderr
 
@@ -127,6 +127,17 @@ def test_the_history_writer_runs_as_the_engines_account_after_postgresql_on_the_
     assert unit["User"] == [ACCOUNT] and unit["Restart"] == ["always"] and unit["RestartPreventExitStatus"] == ["2"]
     assert "AF_UNIX" in unit["RestrictAddressFamilies"][0].split()      # PostgreSQL's socket
     assert unit["ProtectSystem"] == ["strict"] and unit["NoNewPrivileges"] == ["yes"]
+
+
+def test_the_overview_reads_the_history_as_the_engines_account_behind_the_proxy():
+    unit = directives(UNITS / "appliance-hospital-overview.service")
+    command = (UNITS / "appliance-hospital-overview.service").read_text().split("ExecStart=")[1].split("\n")
+    command = " ".join(line.rstrip("\\") for line in command[:2]).split()
+    assert command == ["/opt/appliance/bin/appliance", "hospital", "overview", "--description",
+                       f"{CONFIG_DIR}/hospital.toml", "--data-dir", "/var/lib/appliance-hospital-overview",
+                       "--listen", "127.0.0.1:8095", "--behind-proxy"]
+    assert unit["User"] == [ACCOUNT] and unit["StateDirectory"] == ["appliance-hospital-overview"]
+    assert "postgresql.service" in unit["After"][0].split() and unit["ProtectSystem"] == ["strict"]
 
 
 def made_by_sysusers(root: Path, name: str) -> tuple[dict, dict]:

@@ -25,6 +25,7 @@ STATE_DIR = PurePosixPath("/var/lib/appliance-hospital")
 ACCOUNT = "appliance-hospital"
 """The system account of the units (systemd/appliance-hospital.sysusers) and the writer's PostgreSQL role."""
 HISTORY_UNIT = "appliance-hospital-history.service"
+OVERVIEW_UNIT = "appliance-hospital-overview.service"
 SETUP_SQL = "history-setup.sql"
 
 
@@ -80,5 +81,5 @@ def install(hospital: Hospital, root: Path, nodes: list[str] | None = None, hist
         assert hospital.history is not None
         sql = folder / SETUP_SQL
         write_atomic(sql, setup_sql(hospital.history))
-    units = tuple(node_unit(name) for name in chosen) + ((HISTORY_UNIT,) if history else ())
+    units = tuple(node_unit(name) for name in chosen) + ((HISTORY_UNIT, OVERVIEW_UNIT) if history else ())
     return Installed(folder, sql, units)
