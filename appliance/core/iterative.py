@@ -40,6 +40,14 @@ LOG_LIMIT = float(np.log(1e4))      # conductivity stays within 1e-4 to 1e4 of t
 STEP_TOLERANCE = 1e-3
 """Stop once no pixel's log conductivity moves by more than this in one step."""
 
+LAMBDA_FLOOR = 1e-4
+"""The least regularisation the non-linear fit takes, relative to the data's (lambda tr P against tr J^T W J).
+The one-step rule may choose far less: at the floor of its search (1e-12) on the 16-electrode sensors and the
+8-electrode grid-2x4, whose one-step GREIT image its desired-image blur holds. Gauss-Newton with no
+regularisation follows the model's error instead of the data, into images the machine's rounding decides: a
+100 mmHg square on grid-2x4@100x200 came out at its place on one CPU and at the mat's far corner on another.
+1e-4 lies below what the rule chooses where it finds an optimum inside its range (grid-4x4: 3.3e-4), so those
+mats iterate as before."""
 MISFIT_LIMIT = 4.0
 AFFORDABLE_ELECTRODES = 32      # beyond this one step takes tens of seconds (~25 s on a 128-electrode bed)
 """A one-step image that leaves more than this many noise standard deviations of the data
@@ -85,7 +93,9 @@ def iterative_reconstruct(model: ForwardModel, r: Reconstructor, frame: np.ndarr
     j0 = linear.jacobian * u[:, None]
     # The prior lambda was chosen for: GREIT's inner solve is Tikhonov's.
     kind = r.options.algorithm[3:] if r.options.algorithm.startswith("gn-") else "tikhonov"
-    penalty = r.lam * prior_matrix(kind, (j0.T * weights) @ j0, linear.grid)
+    normal = (j0.T * weights) @ j0
+    prior = prior_matrix(kind, normal, linear.grid)
+    penalty = max(r.lam, LAMBDA_FLOOR * np.trace(normal) / np.trace(prior)) * prior
     f0 = linear.reference
 
     def evaluate(eta):
