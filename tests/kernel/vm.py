@@ -270,7 +270,8 @@ def run(kernel: Kernel, command: str, out: Path, *, i2c_chips: list[int], timeou
 
 
 def _boot(qemu: list[str], log: Path, timeout_s: float) -> bool:
-    """Run QEMU until the guest powers off or ``timeout_s`` passes; False if KVM could not run the guest."""
+    """Run QEMU until the guest powers off or ``timeout_s`` passes; False if KVM could not run the guest (an internal
+    error, or QEMU stopping on KVM with an error of its own, such as an MSR the host's KVM refuses)."""
     with log.open("w") as messages:
         process = subprocess.Popen(qemu, stdout=messages, stderr=subprocess.STDOUT)
     deadline = time.monotonic() + timeout_s
@@ -285,6 +286,8 @@ def _boot(qemu: list[str], log: Path, timeout_s: float) -> bool:
             process.kill()
         process.wait()
     if process.returncode and not stopped_by_us:
+        if "kvm" in qemu:           # KVM refused the guest (an AMD host's KVM and "-cpu host" may): emulate instead
+            return False
         raise VMUnavailable(f"{shlex.join(qemu[:5])} ... exited with {process.returncode}: {_text(log).strip()}")
     return not kvm_failed
 
