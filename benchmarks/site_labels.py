@@ -167,7 +167,7 @@ def chain_pairs(cache: Path) -> list[tuple[str | None, str | None, str]]:
 
 def main(argv=None) -> None:
     """Print the held-out score table (true maps on the monitor's 30 mm pixels), and with ``--loso`` the
-    leave-one-subject-out study over the training subjects."""
+    leave-one-subject-out study over the training subjects; written to benchmarks/site_labels.md too."""
     import argparse
     from collections import Counter
 
@@ -188,17 +188,28 @@ def main(argv=None) -> None:
     if args.loso and args.chain:
         runs.insert(1, ("training, leave one subject out, read through the chain; posture recorded",
                         lambda: leave_one_subject_out_pairs(args.pmat, args.chain)))
-    print("| true maps (30 mm pixels) | loaded spots | labelled right | named by hand | of those, right |\n"
-          "|---|---|---|---|---|")
+    from report import machine                  # beside this script when it runs as one
+
+    command = "python benchmarks/site_labels.py" + "".join(f" {a}" for a in (argv if argv is not None else
+                                                                            __import__("sys").argv[1:]))
+    lines = ["# Site labels against the hand labels", "",
+             f"Made by `{command}` on {machine()}.",
+             "A loaded labelled spot is right when the locator's label for its monitor pixel is the hand's (unnamed "
+             "for unnamed included); the held-out subjects' labels were given by another labeller than the "
+             "training subjects'.", "",
+             "| maps | loaded spots | labelled right | named by hand | of those, right |", "|---|---|---|---|---|"]
     wrong: dict[str, Counter] = {}
     for name, run in runs:
         pairs = run()
         n, right, n_named, named_right = score(pairs)
-        print(f"| {name} | {n} | {right:.1%} | {n_named} | {named_right:.1%} |")
+        lines.append(f"| {name} | {n} | {right:.1%} | {n_named} | {named_right:.1%} |")
         wrong[name] = Counter((hand, found) for hand, found, _ in pairs if hand != found)
     for name, counts in wrong.items():
-        print(f"\nDisagreements, {name}: " + "; ".join(
-            f"{n} x {b or 'unnamed'} where the labels say {a or 'unnamed'}" for (a, b), n in counts.most_common(8)))
+        lines += ["", f"Disagreements, {name}: " + "; ".join(
+            f"{n} x {b or 'unnamed'} where the labels say {a or 'unnamed'}" for (a, b), n in counts.most_common(8))]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    (Path(__file__).parent / "site_labels.md").write_text(text, encoding="utf-8")
 
 
 if __name__ == "__main__":
