@@ -79,10 +79,13 @@ class MqttTransport:
 
     def send_event(self, seq: int, event: dict) -> bool:
         payload = json.dumps({**event, "bed_id": self._bed().bed_id, "seq": seq})
-        with self._lock:                                         # the PUBACK's callback waits for the mid's seq
-            info = self.client.publish(self.topics[event["type"]], payload, qos=1)
-            if info.rc != mqtt.MQTT_ERR_SUCCESS:
-                return False
+        # Not under our lock: paho's thread calls _on_publish holding its own lock, and publish() takes that lock,
+        # so holding ours across it deadlocks against a PUBACK. A PUBACK that comes before the mid is noted is
+        # missed, and the event is sent again after resend_after_s like any other unacknowledged one.
+        info = self.client.publish(self.topics[event["type"]], payload, qos=1)
+        if info.rc != mqtt.MQTT_ERR_SUCCESS:
+            return False
+        with self._lock:
             self._in_flight[info.mid] = seq
         return True
 

@@ -319,10 +319,10 @@ class WardLink:
         steady = time.monotonic()
         for entry in self.outbox.pending():
             with self._lock:
-                if len(self._in_flight) >= MAX_IN_FLIGHT:
+                if len(self._in_flight) >= MAX_IN_FLIGHT and entry.seq not in self._in_flight:
                     return
-                if entry.seq in self._in_flight:
-                    continue
+                # One still awaiting the transport's word is sent again after its wait like any other: the word
+                # can be missed (a PUBACK that beats the transport's note of its message id).
                 connection, sent, wait = self._sends.get(entry.seq, (-1, 0.0, self.resend_after_s))
                 if connection == self._connection and steady - sent < wait:
                     continue
