@@ -37,7 +37,7 @@ ROOT = HERE.parent
 BASELINE = "1315c8b"
 """The tree before the monitor stopped writing map files every frame and syncing every quiet frame."""
 SHORT, LONG = 10, 70
-REPEATS = 5
+REPEATS = 7
 RUNNER = """
 import atexit, runpy, sys, time
 from appliance.service import virtual_bed
