@@ -137,3 +137,13 @@ def iana_zone(text: str) -> str:
     except ConfigError as exc:
         raise argparse.ArgumentTypeError(str(exc).removeprefix("time zone: ")) from None
     return text
+
+
+def add_screen_options(parser, default_port: int) -> None:
+    """``--listen``, ``--plain-http`` and ``--behind-proxy``: how a screen the command serves (the ward station's,
+    the hospital overview) is reached."""
+    parser.add_argument("--listen", metavar="[HOST:]PORT", default=str(default_port),
+                        help=f"the screen's address (default 127.0.0.1:{default_port})")
+    parser.add_argument("--plain-http", action="store_true", help="session cookies without the Secure flag")
+    parser.add_argument("--behind-proxy", action="store_true",
+                        help="trust X-Forwarded-For/-Proto from the TLS proxy on 127.0.0.1")

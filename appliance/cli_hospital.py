@@ -17,7 +17,7 @@ import signal
 import tempfile
 from pathlib import Path
 
-from appliance.cli_args import whole_within
+from appliance.cli_args import add_screen_options, whole_within
 
 
 def add_parsers(sub) -> None:
@@ -62,11 +62,7 @@ def add_parsers(sub) -> None:
                                                "on the local Unix socket, as the system user running this)")
     p.add_argument("--data-dir", type=Path, default=None, metavar="DIR",
                    help="the overview's accounts and session key (default: the data folder's hospital-overview/)")
-    p.add_argument("--listen", metavar="[HOST:]PORT", default="8095", help="the screen's address (default "
-                                                                           "127.0.0.1:8095)")
-    p.add_argument("--plain-http", action="store_true", help="session cookies without the Secure flag")
-    p.add_argument("--behind-proxy", action="store_true",
-                   help="trust one proxy's X-Forwarded-For and X-Forwarded-Proto (nginx in front)")
+    add_screen_options(p, 8095)
     p.set_defaults(run=_overview)
 
     p = hospital.add_parser("install", help="write a server's node configurations, description and history SQL "

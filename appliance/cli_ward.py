@@ -23,7 +23,7 @@ APPLIED = "ward-applied.db"
 
 
 def add_parsers(sub) -> None:
-    from appliance.cli_args import whole_within
+    from appliance.cli_args import add_screen_options, whole_within
 
     p = sub.add_parser("ward", help="run the ward station: every bed's state and alarms from the MQTT broker")
     p.add_argument("--config", type=Path, required=True, help="the station's TOML configuration ([broker], "
@@ -32,13 +32,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--data-dir", type=Path, default=None,
                    help="where the screen's accounts, audit log and command journal are kept (default "
                         "$APPLIANCE_DATA_DIR/ward or ~/.local/share/appliance/ward)")
-    p.add_argument("--listen", metavar="[HOST:]PORT", default="8090", help="the screen's address (default "
-                                                                           "127.0.0.1:8090)")
+    add_screen_options(p, 8090)
     p.add_argument("--threads", type=whole_within(1, MAX_THREADS), default=DEFAULT_THREADS,
                    help=f"server threads, one per open ward screen (default {DEFAULT_THREADS})")
-    p.add_argument("--plain-http", action="store_true", help="session cookies without the Secure flag")
-    p.add_argument("--behind-proxy", action="store_true",
-                   help="trust X-Forwarded-For/-Proto from the TLS proxy on 127.0.0.1")
     p.set_defaults(run=_ward)
 
     p = sub.add_parser("ward-broker", help="write the ward broker's password file, ACL and Mosquitto settings: each "
