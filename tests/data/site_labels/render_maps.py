@@ -7,8 +7,10 @@ it names nothing. Site names come from looking at the rendered panels.
     PYTHONPATH=. python tests/data/site_labels/render_maps.py pmat 4 out.png 1,2,3,4,5,6  # some of them
     PYTHONPATH=. python tests/data/site_labels/render_maps.py popu 4 out.png   # PoPu prone1..7
     PYTHONPATH=. python tests/data/site_labels/render_maps.py one 4 13 out.png # one PmatData map, enlarged
+    PYTHONPATH=. python tests/data/site_labels/render_maps.py spots 4 > S4.json  # the label file to fill in
 """
 
+import json
 import sys
 from pathlib import Path
 
@@ -25,6 +27,10 @@ MERGE_MM = 40.0
 MAX_SPOTS = 12
 SHARED = Path(__file__).resolve().parents[4] / "shared" / "data"      # beside the repository
 PMAT_DIR, POPU_DIR = str(SHARED / "pmatdata"), str(SHARED / "popu")
+POSTURES = {1: "supine", 2: "right-90", 3: "left-90", 4: "right-30", 5: "right-60", 6: "left-30", 7: "left-60",
+            8: "supine", 9: "supine", 10: "supine", 11: "supine", 12: "supine", 13: "fetal-right",
+            14: "fetal-left", 15: "inclined", 16: "inclined", 17: "inclined"}
+"""Each PmatData experiment-i posture file as the monitor names the posture."""
 NAMES = {1: "supine", 2: "right side 90", 3: "left side 90", 4: "right 30", 5: "right 60", 6: "left 30",
          7: "left 60", 8: "supine var 8", 9: "supine var 9", 10: "supine var 10", 11: "supine var 11",
          12: "supine var 12", 13: "right fetal", 14: "left fetal", 15: "head up 30", 16: "head up 45",
@@ -106,6 +112,20 @@ if __name__ == "__main__":
         v = int(sys.argv[2])
         render([(f"PoPu v{v} prone{k}", popu_map(f"prone{k}", v)) for k in range(1, 8)], sys.argv[3],
                ncols=4, size=(14, 16))
+    elif kind == "spots":
+        s = int(sys.argv[2])
+        maps = [{"posture_file": p, "posture": POSTURES[p],
+                 "spots": [{"spot": i, "along_mm": r * 10 + 5, "across_mm": c * 10 + 5, "peak_mmhg": peak,
+                            "site": None, "note": ""}
+                           for i, (r, c, peak) in enumerate(find_spots(pmat_map(s, p)), 1)]}
+                for p in range(1, 18)]
+        print(json.dumps({"source": "PmatData experiment-i", "subject": s, "labeller": "hand, from the rendered maps",
+                          "frame": "middle frame (len//2) of pmat_scene on a 900 x 1900 mm MatGrid at 10 mm",
+                          "convention": "tests/data/site_labels/CONVENTION.md; along_mm from the mat's head end, "
+                                        "across_mm from the mat's edge on the patient's right",
+                          "spot_finder": "tests/data/site_labels/render_maps.py find_spots (numbers spots only; "
+                                         "'spot' is its number)",
+                          "maps": maps}, indent=1))
     elif kind == "one":
         s, p = int(sys.argv[2]), int(sys.argv[3])
         render([(f"S{s} #{p} {NAMES[p]}", pmat_map(s, p))], sys.argv[4], ncols=1, size=(8, 14))
