@@ -20,7 +20,7 @@ import numpy as np
 from appliance.core.iterative import affordable_iterate
 from appliance.core.model_cache import ReconstructionModel
 from appliance.core.pressure import (PressureCalibration, ZoneCurve, fit_pressure_curve, layout_fingerprint,
-                                     temperature_corrected)
+                                     matched_curve, temperature_corrected)
 from appliance.errors import ConfigError
 
 KPA_PER_GRAM_PER_CM2 = 0.0980665    # 1 g on 1 cm2 (Table 6.3.1: 100 g on 4 cm2 is 2.45 kPa)
@@ -204,10 +204,14 @@ def pressure_calibration(acquire: Callable, place: Callable, model: Reconstructi
         if not all(isinstance(load, MapLoad) for load in loads):
             raise ConfigError("a pressure calibration takes either weights or whole maps, not both")
         # Every pixel of every map counts: a body's loads come in every size, and the curve learns how
-        # the mat and the reconstruction read them all, narrow heels with wide buttocks.
+        # the mat and the reconstruction read them all, narrow heels with wide buttocks. The curve matches
+        # the two distributions (the k-th largest change reads the k-th largest pressure) rather than
+        # regressing pressure on change: a regression's mean pressure for a change pulls every peak toward
+        # the middle (the change is noisy), and a site's peak is what its dose follows.
+        # benchmarks/calibration_curve.md compares the two on people left out of the fit.
         inside = np.isfinite(images[0])
         sizes = np.clip(-np.array([image[inside] for image in images]), 0.0, None)     # a rise reads nothing
-        curve = fit_pressure_curve(sizes, np.array([truth[inside] for truth in truths]))
+        curve = matched_curve(sizes, np.array([truth[inside] for truth in truths]))
         return PressureCalibration(setup.layout.name, layout_fingerprint(setup.layout), setup.options.algorithm,
                                    grid.shape, curve, reference_temperature,
                                    notes={**notes, "kind": "maps",

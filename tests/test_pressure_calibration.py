@@ -9,8 +9,8 @@ from appliance.core.named_layouts import get_layout
 from appliance.calibration import FOOT_END, HEEL_SIDE_MM, foot_end_loads, foot_end_mask
 from appliance.core.pixels import pixel_grid
 from appliance.core.pressure import (PressureCalibration, PressureCurve, ZoneCurve, fit_pressure_curve,
-                                     layout_fingerprint, load_pressure_calibration, save_pressure_calibration,
-                                     temperature_corrected)
+                                     layout_fingerprint, load_pressure_calibration, matched_curve,
+                                     save_pressure_calibration, temperature_corrected)
 from appliance.errors import ConfigError, DataFileInvalid
 
 
@@ -33,6 +33,25 @@ def test_pressures_the_data_cannot_tell_apart_are_interpolated_not_stepped():
     assert curve.pressure_kpa(np.array([-2.5]))[0] == pytest.approx(6.5)
     assert curve.pressure_kpa(np.array([-3.0]))[0] == pytest.approx(11.0)
     assert np.all(np.diff(curve.change) > 0) and np.all(np.diff(curve.pressure) >= 0)
+
+
+def test_a_matched_curve_reads_the_high_pressures_at_their_height_where_a_regression_pulls_them_down(rng):
+    # pressures 0-20 kPa seen through a noisy change: the regression reads the highest pressures well below
+    # their height; matching reads the map with the truth's spread, so the top of the map is the top of the truth
+    truth = rng.uniform(0, 20, 20000)
+    change = truth / 40 + rng.normal(0, 0.1, truth.size)
+    regressed = fit_pressure_curve(change, truth).pressure_kpa(-change)
+    matched = matched_curve(change, truth).pressure_kpa(-change)
+    assert np.quantile(matched, 0.99) == pytest.approx(np.quantile(truth, 0.99), rel=0.03)
+    assert np.quantile(regressed, 0.99) < 0.95 * np.quantile(truth, 0.99)
+    top = truth > np.quantile(truth, 0.99)
+    assert np.mean(matched[top]) > 1.05 * np.mean(regressed[top])
+    assert np.all(np.diff(matched_curve(change, truth).pressure) >= 0)
+
+
+def test_a_matched_curve_needs_a_pressure_for_each_change():
+    with pytest.raises(ConfigError, match="3 changes and 2 pressures"):
+        matched_curve(np.array([0.1, 0.2, 0.3]), np.array([1.0, 2.0]))
 
 
 def test_rises_in_conductivity_and_nan_read_as_nothing_and_nan():

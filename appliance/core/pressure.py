@@ -105,6 +105,23 @@ def fit_pressure_curve(change: np.ndarray, pressure_kpa: np.ndarray, weights: np
     return PressureCurve(centres, np.maximum.accumulate(values))
 
 
+def matched_curve(change: np.ndarray, pressure_kpa: np.ndarray, knots: int = CURVE_KNOTS) -> PressureCurve:
+    """The monotone curve that reads the changes of many pixels with the distribution of their true pressures:
+    the k-th largest change reads the k-th largest pressure (quantile matching).
+
+    Regressing pressure on a noisy change (:func:`fit_pressure_curve`) gives the mean pressure of the pixels
+    showing that change, which pulls the highest pressures toward the middle; matching keeps the spread of the
+    truth, so the peaks a dose follows are read at their height. Only the two sets of values are compared, so
+    the pairing of a pixel's change with its own pressure does not enter.
+    """
+    change, pressure_kpa = np.ravel(change).astype(float), np.ravel(pressure_kpa).astype(float)
+    if change.shape != pressure_kpa.shape:
+        raise ConfigError(f"a matched pressure curve needs a pressure for each change, got {change.size} "
+                          f"changes and {pressure_kpa.size} pressures")
+    keep = np.isfinite(change) & np.isfinite(pressure_kpa)
+    return fit_pressure_curve(np.sort(change[keep]), np.sort(pressure_kpa[keep]), knots=knots)
+
+
 def layout_fingerprint(layout: Layout) -> str:
     """SHA-256 of the layout's TOML: two mats match only if every electrode matches."""
     return hashlib.sha256(layout_to_toml(layout).encode()).hexdigest()
