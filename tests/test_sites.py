@@ -229,11 +229,10 @@ def test_a_side_lying_trochanter_is_its_hot_spot_and_the_hip_within_reach_of_it(
 # The learned table, on the training subjects' labels (S4, S6 and S11 are held out and never read here)
 
 LABELS = Path(__file__).resolve().parent / "data" / "site_labels"
-LOSO_ALL, LOSO_NAMED, LOSO_MARGIN = 0.841, 0.841, 0.02
+LOSO_ALL, LOSO_NAMED, LOSO_MARGIN = 0.800, 0.797, 0.02
 """Leave-one-subject-out accuracy measured on the loaded labelled spots (all, and those the hand named) when the
 locator's constants were chosen (``python benchmarks/site_labels.py --loso``). The margin allows for small changes
-to the frame fit; the locator before the relative load, the pelvic midline and the smoothed trochanter peak (0.804
-and 0.800) falls below it."""
+to the frame fit; the locator with the earlier trochanter reach of 75 mm gave 0.790 (0.805 of the named)."""
 
 
 @pytest.fixture(scope="module")
@@ -289,7 +288,7 @@ def test_labels_follow_a_real_body_slid_along_and_across(posture_file, posture):
 # ---------------------------------------------------------------------------
 # The shipped locator on the held-out subjects' labels (S4, S6, S11): read to judge it, never to fit it
 
-HELD_OUT_RIGHT = {False: (0.792, 0.767), True: (0.760, 0.720)}
+HELD_OUT_RIGHT = {False: (0.765, 0.741), True: (0.730, 0.688)}
 """Share of the loaded held-out spots labelled right (all, and those the hand named), the locator told the posture
 recorded (False) or the posture model's estimate (True), as measured by ``python benchmarks/site_labels.py``."""
 HELD_OUT_MARGIN = 0.015
@@ -306,6 +305,6 @@ def test_the_shipped_locator_holds_its_held_out_score(estimated):
     sys.modules[spec.name] = bench              # its dataclasses look themselves up there
     spec.loader.exec_module(bench)
     n, right, n_named, named_right = bench.score(bench.held_out_pairs(PMAT, estimated))
-    assert (n, n_named) == (371, 236)           # the loaded spots: fixed by the true maps and the labels
+    assert (n, n_named) == (371, 205)           # the loaded spots: fixed by the true maps and the labels
     assert right >= HELD_OUT_RIGHT[estimated][0] - HELD_OUT_MARGIN
     assert named_right >= HELD_OUT_RIGHT[estimated][1] - HELD_OUT_MARGIN

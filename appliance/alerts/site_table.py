@@ -16,16 +16,12 @@ side swapped), so a right-side posture learns from the left-side maps too and su
 
 These constants were chosen by leave-one-subject-out cross-validation over the eight training subjects, the
 locator's label of a loaded labelled spot being its pixel's, on the true maps and on the maps read through the
-whole chain (``python benchmarks/site_labels.py --loso [--chain MODEL_CACHE]``). Where a place lies alone gave
-0.80 of the loaded spots right on the true maps (k from 5 to 17 and the across weight from 1 to 3 all 0.78-0.80);
-measuring u from the pelvis's midline lying on the back (:mod:`appliance.alerts.body_frame`) 0.81. With the
-trochanter's peak of :mod:`appliance.alerts.sites`, load weights of 0, 0.02, 0.03, 0.04, 0.05 and 0.07 gave 0.836,
-0.842, 0.841, 0.841, 0.839 and 0.838 on the true maps and 0.804, 0.805, 0.810, 0.805, 0.798 and 0.800 through the
-chain (whose reconstruction lowers the peaks against the body's load): 0.03 is the best of both, by a few spots.
-At 0.05 on the true maps, k of 5, 9 and 11 did worse (by 0.01-0.02) and the reference at the 80th to 99th
-percentile changed it by under 0.01; a peak-ness feature (a cell's load over the highest within 75 mm) added
-nothing. tests/test_sites.py recomputes it. Only the training
-subjects (``site_table_fit.TRAINING_SUBJECTS``) are fitted: S4, S6 and S11 are held out for validating the product
+whole chain (``python benchmarks/site_labels.py --loso [--chain MODEL_CACHE]``). With the labels as given under
+one convention (tests/data/site_labels/CONVENTION.md) and the trochanter's reach of :mod:`appliance.alerts.sites`,
+k of 7 and 11, across weights of 2 and 3 and load weights of 0, 0.03 and 0.06 gave 0.77-0.80 of the loaded spots
+right, these the best (0.800); measuring u from the pelvis's midline lying on the back
+(:mod:`appliance.alerts.body_frame`) was chosen on the earlier labels (0.81 against 0.80 for the local midline).
+tests/test_sites.py recomputes it. Only the training subjects (``site_table_fit.TRAINING_SUBJECTS``) are fitted: S4, S6 and S11 are held out for validating the product
 and must never be read here. Prone, sitting on the edge and out of bed have no labels: :mod:`appliance.alerts.sites`
 keeps rules for them.
 
