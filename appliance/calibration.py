@@ -19,8 +19,8 @@ import numpy as np
 
 from appliance.core.iterative import affordable_iterate
 from appliance.core.model_cache import ReconstructionModel
-from appliance.core.pressure import (PressureCalibration, ZoneCurve, fit_pressure_curve, layout_fingerprint,
-                                     matched_curve, temperature_corrected)
+from appliance.core.pressure import (PressureCalibration, PressureCurve, ZoneCurve, fit_pressure_curve,
+                                     layout_fingerprint, matched_curve, temperature_corrected)
 from appliance.errors import ConfigError
 
 KPA_PER_GRAM_PER_CM2 = 0.0980665    # 1 g on 1 cm2 (Table 6.3.1: 100 g on 4 cm2 is 2.45 kPa)
@@ -32,6 +32,8 @@ FOOT_END_MM = 350.0                 # the heels' band: on a 1900 mm bed a 175 cm
                                     # from the end (sim/body.py), shorter or shifted patients up to ~300 mm
 HEEL_SIDE_MM = 50.0                 # a heel's contact on foam: ~20-25 cm2 at or above 32 mmHg (heel peak 55 mmHg)
 FOOT_END = "foot-end"
+HEAD_END_MM = 240.0                 # where a lying patient's head rests on a bed: its own curve from people's maps
+HEAD_END = "head-end"
 
 
 @dataclass(frozen=True)
@@ -157,6 +159,42 @@ def foot_end_mask(layout, grid) -> np.ndarray:
     return (along >= long - FOOT_END_MM).reshape(grid.shape)
 
 
+def map_curves(images, truths, layout, grid, *, fit: Callable = matched_curve,
+               head_end: bool = True) -> tuple[PressureCurve, tuple[ZoneCurve, ...]]:
+    """The curve, and on a bed the head end's own, fitted to every pixel of people's maps (``truths``, kPa) and
+    their ``images``.
+
+    Every pixel of every map counts: a body's loads come in every size, and the curve learns how the mat and
+    the reconstruction read them all, narrow heels with wide buttocks. ``fit`` is :func:`matched_curve` (the k-th
+    largest change reads the k-th largest pressure) rather than a regression of pressure on change, whose mean
+    pressure for a change pulls every peak toward the middle (the change is noisy), and a site's peak is what its
+    dose follows. The head, at the mat's end where the image is least sensitive, is read low by the body's curve,
+    so the first ``HEAD_END_MM`` of a bed gets its own. benchmarks/calibration_curve.md chose both on people left
+    out of the fit.
+    """
+    inside = np.isfinite(images[0])
+    head = head_end_mask(layout, grid) & inside if head_end else np.zeros_like(inside)
+    body = inside & ~head
+    curve = fit(_sizes(images, body), np.array([truth[body] for truth in truths]))
+    if not head.any():
+        return curve, ()
+    return curve, (ZoneCurve(HEAD_END, head_end_mask(layout, grid),
+                             fit(_sizes(images, head), np.array([truth[head] for truth in truths]))),)
+
+
+def head_end_mask(layout, grid) -> np.ndarray:
+    """Pixels (rows, cols) whose centre lies in the first ``HEAD_END_MM`` of a bed's long side; none on a
+    smaller mat."""
+    long, _, along_x = _long_axis(layout)
+    along = grid.centres_mm[:, 0 if along_x else 1]
+    return ((along < HEAD_END_MM) & (long >= BED_MIN_LENGTH_MM)).reshape(grid.shape)
+
+
+def _sizes(images, mask: np.ndarray) -> np.ndarray:
+    """The size of each image's change on ``mask``'s pixels (a rise reads nothing)."""
+    return np.clip(-np.array([image[mask] for image in images]), 0.0, None)
+
+
 def grams_for(load: Load) -> float:
     """The weight that presses ``load``'s area to its pressure (what an operator puts down)."""
     return load.pressure_kpa * (load.side_mm / 10.0) ** 2 / KPA_PER_GRAM_PER_CM2
@@ -203,17 +241,9 @@ def pressure_calibration(acquire: Callable, place: Callable, model: Reconstructi
     if any(isinstance(load, MapLoad) for load in loads):
         if not all(isinstance(load, MapLoad) for load in loads):
             raise ConfigError("a pressure calibration takes either weights or whole maps, not both")
-        # Every pixel of every map counts: a body's loads come in every size, and the curve learns how
-        # the mat and the reconstruction read them all, narrow heels with wide buttocks. The curve matches
-        # the two distributions (the k-th largest change reads the k-th largest pressure) rather than
-        # regressing pressure on change: a regression's mean pressure for a change pulls every peak toward
-        # the middle (the change is noisy), and a site's peak is what its dose follows.
-        # benchmarks/calibration_curve.md compares the two on people left out of the fit.
-        inside = np.isfinite(images[0])
-        sizes = np.clip(-np.array([image[inside] for image in images]), 0.0, None)     # a rise reads nothing
-        curve = matched_curve(sizes, np.array([truth[inside] for truth in truths]))
+        curve, head_zone = map_curves(images, truths, setup.layout, grid)
         return PressureCalibration(setup.layout.name, layout_fingerprint(setup.layout), setup.options.algorithm,
-                                   grid.shape, curve, reference_temperature,
+                                   grid.shape, curve, reference_temperature, zones=head_zone,
                                    notes={**notes, "kind": "maps",
                                           "maps": [load.name for load in loads if isinstance(load, MapLoad)]})
     weights = [load for load in loads if isinstance(load, Load)]      # all of them: maps were returned above

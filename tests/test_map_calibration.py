@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from appliance.calibration import Load, MapLoad, pressure_calibration
+from appliance.calibration import HEAD_END, HEAD_END_MM, Load, MapLoad, pressure_calibration
 from appliance.core.model_cache import cached_model, default_setup
 from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
@@ -61,8 +61,14 @@ def test_maps_calibrate_a_bed_and_read_a_person_left_out(bed, tmp_path):
     assert calibration.notes["kind"] == "maps" and calibration.flat_field is None
     curve = calibration.curve
     assert curve.change[0] == 0 and curve.pressure[0] == 0 and np.all(np.diff(curve.pressure) >= 0)
+    (head,) = calibration.zones                         # the bed's head end reads by a curve of its own
+    assert head.name == HEAD_END and head.mask.any() and not head.mask.all()
+    centres = model.reconstructor.grid.centres_mm.reshape(*head.mask.shape, 2)
+    along = centres[..., 1] if BED.sheet.size_mm[1] > BED.sheet.size_mm[0] else centres[..., 0]
+    assert along[head.mask].max() < HEAD_END_MM <= along[~head.mask].min()
     save_pressure_calibration(tmp_path / "cal.json", calibration)
-    assert load_pressure_calibration(tmp_path / "cal.json").curve.pressure.tolist() == curve.pressure.tolist()
+    again = load_pressure_calibration(tmp_path / "cal.json")
+    assert again.curve.pressure.tolist() == curve.pressure.tolist() and again.zones[0].name == HEAD_END
 
     monitor = Monitor(source.acquire, model, calibration)
     monitor.take_reference(source.empty_reference())
