@@ -17,7 +17,10 @@ what the bed is told, is here, the same for both.
 
 Resends: every unconfirmed event is sent on each new connection, and again after
 ``resend_after_s``, doubling up to ``MAX_RESEND_S``, so a station away for an hour
-finds a handful of copies of each event waiting, not thousands. With ``confirm``
+finds a handful of copies of each event waiting, not thousands. A send the transport
+reports as come to nothing (``transport_failed``) is tried again ``FAILED_RETRY_S``
+later and its wait starts again from ``resend_after_s``: no copy of it is waiting
+anywhere, and doubling would hold an alarm back for 15 s after a leader's election. With ``confirm``
 off (a broker with no ward station behind it) the transport's acknowledgement
 counts as delivery, and the screen says so.
 
@@ -44,6 +47,9 @@ from appliance.supervise import Supervised
 log = logging.getLogger(__name__)
 
 MAX_RESEND_S = 60.0
+FAILED_RETRY_S = 1.0
+"""How soon an event the transport could not hand over (the engine did not acknowledge it: a leader being
+elected) is sent again: nothing holds a copy yet, so it is not backed off like one the broker or engine holds."""
 MAX_IN_FLIGHT = 100
 """Events handed to the transport and not yet acknowledged by it before the link waits: a transport would
 queue the rest in memory."""
@@ -119,6 +125,7 @@ class WardLink:
         self._queued_steady: dict[int, float] = {}               # seq -> when it was queued, monotonic
         self._in_flight: set[int] = set()                        # handed over, awaiting the transport's word
         self._held: set[int] = set()                             # held by the broker or engine
+        self._failed: set[int] = set()                           # its last send came to nothing
         now = time.monotonic()
         for entry in outbox.pending():
             self._queued_steady[entry.seq] = now  # from an earlier run: the deadline starts again now
@@ -263,6 +270,10 @@ class WardLink:
     def transport_failed(self, seq: int) -> None:
         with self._lock:
             self._in_flight.discard(seq)
+            sent = self._sends.get(seq)
+            if sent is not None and seq in self._queued_steady:
+                self._failed.add(seq)
+                self._sends[seq] = (sent[0], time.monotonic(), FAILED_RETRY_S)
         self._wake.set()
 
     def transport_confirmed(self, seq, station) -> None:
@@ -292,6 +303,7 @@ class WardLink:
             queued = self._queued_steady.pop(seq, None)
             self._sends.pop(seq, None)
             self._held.discard(seq)
+            self._failed.discard(seq)
             self.confirmed += 1
             if queued is not None:
                 self.confirm_latencies_s = [*self.confirm_latencies_s[-999:], time.monotonic() - queued]
@@ -326,9 +338,10 @@ class WardLink:
                 connection, sent, wait = self._sends.get(entry.seq, (-1, 0.0, self.resend_after_s))
                 if connection == self._connection and steady - sent < wait:
                     continue
-                fresh = connection != self._connection
+                again = connection == self._connection and entry.seq not in self._failed
+                self._failed.discard(entry.seq)
                 self._sends[entry.seq] = (self._connection, steady,
-                                          self.resend_after_s if fresh else min(2 * wait, MAX_RESEND_S))
+                                          min(2 * wait, MAX_RESEND_S) if again else self.resend_after_s)
                 self._in_flight.add(entry.seq)
             if not self.transport.send_event(entry.seq, entry.event):
                 with self._lock:
