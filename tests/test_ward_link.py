@@ -325,6 +325,7 @@ class RefusingTransport:
 
     def __init__(self, refusals):
         self.refusals, self.sends = refusals, Counter()
+        self.sent_at: list[float] = []                  # monotonic
         self.link = None
 
     def start(self, link):
@@ -333,6 +334,7 @@ class RefusingTransport:
 
     def send_event(self, seq, event):
         self.sends[seq] += 1
+        self.sent_at.append(time.monotonic())
         refused = self.sends[seq] <= self.refusals
         threading.Timer(0.01, self._answer, (seq, refused)).start()
         return True
@@ -355,9 +357,21 @@ class RefusingTransport:
 
 def test_a_send_that_came_to_nothing_is_tried_again_soon_not_after_the_doubled_resend_wait(tmp_path):
     """Nothing holds a refused event, so it does not wait out resend_after_s (here a minute), let alone twice that:
-    after three refusals it is confirmed within the time the test waits, far less than a minute."""
+    after three refusals (tried again after 1, 2 and 4 s) it is confirmed within the time the test waits, far less
+    than a minute."""
     transport = RefusingTransport(refusals=3)
     with WardLink(transport, "bed7", Outbox(tmp_path / "outbox.db"), resend_after_s=60.0) as bed:
         bed.notify(alarm(1))
-        assert wait_until(lambda: bed.confirmed == 1, 30)
+        assert wait_until(lambda: bed.confirmed == 1, 40)
         assert transport.sends[1] == 4 and bed.published == 4
+
+
+def test_the_wait_after_each_failed_send_doubles_so_an_engine_without_a_quorum_is_not_flooded(tmp_path):
+    """Refused for ever: the tries come 1 s, then at least 2 s, then at least 4 s apart (the gaps are lower bounds,
+    which a busy machine only lengthens), not every second."""
+    transport = RefusingTransport(refusals=10 ** 6)
+    with WardLink(transport, "bed7", Outbox(tmp_path / "outbox.db"), resend_after_s=60.0) as bed:
+        bed.notify(alarm(1))
+        assert wait_until(lambda: transport.sends[1] == 4, 30)
+    gaps = [later - earlier for earlier, later in zip(transport.sent_at, transport.sent_at[1:], strict=False)]
+    assert gaps[0] >= 1.0 and gaps[1] >= 2.0 and gaps[2] >= 4.0

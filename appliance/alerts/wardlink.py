@@ -19,8 +19,9 @@ Resends: every unconfirmed event is sent on each new connection, and again after
 ``resend_after_s``, doubling up to ``MAX_RESEND_S``, so a station away for an hour
 finds a handful of copies of each event waiting, not thousands. A send the transport
 reports as come to nothing (``transport_failed``) is tried again ``FAILED_RETRY_S``
-later and its wait starts again from ``resend_after_s``: no copy of it is waiting
-anywhere, and doubling would hold an alarm back for 15 s after a leader's election. With ``confirm``
+later, then twice as long after each further failure: no copy of it is waiting
+anywhere, and the held events' wait would hold an alarm back 15 s after a leader's
+election. Once held, its wait starts again from ``resend_after_s``. With ``confirm``
 off (a broker with no ward station behind it) the transport's acknowledgement
 counts as delivery, and the screen says so.
 
@@ -49,7 +50,9 @@ log = logging.getLogger(__name__)
 MAX_RESEND_S = 60.0
 FAILED_RETRY_S = 1.0
 """How soon an event the transport could not hand over (the engine did not acknowledge it: a leader being
-elected) is sent again: nothing holds a copy yet, so it is not backed off like one the broker or engine holds."""
+elected) is first sent again, doubling with each failure up to ``MAX_RESEND_S``: nothing holds a copy yet, so it
+is not left to wait out the resend wait of one the broker or engine holds, yet an engine without a quorum for an
+hour is not asked again every second for every event."""
 MAX_IN_FLIGHT = 100
 """Events handed to the transport and not yet acknowledged by it before the link waits: a transport would
 queue the rest in memory."""
@@ -125,7 +128,7 @@ class WardLink:
         self._queued_steady: dict[int, float] = {}               # seq -> when it was queued, monotonic
         self._in_flight: set[int] = set()                        # handed over, awaiting the transport's word
         self._held: set[int] = set()                             # held by the broker or engine
-        self._failed: set[int] = set()                           # its last send came to nothing
+        self._failed: dict[int, float] = {}                      # seq -> wait after its last send came to nothing
         now = time.monotonic()
         for entry in outbox.pending():
             self._queued_steady[entry.seq] = now  # from an earlier run: the deadline starts again now
@@ -263,6 +266,7 @@ class WardLink:
             if seq not in self._queued_steady:
                 return                                  # confirmed meanwhile
             self._held.add(seq)
+            self._failed.pop(seq, None)
         if not self.confirm:
             self._confirmed(seq, "broker")
         self._wake.set()
@@ -272,8 +276,9 @@ class WardLink:
             self._in_flight.discard(seq)
             sent = self._sends.get(seq)
             if sent is not None and seq in self._queued_steady:
-                self._failed.add(seq)
-                self._sends[seq] = (sent[0], time.monotonic(), FAILED_RETRY_S)
+                retry = min(2 * self._failed[seq], MAX_RESEND_S) if seq in self._failed else FAILED_RETRY_S
+                self._failed[seq] = retry
+                self._sends[seq] = (sent[0], time.monotonic(), retry)
         self._wake.set()
 
     def transport_confirmed(self, seq, station) -> None:
@@ -303,7 +308,7 @@ class WardLink:
             queued = self._queued_steady.pop(seq, None)
             self._sends.pop(seq, None)
             self._held.discard(seq)
-            self._failed.discard(seq)
+            self._failed.pop(seq, None)
             self.confirmed += 1
             if queued is not None:
                 self.confirm_latencies_s = [*self.confirm_latencies_s[-999:], time.monotonic() - queued]
@@ -339,7 +344,6 @@ class WardLink:
                 if connection == self._connection and steady - sent < wait:
                     continue
                 again = connection == self._connection and entry.seq not in self._failed
-                self._failed.discard(entry.seq)
                 self._sends[entry.seq] = (self._connection, steady,
                                           min(2 * wait, MAX_RESEND_S) if again else self.resend_after_s)
                 self._in_flight.add(entry.seq)
