@@ -49,7 +49,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from engine_relay import CuttableLink  # noqa: E402
-from report import free_port, listening, machine, percentile, table, wait_for  # noqa: E402
+from report import cpu_seconds, free_port, listening, machine, percentile, table, wait_for  # noqa: E402
 
 from appliance.alerts.events import EVENT_TYPES  # noqa: E402
 from appliance.hospital.cluster import LOOPBACK, LocalCluster, loopback_hospital, server_version  # noqa: E402
@@ -604,12 +604,29 @@ def soak(plan: Plan, folder: Path, progress=print) -> tuple[Run, list[Fault]]:
                 time.sleep(0.5)
             empty = "never" if run.drained_at is None else f"after {run.drained_at - run.load_end:.1f} s"
             progress(f"load ended; outboxes empty {empty}")
+            run.notes.append(cpu_note(plan, servers, processes, time.time() - run.load_start))
         finally:
             processes.stop()
         _, run_changes, finals = processes.backlog()
         run.notes.append(f"alarm changes made: {run_changes}")
         (folder / "run.json").write_text(json.dumps({"run": asdict(run), "finals": finals}))
     return run, faults
+
+
+def cpu_note(plan: Plan, servers: Servers, processes: Processes, elapsed_s: float) -> str:
+    """The CPU the beds, the stations and the servers used over the load, as shares of one core (the processes
+    started again after a kill count from their restart)."""
+    def share(pids: list[int]) -> float:
+        return sum(cpu_seconds(pid) for pid in pids) / elapsed_s
+
+    beds = share([worker.pid for worker in processes.workers])
+    stations = share([process.pid for process in processes.stations.values()])
+    if servers.cluster is not None:
+        server_pids = [process.pid for process in servers.cluster.processes.values()]
+    else:
+        server_pids = [] if servers.mosquitto is None else [servers.mosquitto.pid]
+    return (f"CPU over the load, in cores: the beds' workers {beds:.2f} ({1000 * beds / plan.beds:.2f} thousandths "
+            f"of a core a bed), the stations {stations:.2f}, the servers {share(server_pids):.2f}")
 
 
 def apply(step: str, fault: Fault, plan: Plan, servers: Servers, processes: Processes) -> str:
@@ -890,7 +907,8 @@ def report(plan: Plan, run: Run, m: Measured, command: str, elapsed_s: float) ->
                  *(f"{value:.2f}" for value in ((min(t["delays"]), statistics.median(t["delays"]), max(t["delays"]))
                                                 if t["delays"] else (float("nan"),) * 3))] for t in m.technical]
         lines += [f"The cut ward's technical alarm, delay after the cut plus {plan.confirm_timeout_s:.0f} s, in s "
-                  f"(polled every {POLL_CUT_S} s):", "",
+                  f"(polled every {POLL_CUT_S} s; an alarm change left unconfirmed just before the cut can bring it "
+                  f"forward by that change's age):", "",
                   table(["cut at", "raised", "cleared after the mend", "min", "median", "max"], rows), ""]
     if m.technical_elsewhere:
         lines += ["Beds that raised a technical alarm during the other faults (most in one fault): " +
