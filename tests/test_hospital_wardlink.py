@@ -13,7 +13,8 @@ from functools import partial
 
 import nats.errors
 import pytest
-from hospital_engine import CuttableLink, logged_in, make_streams, running_cluster
+from engine_relay import CuttableLink
+from hospital_engine import logged_in, make_streams, running_cluster
 from mqtt_broker import free_port, wait_until
 
 from appliance.alerts.alarms import AlarmEvent
@@ -89,7 +90,7 @@ def ward(tmp_path):
         asyncio.run(make_streams(cluster))
         station = Station(cluster, tmp_path)
         station.start()
-        relays = CuttableLink(cluster)
+        relays = CuttableLink.to_cluster(cluster)
         bed = engine_ward_link(relays.urls, "ward1", "bed1", read_password(cluster.configs.secrets_folder, "bed1"),
                                Outbox(tmp_path / "outbox.db"), confirm_timeout_s=TIMEOUT_S, resend_after_s=0.5)
         try:

@@ -7,6 +7,7 @@ import queue
 import socket
 import sqlite3
 import threading
+from collections import Counter
 import time
 
 import paho.mqtt.client as mqtt
@@ -17,6 +18,7 @@ from appliance.alerts.alarms import AlarmEvent
 from appliance.alerts.events import Event, as_event
 from appliance.alerts.turns import TurnEvent
 from appliance.alerts.ward_mqtt import mqtt_ward_link, release
+from appliance.alerts.wardlink import WardLink
 from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.errors import StoreCorrupt
@@ -313,3 +315,63 @@ def test_the_monitor_raises_a_technical_alarm_while_the_ward_is_not_hearing_it_a
         daemon.close()
     ended = [e for e in Store.open(tmp_path / "store.db").events_since(0.0) if e["key"] == "technical:ward-link"]
     assert ended[0]["kind"] == "raised" and ended[-1]["kind"] == "ended"
+
+
+class RefusingTransport:
+    """A transport whose far end refuses the first ``refusals`` sends of each event (a leader being elected), then
+    holds each event and has a station confirm it."""
+
+    peer = "the hospital engine"
+
+    def __init__(self, refusals):
+        self.refusals, self.sends = refusals, Counter()
+        self.sent_at: list[float] = []                  # monotonic
+        self.link = None
+
+    def start(self, link):
+        self.link = link
+        link.transport_ready()
+
+    def send_event(self, seq, event):
+        self.sends[seq] += 1
+        self.sent_at.append(time.monotonic())
+        refused = self.sends[seq] <= self.refusals
+        threading.Timer(0.01, self._answer, (seq, refused)).start()
+        return True
+
+    def _answer(self, seq, refused):
+        if refused:
+            self.link.transport_failed(seq)
+        else:
+            self.link.transport_held(seq)
+            self.link.transport_confirmed(seq, "station1")
+
+    send_summary = send_answer = lambda self, payload: True
+
+    def connected(self):
+        return True
+
+    def close(self, timeout_s):
+        pass
+
+
+def test_a_send_that_came_to_nothing_is_tried_again_soon_not_after_the_doubled_resend_wait(tmp_path):
+    """Nothing holds a refused event, so it does not wait out resend_after_s (here a minute), let alone twice that:
+    after three refusals (tried again after 1, 2 and 4 s) it is confirmed within the time the test waits, far less
+    than a minute."""
+    transport = RefusingTransport(refusals=3)
+    with WardLink(transport, "bed7", Outbox(tmp_path / "outbox.db"), resend_after_s=60.0) as bed:
+        bed.notify(alarm(1))
+        assert wait_until(lambda: bed.confirmed == 1, 40)
+        assert transport.sends[1] == 4 and bed.published == 4
+
+
+def test_the_wait_after_each_failed_send_doubles_so_an_engine_without_a_quorum_is_not_flooded(tmp_path):
+    """Refused for ever: the tries come 1 s, then at least 2 s, then at least 4 s apart (the gaps are lower bounds,
+    which a busy machine only lengthens), not every second."""
+    transport = RefusingTransport(refusals=10 ** 6)
+    with WardLink(transport, "bed7", Outbox(tmp_path / "outbox.db"), resend_after_s=60.0) as bed:
+        bed.notify(alarm(1))
+        assert wait_until(lambda: transport.sends[1] == 4, 30)
+    gaps = [later - earlier for earlier, later in zip(transport.sent_at, transport.sent_at[1:], strict=False)]
+    assert gaps[0] >= 1.0 and gaps[1] >= 2.0 and gaps[2] >= 4.0

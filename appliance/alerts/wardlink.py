@@ -17,7 +17,11 @@ what the bed is told, is here, the same for both.
 
 Resends: every unconfirmed event is sent on each new connection, and again after
 ``resend_after_s``, doubling up to ``MAX_RESEND_S``, so a station away for an hour
-finds a handful of copies of each event waiting, not thousands. With ``confirm``
+finds a handful of copies of each event waiting, not thousands. A send the transport
+reports as come to nothing (``transport_failed``) is tried again ``FAILED_RETRY_S``
+later, then twice as long after each further failure: no copy of it is waiting
+anywhere, and the held events' wait would hold an alarm back 15 s after a leader's
+election. Once held, its wait starts again from ``resend_after_s``. With ``confirm``
 off (a broker with no ward station behind it) the transport's acknowledgement
 counts as delivery, and the screen says so.
 
@@ -44,6 +48,11 @@ from appliance.supervise import Supervised
 log = logging.getLogger(__name__)
 
 MAX_RESEND_S = 60.0
+FAILED_RETRY_S = 1.0
+"""How soon an event the transport could not hand over (the engine did not acknowledge it: a leader being
+elected) is first sent again, doubling with each failure up to ``MAX_RESEND_S``: nothing holds a copy yet, so it
+is not left to wait out the resend wait of one the broker or engine holds, yet an engine without a quorum for an
+hour is not asked again every second for every event."""
 MAX_IN_FLIGHT = 100
 """Events handed to the transport and not yet acknowledged by it before the link waits: a transport would
 queue the rest in memory."""
@@ -119,6 +128,7 @@ class WardLink:
         self._queued_steady: dict[int, float] = {}               # seq -> when it was queued, monotonic
         self._in_flight: set[int] = set()                        # handed over, awaiting the transport's word
         self._held: set[int] = set()                             # held by the broker or engine
+        self._failed: dict[int, float] = {}                      # seq -> wait after its last send came to nothing
         now = time.monotonic()
         for entry in outbox.pending():
             self._queued_steady[entry.seq] = now  # from an earlier run: the deadline starts again now
@@ -256,6 +266,7 @@ class WardLink:
             if seq not in self._queued_steady:
                 return                                  # confirmed meanwhile
             self._held.add(seq)
+            self._failed.pop(seq, None)
         if not self.confirm:
             self._confirmed(seq, "broker")
         self._wake.set()
@@ -263,6 +274,11 @@ class WardLink:
     def transport_failed(self, seq: int) -> None:
         with self._lock:
             self._in_flight.discard(seq)
+            sent = self._sends.get(seq)
+            if sent is not None and seq in self._queued_steady:
+                retry = min(2 * self._failed[seq], MAX_RESEND_S) if seq in self._failed else FAILED_RETRY_S
+                self._failed[seq] = retry
+                self._sends[seq] = (sent[0], time.monotonic(), retry)
         self._wake.set()
 
     def transport_confirmed(self, seq, station) -> None:
@@ -292,6 +308,7 @@ class WardLink:
             queued = self._queued_steady.pop(seq, None)
             self._sends.pop(seq, None)
             self._held.discard(seq)
+            self._failed.pop(seq, None)
             self.confirmed += 1
             if queued is not None:
                 self.confirm_latencies_s = [*self.confirm_latencies_s[-999:], time.monotonic() - queued]
@@ -326,9 +343,9 @@ class WardLink:
                 connection, sent, wait = self._sends.get(entry.seq, (-1, 0.0, self.resend_after_s))
                 if connection == self._connection and steady - sent < wait:
                     continue
-                fresh = connection != self._connection
+                again = connection == self._connection and entry.seq not in self._failed
                 self._sends[entry.seq] = (self._connection, steady,
-                                          self.resend_after_s if fresh else min(2 * wait, MAX_RESEND_S))
+                                          min(2 * wait, MAX_RESEND_S) if again else self.resend_after_s)
                 self._in_flight.add(entry.seq)
             if not self.transport.send_event(entry.seq, entry.event):
                 with self._lock:
