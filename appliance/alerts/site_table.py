@@ -21,9 +21,9 @@ one convention (tests/data/site_labels/CONVENTION.md) and the trochanter's reach
 k of 7 and 11, across weights of 2 and 3 and load weights of 0, 0.03 and 0.06 gave 0.77-0.80 of the loaded spots
 right, these the best (0.800); measuring u from the pelvis's midline lying on the back
 (:mod:`appliance.alerts.body_frame`) was chosen on the earlier labels (0.81 against 0.80 for the local midline).
-tests/test_sites.py recomputes it. Only the training subjects (``site_table_fit.TRAINING_SUBJECTS``) are fitted: S4, S6 and S11 are held out for validating the product
-and must never be read here. Prone, sitting on the edge and out of bed have no labels: :mod:`appliance.alerts.sites`
-keeps rules for them.
+tests/test_sites.py recomputes it. Only the training subjects (``site_table_fit.TRAINING_SUBJECTS``) are fitted:
+S4, S6 and S11 are held out for validating the product and must never be read here. Prone, sitting on the edge
+and out of bed have no labels: :mod:`appliance.alerts.sites` keeps rules for them.
 
 The table is fitted from the labels by :mod:`appliance.alerts.site_table_fit`, which rebuilds the shipped
 ``site_table.json``.
