@@ -52,7 +52,8 @@ from engine_relay import CuttableLink  # noqa: E402
 from report import cpu_seconds, free_port, listening, machine, percentile, table, wait_for  # noqa: E402
 
 from appliance.alerts.events import EVENT_TYPES  # noqa: E402
-from appliance.hospital.cluster import LOOPBACK, LocalCluster, loopback_hospital, server_version  # noqa: E402
+from appliance.hospital.cluster import (LOOPBACK, LocalCluster, loopback_hospital, server_version,  # noqa: E402
+                                       stop_process)
 from appliance.hospital.description import Ward  # noqa: E402
 from appliance.hospital.engine import connect, ensure_ward_streams  # noqa: E402
 from appliance.hospital.nodeconfig import ADMIN, read_password  # noqa: E402
@@ -391,8 +392,7 @@ class Servers:
         if self.cluster is not None:
             self.cluster.__exit__(*exc)
         if self.mosquitto is not None and self.mosquitto.poll() is None:
-            self.mosquitto.terminate()
-            self.mosquitto.wait(10)
+            stop_process(self.mosquitto, 10.0)
 
     def password(self, user: str) -> str:
         if self.cluster is not None:
@@ -562,12 +562,7 @@ class Processes:
                 worker.kill()
                 worker.wait(10)
         for process in self.stations.values():
-            process.terminate()
-            try:
-                process.wait(30)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait(10)
+            stop_process(process, 30.0)
 
 
 def soak(plan: Plan, folder: Path, progress=print) -> tuple[Run, list[Fault]]:

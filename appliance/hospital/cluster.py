@@ -77,6 +77,16 @@ def loopback_hospital(store_dir: Path, wards: list[Ward], *, nodes: int = 3, mqt
                     tuple(wards), replicas=3 if nodes >= 3 else 1)
 
 
+def stop_process(process: subprocess.Popen, grace_s: float) -> None:
+    """SIGTERM ``process``, and SIGKILL it if it has not ended ``grace_s`` later."""
+    process.terminate()
+    try:
+        process.wait(grace_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait(10)
+
+
 class LocalCluster:
     """Every node of ``hospital`` as a process of this machine, configured in ``folder``; logs in
     ``folder/<node>.log``. Use as a context manager: leaving it kills what is still running."""
@@ -164,12 +174,7 @@ class LocalCluster:
             process = self.processes.pop(name)
             if process.poll() is None:
                 process.send_signal(signal.SIGCONT)             # a paused node would not see the SIGTERM
-                process.terminate()
-                try:
-                    process.wait(10)
-                except subprocess.TimeoutExpired:
-                    process.kill()
-                    process.wait(10)
+                stop_process(process, 10.0)
 
     @staticmethod
     def _healthy(node: Node) -> bool:
