@@ -173,13 +173,12 @@ def map_curves(images, truths, layout, grid, *, fit: Callable = matched_curve,
     out of the fit.
     """
     inside = np.isfinite(images[0])
-    head = head_end_mask(layout, grid) & inside if head_end else np.zeros_like(inside)
-    body = inside & ~head
+    zone = head_end_mask(layout, grid) if head_end else np.zeros_like(inside)
+    head, body = zone & inside, inside & ~zone
     curve = fit(_sizes(images, body), np.array([truth[body] for truth in truths]))
     if not head.any():
         return curve, ()
-    return curve, (ZoneCurve(HEAD_END, head_end_mask(layout, grid),
-                             fit(_sizes(images, head), np.array([truth[head] for truth in truths]))),)
+    return curve, (ZoneCurve(HEAD_END, zone, fit(_sizes(images, head), np.array([truth[head] for truth in truths]))),)
 
 
 def head_end_mask(layout, grid) -> np.ndarray:

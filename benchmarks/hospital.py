@@ -49,7 +49,8 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from engine_relay import CuttableLink  # noqa: E402
-from report import cpu_seconds, free_port, listening, machine, percentile, table, wait_for  # noqa: E402
+from report import (cpu_seconds, free_port, listening, machine, mosquitto_binary, percentile, table,  # noqa: E402
+                    wait_for)
 
 from appliance.alerts.events import EVENT_TYPES  # noqa: E402
 from appliance.hospital.cluster import (LOOPBACK, LocalCluster, loopback_hospital, server_version,  # noqa: E402
@@ -433,14 +434,6 @@ class Servers:
                 time.sleep(0.5)
         return None
 
-    def _mosquitto_binary(self) -> str:
-        import shutil
-
-        binary = shutil.which("mosquitto", path=os.environ.get("PATH", "") + ":/usr/sbin:/sbin")
-        if binary is None:
-            raise RuntimeError("mosquitto is not installed (apt-get install mosquitto)")
-        return binary
-
     def _write_broker(self) -> None:
         """The ward broker as ``appliance ward-broker`` writes it (passwords, ACL, persistence), one topic prefix
         per ward so each station reads its own ward."""
@@ -461,7 +454,7 @@ class Servers:
 
     def start_broker(self) -> None:
         with open(self.folder / "mosquitto.log", "ab") as log:
-            self.mosquitto = subprocess.Popen([self._mosquitto_binary(), "-c",
+            self.mosquitto = subprocess.Popen([mosquitto_binary(), "-c",
                                                str(self.folder / "broker" / "ward-broker.conf")],
                                               stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
         wait_for(lambda: listening(self.mqtt_port), 20, "mosquitto")

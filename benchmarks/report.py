@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import platform
+import shutil
 import socket
 import subprocess
 import time
@@ -69,6 +70,14 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def mosquitto_binary() -> str:
+    """Where Mosquitto is installed (Debian puts it in /usr/sbin, off a user's PATH)."""
+    binary = shutil.which("mosquitto", path=os.environ.get("PATH", "") + ":/usr/sbin:/sbin")
+    if binary is None:
+        raise RuntimeError("mosquitto is not installed (apt-get install mosquitto); .ci/run installs it")
+    return binary
 
 
 def listening(port: int) -> bool:

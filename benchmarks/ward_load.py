@@ -46,7 +46,6 @@ import json
 import os
 import random
 import re
-import shutil
 import signal
 import socket
 import statistics
@@ -61,7 +60,8 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from report import cpu_seconds, free_port, listening, machine, percentile, table, wait_for  # noqa: E402
+from report import (cpu_seconds, free_port, listening, machine, mosquitto_binary, percentile, table,  # noqa: E402
+                    wait_for)
 
 BEDS = 50
 DURATION_S = 600.0
@@ -308,9 +308,7 @@ class Broker:
 
     def __init__(self, folder: Path):
         self.port = free_port()
-        binary = shutil.which("mosquitto", path=os.environ.get("PATH", "") + ":/usr/sbin:/sbin")
-        if binary is None:
-            raise RuntimeError("mosquitto is not installed (apt-get install mosquitto)")
+        binary = mosquitto_binary()
         conf = folder / "mosquitto.conf"
         conf.write_text(f"user {getpass.getuser()}\nlistener {self.port} 127.0.0.1\nallow_anonymous true\n"
                         "sys_interval 1\npersistence false\nmax_queued_messages 10000\n")

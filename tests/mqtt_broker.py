@@ -6,18 +6,13 @@ alarm path that silently does not run would hide a broken alarm path.
 
 import contextlib
 import getpass
-import os
-import shutil
 import socket
 import subprocess
 import time
 from pathlib import Path
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from report import free_port as free_port  # the tests take it from here, with the broker
+from report import mosquitto_binary
 
 
 def wait_until(condition, timeout_s=10.0):
@@ -34,8 +29,7 @@ class Broker:
     lines, written to ``folder``) for a listener with TLS and passwords."""
 
     def __init__(self, settings: str = "", folder: Path | None = None):
-        self.binary = shutil.which("mosquitto", path=os.environ.get("PATH", "") + ":/usr/sbin:/sbin")
-        assert self.binary, "mosquitto is not installed (apt-get install mosquitto); .ci/run installs it"
+        self.binary = mosquitto_binary()
         self.port = free_port()
         self.process = None
         self.command = [self.binary, "-p", str(self.port)]
