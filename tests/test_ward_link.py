@@ -375,3 +375,24 @@ def test_the_wait_after_each_failed_send_doubles_so_an_engine_without_a_quorum_i
         assert wait_until(lambda: transport.sends[1] == 4, 30)
     gaps = [later - earlier for earlier, later in zip(transport.sent_at, transport.sent_at[1:], strict=False)]
     assert gaps[0] >= 1.0 and gaps[1] >= 2.0 and gaps[2] >= 4.0
+
+
+def test_an_idle_link_sleeps_until_its_next_resend_instead_of_polling_its_outbox(tmp_path):
+    """A bed's link is idle nearly all the time, and a hospital has thousands: with one event held and its resend a
+    minute away the sender looks at its outbox about once a second (a busy machine only makes it fewer), not five
+    times a second; a new event still goes at once."""
+    transport = RefusingTransport(refusals=0)
+    transport._answer = lambda seq, refused: transport.link.transport_held(seq)    # held, never confirmed
+    outbox = Outbox(tmp_path / "outbox.db")
+    looks = Counter()
+    pending = outbox.pending
+    outbox.pending = lambda: (looks.update(["pending"]), pending())[1]
+    with WardLink(transport, "bed7", outbox, resend_after_s=60.0) as bed:
+        bed.notify(alarm(1))
+        assert wait_until(lambda: transport.sends[1] == 1 and bed.delivery(1) == "broker", 10)
+        before = looks["pending"]
+        time.sleep(4.0)
+        assert looks["pending"] - before <= 5
+        bed.notify(alarm(2))
+        assert wait_until(lambda: transport.sends[2] == 1, 0.9)
+        assert transport.sends[1] == 1                  # its minute is not up

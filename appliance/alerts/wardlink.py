@@ -53,6 +53,12 @@ FAILED_RETRY_S = 1.0
 elected) is first sent again, doubling with each failure up to ``MAX_RESEND_S``: nothing holds a copy yet, so it
 is not left to wait out the resend wait of one the broker or engine holds, yet an engine without a quorum for an
 hour is not asked again every second for every event."""
+IDLE_WAKE_S = 1.0
+"""The longest the sender sleeps with nothing due: it is woken by new events, answers, connections and the
+transport's word, and otherwise sleeps until the next resend falls due (a bed's link is idle most of the time)."""
+UNWRITTEN_RETRY_S = 0.2
+"""How often events the disk refused are offered to it again."""
+IN_FLIGHT_WAKE_S = 0.2
 MAX_IN_FLIGHT = 100
 """Events handed to the transport and not yet acknowledged by it before the link waits: a transport would
 queue the rest in memory."""
@@ -316,13 +322,16 @@ class WardLink:
     # The sender thread.
 
     def _run(self) -> None:
+        next_send = float("inf")
         while not self._stopping.is_set():
-            self._wake.wait(0.2)
+            cap = UNWRITTEN_RETRY_S if self.outbox.unwritten else IDLE_WAKE_S
+            self._wake.wait(min(cap, max(0.0, next_send - time.monotonic())))
             self._wake.clear()
             self.outbox.retry_writes()
+            next_send = float("inf")
             if self._ready:
                 self._send_answers()
-                self._send_due()
+                next_send = self._send_due()
             self._worker.ok()
 
     def _send_answers(self) -> None:
@@ -332,23 +341,28 @@ class WardLink:
             if not self.transport.send_answer(payload):   # the station asks again, and is answered from the store
                 log.warning("ward link: an answer to the ward station was not sent")
 
-    def _send_due(self) -> None:
+    def _send_due(self) -> float:
+        """Send every unconfirmed event whose wait is over; when the next one falls due (monotonic)."""
         steady = time.monotonic()
+        next_send = float("inf")
         for entry in self.outbox.pending():
             with self._lock:
                 if len(self._in_flight) >= MAX_IN_FLIGHT and entry.seq not in self._in_flight:
-                    return
+                    return steady + IN_FLIGHT_WAKE_S              # or sooner, woken by the transport's word
                 # One still awaiting the transport's word is sent again after its wait like any other: the word
                 # can be missed (a PUBACK that beats the transport's note of its message id).
                 connection, sent, wait = self._sends.get(entry.seq, (-1, 0.0, self.resend_after_s))
                 if connection == self._connection and steady - sent < wait:
+                    next_send = min(next_send, sent + wait)
                     continue
                 again = connection == self._connection and entry.seq not in self._failed
-                self._sends[entry.seq] = (self._connection, steady,
-                                          min(2 * wait, MAX_RESEND_S) if again else self.resend_after_s)
+                wait = min(2 * wait, MAX_RESEND_S) if again else self.resend_after_s
+                self._sends[entry.seq] = (self._connection, steady, wait)
+                next_send = min(next_send, steady + wait)
                 self._in_flight.add(entry.seq)
             if not self.transport.send_event(entry.seq, entry.event):
                 with self._lock:
                     self._in_flight.discard(entry.seq)
-                return                                  # the connection went: all is resent on the next one
+                return float("inf")                     # the connection went: all is resent on the next one
             self.published += 1
+        return next_send
