@@ -7,7 +7,8 @@ stations' own records.
 
 Each bed is a :class:`~appliance.alerts.wardlink.WardLink` with its own durable outbox (a SQLite file) over the
 hospital engine (``EngineTransport``, logged in with the bed's password from the generated configuration) or the
-ward's Mosquitto (``MqttTransport``); beds are spread over a few worker processes. Each ward (``--ward-size``
+ward's Mosquitto (``MqttTransport``); beds are spread over a few worker processes (a worker's engine beds share one
+event loop, ``EngineLoop``: a loop and a thread pool per bed would be thousands of threads). Each ward (``--ward-size``
 beds) has one ward station, the product's ``EngineStation`` (or the MQTT ``WardStation``), several wards' stations
 to a process (``--wards-per-station``) so that crashing a station is a SIGKILL of its process. Alarm changes come
 at ``--rate`` a second in all, each to a random bed, which raises a new alarm or ends one it has open.
@@ -160,7 +161,7 @@ def alarm_change(bed_state: dict, rng: random.Random, elapsed_s: float):
                                category="clinical", priority="high", message=f"Sacrum dose over limit ({kind})"))
 
 
-def make_link(spec: WorkerSpec, bed: BedSpec):
+def make_link(spec: WorkerSpec, bed: BedSpec, engine_loop=None):
     from appliance.store.outbox import Outbox
 
     outbox = Outbox(bed.outbox)
@@ -168,7 +169,7 @@ def make_link(spec: WorkerSpec, bed: BedSpec):
         from appliance.hospital.bedlink import engine_ward_link
 
         return engine_ward_link(spec.cut_urls if bed.cut else spec.urls, bed.ward, bed.bed, bed.password, outbox,
-                                confirm_timeout_s=spec.confirm_timeout_s)
+                                engine_loop=engine_loop, confirm_timeout_s=spec.confirm_timeout_s)
     from appliance.alerts.ward_mqtt import mqtt_ward_link
 
     return mqtt_ward_link(LOOPBACK, spec.cut_mqtt_port if bed.cut else spec.mqtt_port, bed.bed, outbox,
@@ -182,7 +183,10 @@ def run_worker(spec_path: str) -> None:
     raw = json.loads(Path(spec_path).read_text())
     spec = WorkerSpec(**{**raw, "beds": [BedSpec(**b) for b in raw["beds"]]})
     control = Path(spec.control)
-    links = {bed.bed: make_link(spec, bed) for bed in spec.beds}
+    from appliance.hospital.bedlink import EngineLoop
+
+    engine_loop = EngineLoop() if spec.transport == "engine" else None     # one for the worker's beds
+    links = {bed.bed: make_link(spec, bed, engine_loop) for bed in spec.beds}
     cut = {bed.bed for bed in spec.beds if bed.cut}
     wait_for(lambda: all(link.transport.connected() for link in links.values()), 120, "the beds' connections")
     (control / f"ready-{spec.index}").write_text("")
@@ -200,6 +204,8 @@ def run_worker(spec_path: str) -> None:
         watcher.join()
     for link in links.values():
         link.close(timeout_s=2)
+    if engine_loop is not None:
+        engine_loop.close(timeout_s=5)
     write_backlog(control, spec.index, {}, changes, final={bed: {"published": link.published,
                                                                   "confirmed": link.confirmed}
                                                             for bed, link in links.items()})

@@ -8,6 +8,7 @@ import json
 import signal
 import subprocess
 import sys
+import threading
 import time
 from functools import partial
 
@@ -19,7 +20,7 @@ from mqtt_broker import free_port, wait_until
 
 from appliance.alerts.alarms import AlarmEvent
 from appliance.alerts.events import as_event
-from appliance.hospital.bedlink import engine_ward_link
+from appliance.hospital.bedlink import EngineLoop, engine_ward_link
 from appliance.hospital.engine import BedPublisher, Delivery, WardReader
 from appliance.hospital.nodeconfig import ADMIN, read_password
 from appliance.hospital.subjects import (MSG_ID, bed_subject, confirmation_subject, confirms_stream_name, message_id,
@@ -308,3 +309,30 @@ def test_the_station_shows_the_beds_summary_and_alarm_from_the_engine_and_again_
         finally:
             again.close()
             again.journal.close()
+
+
+def test_beds_sharing_one_engine_loop_are_each_confirmed_and_one_closing_leaves_the_other_working(tmp_path):
+    """A process holding many beds' links (a gateway, the soak's workers) runs them on one loop: each bed still
+    gets its own confirmations, and closing one bed cancels only its own work, not the loop the others run on."""
+    with running_cluster(tmp_path) as cluster:
+        asyncio.run(make_streams(cluster))
+        station = Station(cluster, tmp_path)
+        station.start()
+        shared = EngineLoop()
+        beds = [engine_ward_link(cluster.urls, "ward1", name, read_password(cluster.configs.secrets_folder, name),
+                                 Outbox(tmp_path / f"{name}.db"), engine_loop=shared, resend_after_s=0.5)
+                for name in ("bed1", "bed2")]
+        try:
+            for bed in beds:
+                bed.notify(alarm(1))
+            assert wait_until(lambda: all(confirmed_by_station(bed, 1) for bed in beds), 60)
+            beds[0].close(timeout_s=2)
+            assert shared.loop.is_running()
+            beds[1].notify(alarm(2))
+            assert wait_until(lambda: confirmed_by_station(beds[1], 2), 60)
+            assert sum(thread.name == "ward-link-engine" for thread in threading.enumerate()) == 1
+        finally:
+            beds[1].close(timeout_s=2)
+            shared.close(timeout_s=5)
+            station.stop()
+    assert not shared.loop.is_running()

@@ -10,17 +10,20 @@ quorum. A resend inside the stream's duplicate window is acknowledged as a dupli
 station again, so for a duplicate the bed looks the confirmation up in that stream: a confirmation lost on its
 way (the bed was away) is found there.
 
-The native client runs on its own thread with its own event loop; the link's threads hand it work and never
-wait for the network.
+The native client runs on an event loop of its own thread (:class:`EngineLoop`); the link's threads hand it work
+and never wait for the network. A bed has one loop to itself; a process holding many beds' links (a gateway for
+beds that cannot reach the engine themselves, or a ward simulated on one machine) gives them one loop to share,
+since a loop and its thread pool per bed would be thousands of threads for the same work.
 """
 
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import json
 import logging
 import threading
-from collections.abc import Sequence
+from collections.abc import Coroutine, Sequence
 
 import nats.errors
 import nats.js.errors
@@ -36,12 +39,30 @@ log = logging.getLogger(__name__)
 CONNECT_RETRY_S = 1.0
 
 
+class EngineLoop:
+    """An asyncio event loop running on a daemon thread of its own, for one or many engine transports."""
+
+    def __init__(self):
+        self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self.loop.run_forever, name="ward-link-engine", daemon=True)
+        self._thread.start()
+
+    def close(self, timeout_s: float) -> None:
+        """Stop the loop (whatever still runs on it is dropped) and close it once its thread has ended."""
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join(timeout_s)
+        if not self._thread.is_alive():
+            self.loop.close()
+
+
 class EngineTransport:
-    """Bed ``bed`` of ward ``ward`` on the engine's nodes at ``urls``, logged in as the bed with ``password``."""
+    """Bed ``bed`` of ward ``ward`` on the engine's nodes at ``urls``, logged in as the bed with ``password``; on
+    ``engine_loop`` if given (left running at close, for the other beds on it), else on a loop of its own."""
 
     peer = "the hospital engine"
 
-    def __init__(self, urls: Sequence[str], ward: str, bed: str, password: str):
+    def __init__(self, urls: Sequence[str], ward: str, bed: str, password: str, *,
+                 engine_loop: EngineLoop | None = None):
         if not urls:
             raise ValueError("the hospital engine needs at least one node's address")
         self.urls, self.ward, self.bed, self._password = list(urls), ward, bed, password
@@ -49,18 +70,20 @@ class EngineTransport:
         self._connection: Client | None = None
         self._publisher: BedPublisher | None = None
         self._up = self._stopping = False
-        self._loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(target=self._loop.run_forever, name="ward-link-engine", daemon=True)
+        self._own_loop = engine_loop is None
+        self._engine_loop = engine_loop
+        self._work: set[concurrent.futures.Future] = set()      # this bed's coroutines on the loop, not yet done
 
     def start(self, link: WardLink) -> None:
         self._link = link
-        self._thread.start()
-        asyncio.run_coroutine_threadsafe(self._connect(), self._loop)
+        if self._engine_loop is None:
+            self._engine_loop = EngineLoop()
+        self._submit(self._connect())
 
     def send_event(self, seq: int, event: dict) -> bool:
         if not self._up or self._publisher is None:
             return False
-        asyncio.run_coroutine_threadsafe(self._send(self._publisher, seq, event), self._loop)
+        self._submit(self._send(self._publisher, seq, event))
         return True
 
     def send_summary(self, payload: str) -> bool:
@@ -81,16 +104,26 @@ class EngineTransport:
                 if self._connection.is_connected:
                     await self._connection.publish(bed_subject(self.ward, self.bed, "status"), b"offline")
                 await self._connection.close()
-            await cancel_the_rest()
+            if self._own_loop:
+                await cancel_the_rest()
 
+        if self._engine_loop is None:
+            return                                      # never started
         try:
-            asyncio.run_coroutine_threadsafe(finish(), self._loop).result(timeout_s)
+            asyncio.run_coroutine_threadsafe(finish(), self._engine_loop.loop).result(timeout_s)
         except (TimeoutError, nats.errors.Error) as exc:
             log.warning("ward link: the engine connection did not close cleanly: %r", exc)
-        self._loop.call_soon_threadsafe(self._loop.stop)
-        self._thread.join(timeout_s)
-        if not self._thread.is_alive():
-            self._loop.close()
+        for work in list(self._work):                   # a connection still being tried, a send on its way
+            work.cancel()
+        if self._own_loop:
+            self._engine_loop.close(timeout_s)
+
+    def _submit(self, work: Coroutine) -> None:
+        """Run ``work`` on the loop, kept track of until it ends so that close can cancel it."""
+        assert self._engine_loop is not None
+        future = asyncio.run_coroutine_threadsafe(work, self._engine_loop.loop)
+        self._work.add(future)
+        future.add_done_callback(self._work.discard)
 
     def _bed(self) -> WardLink:
         if self._link is None:
@@ -101,8 +134,7 @@ class EngineTransport:
         """Publish without an acknowledgement (a summary, a status): lost when the connection is."""
         if not self._up or self._connection is None:
             return False
-        connection = self._connection
-        asyncio.run_coroutine_threadsafe(connection.publish(subject, payload), self._loop)
+        self._submit(self._connection.publish(subject, payload))
         return True
 
     # The engine's thread.
@@ -180,8 +212,9 @@ class EngineTransport:
         await asyncio.to_thread(self._bed().transport_confirmed, seq, station)
 
 
-def engine_ward_link(urls: Sequence[str], ward: str, bed: str, password: str, outbox: Outbox,
-                     **link_options) -> WardLink:
-    """A ward link for ``bed`` of ``ward`` over the hospital engine's nodes at ``urls``; ``link_options`` are
-    :class:`~appliance.alerts.wardlink.WardLink`'s (``confirm``, ``confirm_timeout_s``, ...)."""
-    return WardLink(EngineTransport(urls, ward, bed, password), bed, outbox, **link_options)
+def engine_ward_link(urls: Sequence[str], ward: str, bed: str, password: str, outbox: Outbox, *,
+                     engine_loop: EngineLoop | None = None, **link_options) -> WardLink:
+    """A ward link for ``bed`` of ``ward`` over the hospital engine's nodes at ``urls`` (on ``engine_loop``, shared
+    with other beds, if given); ``link_options`` are :class:`~appliance.alerts.wardlink.WardLink`'s (``confirm``,
+    ``confirm_timeout_s``, ...)."""
+    return WardLink(EngineTransport(urls, ward, bed, password, engine_loop=engine_loop), bed, outbox, **link_options)
