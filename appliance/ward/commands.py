@@ -3,7 +3,8 @@
 A nurse's acknowledgement must reach the bed even when the network, the broker
 or the bed is briefly away, and must never be applied twice. So a command is
 journalled first (:class:`~appliance.ward.journal.CommandJournal`, the audit),
-then published at QoS 1, and published again, under the same id, on every new
+then published (at QoS 1 on the ward's broker, a plain message on the hospital
+engine), and published again, under the same id, on every new
 connection of the station, as soon as its bed says it is back online, and
 every ``resend_after_s`` (doubling up to ``MAX_RESEND_S``) in between, until
 the bed's answer comes or ``expires_at`` passes. The bed applies each id once
@@ -24,7 +25,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from appliance.alerts.ward_commands import COMMAND_TOPIC, WardCommand, new_command, parse_result
+from appliance.alerts.ward_commands import WardCommand, new_command, parse_result
 from appliance.supervise import Supervised
 from appliance.ward.journal import CommandJournal
 
@@ -39,19 +40,20 @@ TICK_S = 0.2
 
 
 class CommandSender:
-    """Sends commands from ``station`` (the station's client id) to beds under ``topic_prefix``.
+    """Sends commands from ``station`` (the station's client id) to beds.
 
-    ``publish(topic, payload)`` publishes at QoS 1 and says whether the
-    connection took it; ``on_change()`` is called when a command's state
-    changes (an answer, an expiry), so a screen can redraw.
+    ``publish(bed_id, payload)`` sends the command to that bed by the
+    station's own transport (the ward broker, the hospital engine) and says
+    whether the connection took it; ``on_change()`` is called when a
+    command's state changes (an answer, an expiry), so a screen can redraw.
     """
 
-    def __init__(self, journal: CommandJournal, publish: Callable[[str, str], bool], topic_prefix: str,
-                 station: str, *, expiry_s: float = DEFAULT_EXPIRY_S, resend_after_s: float = DEFAULT_RESEND_S,
+    def __init__(self, journal: CommandJournal, publish: Callable[[str, str], bool], station: str, *,
+                 expiry_s: float = DEFAULT_EXPIRY_S, resend_after_s: float = DEFAULT_RESEND_S,
                  on_change: Callable[[], None] = lambda: None):
         if not expiry_s > 0 or not resend_after_s > 0:
             raise ValueError(f"expiry_s ({expiry_s}) and resend_after_s ({resend_after_s}) must be more than 0")
-        self.journal, self._publish, self.topic_prefix, self.station = journal, publish, topic_prefix, station
+        self.journal, self._publish, self.station = journal, publish, station
         self.expiry_s, self.resend_after_s, self.on_change = expiry_s, resend_after_s, on_change
         self.sends = self.answers = self.bad_answers = 0
         self._lock = threading.Lock()
@@ -114,7 +116,7 @@ class CommandSender:
             _, wait = self._due.get(command.id, (0.0, self.resend_after_s / 2))
             wait = min(2 * wait, MAX_RESEND_S)
             self._due[command.id] = (time.monotonic() + wait, wait)
-        if self._publish(f"{self.topic_prefix}/{command.bed_id}/{COMMAND_TOPIC}", command.to_payload()):
+        if self._publish(command.bed_id, command.to_payload()):
             self.journal.sent(command.id)
             with self._lock:
                 self.sends += 1

@@ -54,7 +54,7 @@ import time
 import paho.mqtt.client as mqtt
 
 from appliance.alerts.events import EVENT_TYPES
-from appliance.alerts.ward_commands import RESULT_TOPIC
+from appliance.alerts.ward_commands import COMMAND_TOPIC, RESULT_TOPIC
 from appliance.ward.board import WardBoard
 from appliance.ward.commands import DEFAULT_EXPIRY_S, DEFAULT_RESEND_S, CommandSender
 from appliance.ward.config import WardConfig
@@ -96,7 +96,7 @@ class WardStation:
         self._subscribed = threading.Event()
         self._client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=self.client_id, clean_session=False)
         self.commands = None if journal is None else CommandSender(
-            journal, self._publish_command, topic_prefix, self.client_id, expiry_s=command_expiry_s,
+            journal, self._publish_command, self.client_id, expiry_s=command_expiry_s,
             resend_after_s=resend_after_s, on_change=self.board.changed)
         if username is not None:
             self._client.username_pw_set(username, password)
@@ -185,8 +185,9 @@ class WardStation:
         if self.commands is not None:
             self.commands.connected(False)
 
-    def _publish_command(self, topic: str, payload: str) -> bool:
-        return self._client.publish(topic, payload, qos=1).rc == mqtt.MQTT_ERR_SUCCESS
+    def _publish_command(self, bed_id: str, payload: str) -> bool:
+        return self._client.publish(f"{self.topic_prefix}/{bed_id}/{COMMAND_TOPIC}", payload,
+                                    qos=1).rc == mqtt.MQTT_ERR_SUCCESS
 
     def _on_message(self, client, userdata, message) -> None:
         try:
