@@ -14,12 +14,12 @@
 
 Users and what they may do (``appliance.hospital.subjects`` names the subjects):
 
-- a bed (its id is its user name) publishes only ``hospital.<ward>.<bed>.{alarm,turn,episode,status,summary}``,
-  reads only its own ``confirm`` and its own inbox, and may look up its own confirmations in the ward's
-  confirmation stream;
-- a station reads every subject of its ward, writes its beds' ``confirm`` and the ward's confirmation stream,
-  and may only read its ward's event stream through a consumer (create, fetch, acknowledge), never change or
-  delete it;
+- a bed (its id is its user name) publishes only ``hospital.<ward>.<bed>.{alarm,turn,episode,status,summary}``
+  and its answers on ``hospital.<ward>.<bed>.command-result``, reads only its own ``confirm``, its own
+  ``command`` and its own inbox, and may look up its own confirmations in the ward's confirmation stream;
+- a station reads every subject of its ward (its beds' answers among them), writes its beds' ``confirm`` and
+  ``command`` and the ward's confirmation stream, and may only read its ward's event stream through a consumer
+  (create, fetch, acknowledge), never change or delete it;
 - ``hospital-admin`` may do everything: it creates the streams (``appliance hospital streams``);
 - ``hospital-history``, the history writer, reads every ward's stream through its own consumers and hears every
   bed's summary (``appliance.hospital.history``).
@@ -38,8 +38,8 @@ from pathlib import Path
 from appliance.errors import ConfigError
 from appliance.files import read_secret, write_atomic
 from appliance.hospital.description import Hospital, Node, Ward
-from appliance.hospital.subjects import (BED_KINDS, CONFIRM, CONFIRMED, ROOT, SUMMARY, bed_subject,
-                                         confirms_stream_name, inbox_prefix, stream_name)
+from appliance.hospital.subjects import (BED_KINDS, CONFIRM, CONFIRMED, ROOT, SUMMARY, answer_subject, bed_subject,
+                                         command_subject, confirms_stream_name, inbox_prefix, stream_name)
 
 ADMIN = "hospital-admin"
 HISTORY = "hospital-history"
@@ -131,18 +131,22 @@ def node_config_text(hospital: Hospital, node: Node, passwords: dict[str, str]) 
 
 
 def bed_permissions(ward: Ward, bed: str) -> dict:
-    """Publish its own subjects; read its own confirmations (sent, or kept in the engine) and the replies to its
-    publishes."""
+    """Publish its own subjects and answers; read its own confirmations (sent, or kept in the engine), its own
+    commands and the replies to its publishes."""
     return {"publish": {"allow": [*(bed_subject(ward.name, bed, kind) for kind in BED_KINDS),
+                                  answer_subject(ward.name, bed),
                                   f"$JS.API.DIRECT.GET.{confirms_stream_name(ward.name)}."
                                   f"{bed_subject(ward.name, bed, CONFIRMED)}.*"]},
-            "subscribe": {"allow": [bed_subject(ward.name, bed, CONFIRM), f"{inbox_prefix(bed)}.>"]}}
+            "subscribe": {"allow": [bed_subject(ward.name, bed, CONFIRM), command_subject(ward.name, bed),
+                                    f"{inbox_prefix(bed)}.>"]}}
 
 
 def station_permissions(ward: Ward, station: str) -> dict:
-    """Read the ward, confirm to its beds, and consume (never change) the ward's stream."""
+    """Read the ward (the beds' answers too), confirm to and command its beds, and consume (never change) the
+    ward's stream."""
     stream = stream_name(ward.name)
-    return {"publish": {"allow": [bed_subject(ward.name, "*", CONFIRM), f"{bed_subject(ward.name, '*', CONFIRMED)}.*",
+    return {"publish": {"allow": [bed_subject(ward.name, "*", CONFIRM), command_subject(ward.name, "*"),
+                                  f"{bed_subject(ward.name, '*', CONFIRMED)}.*",
                                   f"$JS.API.STREAM.INFO.{stream}",
                                   f"$JS.API.CONSUMER.CREATE.{stream}.>",
                                   f"$JS.API.CONSUMER.DURABLE.CREATE.{stream}.>",

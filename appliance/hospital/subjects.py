@@ -3,10 +3,12 @@
 ``hospital.<ward>.<bed>.<kind>``: a bed publishes its ``alarm``, ``turn`` and ``episode`` events (kept in the
 ward's stream), its ``status`` and ``summary``, and reads its ``confirm``. A station stores each confirmation
 first as ``hospital.<ward>.<bed>.confirmed.<seq>`` in the ward's confirmation stream, and only once that is
-acknowledged sends it to the bed on ``confirm``. Over MQTT the same subject is the
-topic ``hospital/<ward>/<bed>/<kind>``. Every event carries the header ``Nats-Msg-Id: <bed>:<seq>`` (the bed's
-own sequence number), so the stream keeps one copy of a resend inside its duplicate window and a station
-applies each number once after it.
+acknowledged sends it to the bed on ``confirm``. A station's commands to a bed go on the bed's ``command`` and
+the bed answers on its ``command-result`` (payloads in ``appliance.alerts.ward_commands``), plain messages that
+no stream keeps: the station sends a command again until it is answered. Over MQTT the same subject is the
+topic ``hospital/<ward>/<bed>/<kind>``, and the kinds are the MQTT ward's topics. Every event carries the
+header ``Nats-Msg-Id: <bed>:<seq>`` (the bed's own sequence number), so the stream keeps one copy of a resend
+inside its duplicate window and a station applies each number once after it.
 
 >>> bed_subject("ward3", "w3-bed01", "alarm")
 'hospital.ward3.w3-bed01.alarm'
@@ -18,11 +20,14 @@ applies each number once after it.
 ('w3-bed01', 17)
 >>> confirmation_subject("ward3", "w3-bed01", 17)
 'hospital.ward3.w3-bed01.confirmed.17'
+>>> command_subject("ward3", "w3-bed01"), answer_subject("ward3", "w3-bed01")
+('hospital.ward3.w3-bed01.command', 'hospital.ward3.w3-bed01.command-result')
 """
 
 from __future__ import annotations
 
 from appliance.alerts.events import EVENT_TYPES
+from appliance.alerts.ward_commands import COMMAND_TOPIC, RESULT_TOPIC
 
 ROOT = "hospital"
 SUMMARY = "summary"
@@ -30,6 +35,10 @@ BED_KINDS = (*EVENT_TYPES, "status", SUMMARY)
 """What a bed publishes; the events (EVENT_TYPES) are the ones the ward's stream keeps."""
 CONFIRM = "confirm"
 CONFIRMED = "confirmed"
+COMMAND = COMMAND_TOPIC
+"""What a station asks a bed to do."""
+ANSWER = RESULT_TOPIC
+"""The bed's answer to a command."""
 MSG_ID = "Nats-Msg-Id"
 """JetStream's de-duplication header: a second publish with an id the stream has seen inside its window is
 acknowledged as a duplicate and not stored again."""
@@ -37,6 +46,16 @@ acknowledged as a duplicate and not stored again."""
 
 def bed_subject(ward: str, bed: str, kind: str) -> str:
     return f"{ROOT}.{ward}.{bed}.{kind}"
+
+
+def command_subject(ward: str, bed: str) -> str:
+    """Where ``bed``'s commands from its ward's station go (``bed`` may be ``*``: every bed of the ward)."""
+    return bed_subject(ward, bed, COMMAND)
+
+
+def answer_subject(ward: str, bed: str) -> str:
+    """Where ``bed`` answers its commands (``bed`` may be ``*``: every bed of the ward)."""
+    return bed_subject(ward, bed, ANSWER)
 
 
 def stream_name(ward: str) -> str:
