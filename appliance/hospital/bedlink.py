@@ -10,6 +10,11 @@ quorum. A resend inside the stream's duplicate window is acknowledged as a dupli
 station again, so for a duplicate the bed looks the confirmation up in that stream: a confirmation lost on its
 way (the bed was away) is found there.
 
+The station's commands come on the bed's ``command`` subject and its answers go back on ``command-result``, both
+plain messages, as summaries are: no stream needs to keep them, since the station sends a command again until
+it has the answer, and the bed answers a repeat from its store. The subscription is made, and renewed by the
+client on every reconnection, before the bed says it is online: the station's cue to send what waits for it.
+
 The native client runs on an event loop of its own thread (:class:`EngineLoop`); the link's threads hand it work
 and never wait for the network. A bed has one loop to itself; a process holding many beds' links (a gateway for
 beds that cannot reach the engine themselves, or a ward simulated on one machine) gives them one loop to share,
@@ -31,7 +36,8 @@ from nats.aio.client import Client
 
 from appliance.alerts.wardlink import WardLink
 from appliance.hospital.engine import RETRYABLE, BedPublisher, cancel_the_rest, connect
-from appliance.hospital.subjects import CONFIRM, bed_subject, confirmation_subject, confirms_stream_name
+from appliance.hospital.subjects import (CONFIRM, answer_subject, bed_subject, command_subject, confirmation_subject,
+                                         confirms_stream_name)
 from appliance.store.outbox import Outbox
 
 log = logging.getLogger(__name__)
@@ -90,9 +96,8 @@ class EngineTransport:
         return self._fire(bed_subject(self.ward, self.bed, "summary"), payload.encode())
 
     def send_answer(self, payload: str) -> bool:
-        # The engine has no subject for command answers yet: commands from the ward come only over MQTT.
-        log.warning("ward link: command answers are not carried by the hospital engine")
-        return False
+        """Publish an answer without an acknowledgement: one lost is asked for again by the station's resend."""
+        return self._fire(answer_subject(self.ward, self.bed), payload.encode())
 
     def connected(self) -> bool:
         return self._up
@@ -153,6 +158,7 @@ class EngineTransport:
             return
         self._connection, self._publisher = connection, BedPublisher(connection, self.ward, self.bed)
         await connection.subscribe(bed_subject(self.ward, self.bed, CONFIRM), cb=self._on_confirm)
+        await connection.subscribe(command_subject(self.ward, self.bed), cb=self._on_command)
         await self._on_reconnected()
 
     async def _on_reconnected(self) -> None:
@@ -201,6 +207,9 @@ class EngineTransport:
 
     async def _on_confirm(self, message) -> None:
         await self._take_confirmation(message.data)
+
+    async def _on_command(self, message) -> None:
+        self._bed().transport_command(message.data)
 
     async def _take_confirmation(self, data: bytes) -> None:
         try:
