@@ -77,7 +77,7 @@ def _ward(args) -> int:
     signal.signal(signal.SIGTERM, _stop)
     data_dir.mkdir(parents=True, exist_ok=True)
     with contextlib.ExitStack() as stack:
-        station, source = _station(config, data_dir, stack)
+        station, source = open_station(config, data_dir, stack)
         app = create_ward_app(data_dir, station, config, secure_cookies=not args.plain_http)
         print(f"ward station: beds {source}; the screen on http://{host}:{port}/ (accounts in {data_dir})",
               flush=True)
@@ -86,8 +86,9 @@ def _ward(args) -> int:
     return 0
 
 
-def _station(config, data_dir: Path, stack: contextlib.ExitStack):
-    """The station the configuration names, closed with ``stack``, and where it reads its beds, in words."""
+def open_station(config, data_dir: Path, stack: contextlib.ExitStack):
+    """The station the configuration names, closed with ``stack``, and where it reads its beds, in words; on
+    the engine as on a broker it sends its nurses' commands through the journal in ``data_dir``."""
     from appliance.ward.applied import AppliedJournal
     from appliance.ward.engine_station import EngineStation
     from appliance.ward.journal import CommandJournal
@@ -97,7 +98,7 @@ def _station(config, data_dir: Path, stack: contextlib.ExitStack):
         journal = AppliedJournal(data_dir / APPLIED)
         stack.callback(journal.close)
         e = config.engine
-        return (stack.enter_context(EngineStation.from_config(config, journal)),
+        return (stack.enter_context(EngineStation.from_config(config, journal, CommandJournal(data_dir / JOURNAL))),
                 f"of {e.ward} on the hospital engine ({', '.join(e.servers)}) as {config.client_id}")
     b = config.broker
     assert b is not None

@@ -10,7 +10,11 @@ back; its journal says it was applied, so it is confirmed again and not shown tw
 that missed its confirmation) is confirmed again too.
 
 Status and summaries come as plain messages (each replaces the last; nothing is lost that matters when one is
-missed). Commands to beds are not carried by the engine yet: ``commands`` is None.
+missed). With a command journal the station's nurses act on its beds as on an MQTT ward
+(:class:`~appliance.ward.commands.CommandSender`: journalled, sent again until answered or expired): each
+command goes to the bed's ``command`` subject and the answers come from the ward's ``command-result`` subjects,
+plain messages both. What is pending goes again at once when the station connects and when its bed says it is
+online. The engine lets a station send commands only to the beds of its own ward.
 """
 
 from __future__ import annotations
@@ -27,10 +31,13 @@ import nats.errors
 from nats.aio.client import Client
 
 from appliance.hospital.engine import RETRYABLE, Delivery, WardReader, cancel_the_rest, connect
-from appliance.hospital.subjects import CONFIRM, bed_subject, confirmation_subject, confirms_stream_name
+from appliance.hospital.subjects import (CONFIRM, answer_subject, bed_subject, command_subject, confirmation_subject,
+                                         confirms_stream_name)
 from appliance.ward.applied import AppliedJournal
 from appliance.ward.board import EVENTS_KEPT, WardBoard
+from appliance.ward.commands import DEFAULT_EXPIRY_S, DEFAULT_RESEND_S, CommandSender
 from appliance.ward.config import WardConfig
+from appliance.ward.journal import CommandJournal
 
 log = logging.getLogger(__name__)
 
@@ -44,17 +51,21 @@ CONNECT_RETRY_S = 2.0
 class EngineStation:
     """Station ``station`` of ward ``ward`` on the engine's nodes at ``urls``, logged in with ``password``; what it
     applied is kept in ``journal`` (which the caller closes). Counters: ``confirmations_sent``; ``board`` holds
-    the beds."""
-
-    commands = None
+    the beds. ``command_journal`` lets its nurses send commands to beds (``commands``, a :class:`CommandSender`,
+    is None without one); ``command_expiry_s`` and ``resend_after_s`` are its timings."""
 
     def __init__(self, urls: Sequence[str], ward: str, station: str, password: str, journal: AppliedJournal, *,
-                 summary_interval_s: float = 1.0, stale_after_s: float | None = None):
+                 summary_interval_s: float = 1.0, stale_after_s: float | None = None,
+                 command_journal: CommandJournal | None = None, command_expiry_s: float = DEFAULT_EXPIRY_S,
+                 resend_after_s: float = DEFAULT_RESEND_S):
         self.urls, self.ward, self.station, self._password, self.journal = list(urls), ward, station, password, \
             journal
         self.board = WardBoard(summary_interval_s, stale_after_s)
         self.stale_after_s = self.board.stale_after_s
         self.confirmations_sent = 0
+        self.commands = None if command_journal is None else CommandSender(
+            command_journal, self._publish_command, station, expiry_s=command_expiry_s,
+            resend_after_s=resend_after_s, on_change=self.board.changed)
         for delivery in journal.latest(EVENTS_KEPT):         # what it showed before a restart
             self.board.restore(delivery.bed, delivery.event)
         self._ready = threading.Event()
@@ -66,12 +77,14 @@ class EngineStation:
         asyncio.run_coroutine_threadsafe(self._run(), self._loop)
 
     @classmethod
-    def from_config(cls, config: WardConfig, journal: AppliedJournal) -> EngineStation:
+    def from_config(cls, config: WardConfig, journal: AppliedJournal,
+                    command_journal: CommandJournal | None = None) -> EngineStation:
         engine = config.engine
         if engine is None:
             raise ValueError("the configuration names a broker, not the hospital engine: use WardStation")
         return cls(engine.servers, engine.ward, config.client_id, engine.password(), journal,
-                   summary_interval_s=config.summary_interval_s)
+                   summary_interval_s=config.summary_interval_s, command_journal=command_journal,
+                   command_expiry_s=config.command_expiry_s)
 
     @property
     def connected(self) -> bool:
@@ -94,7 +107,11 @@ class EngineStation:
         return self.board.online_flags()
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Stop reading and disconnect; what was not acknowledged is given again at the next start."""
+        """Stop reading and disconnect; what was not acknowledged is given again at the next start, and commands
+        not yet answered stay in their journal, sent again then."""
+        if self.commands is not None:
+            self.commands.close()
+
         async def finish() -> None:
             self._stopping = True                   # nats-py can turn a cancellation into a timeout
             if self._connection is not None:
@@ -131,6 +148,10 @@ class EngineStation:
             return
         for kind in ("status", "summary"):
             await connection.subscribe(bed_subject(self.ward, "*", kind), cb=self._on_bed_message)
+        if self.commands is not None:
+            # the engine takes this before any command the station publishes after it, so no answer is missed
+            await connection.subscribe(answer_subject(self.ward, "*"), cb=self._on_answer)
+            self.commands.connected(True)
         reader = WardReader(connection, self.ward, self.station, ledger=self.journal)
         while not self._stopping:
             try:
@@ -147,13 +168,39 @@ class EngineStation:
 
     async def _down(self) -> None:
         self._ready.clear()
+        if self.commands is not None:
+            self.commands.connected(False)
 
     async def _up(self) -> None:
         self._ready.set()
+        if self.commands is not None:
+            self.commands.connected(True)
 
     async def _on_bed_message(self, message) -> None:
         _, _, bed, kind = message.subject.split(".", 3)
-        self.board.take(bed, kind, message.data)
+        body = self.board.take(bed, kind, message.data)
+        if kind == "status" and body == "online" and self.commands is not None:
+            await asyncio.to_thread(self.commands.bed_online, bed)
+
+    async def _on_answer(self, message) -> None:
+        """A bed's answer to a command, into the command journal off the engine's thread; a bad one is counted."""
+        assert self.commands is not None
+        bed = message.subject.split(".")[2]
+        try:
+            await asyncio.to_thread(self.commands.take_answer, bed, message.data)
+        except (ValueError, TypeError, UnicodeDecodeError) as exc:     # json's errors are ValueErrors
+            self.board.refused(message.subject, exc)
+        except sqlite3.Error as exc:                  # the bed answers the next resend too
+            log.error("ward: %s's answer not journalled: %s", bed, exc)
+
+    def _publish_command(self, bed: str, payload: str) -> bool:
+        """Hand a command to the engine's thread without waiting; False when the station is not connected."""
+        connection = self._connection
+        if connection is None or not connection.is_connected:
+            return False
+        asyncio.run_coroutine_threadsafe(connection.publish(command_subject(self.ward, bed), payload.encode()),
+                                         self._loop)
+        return True
 
     async def _handle(self, delivery: Delivery, fresh: bool) -> None:
         """Show a new event, then confirm it (a repeat too) durably, then to the bed; raises when the engine
