@@ -1,7 +1,8 @@
 """The ward station's screen: every bed of the ward at once, alarming beds first, each linked to its own screen.
 
-The station (``appliance.ward.station.WardStation``) runs in this process and
-keeps each bed's state from MQTT; this blueprint only shows it: as a page, as
+The station (``appliance.ward.station.WardStation`` on the ward's broker, or
+``appliance.ward.engine_station.EngineStation`` on the hospital engine) runs in
+this process and keeps each bed's state; this blueprint only shows it: as a page, as
 JSON (``/api/ward``), and as a server-sent event stream sent whenever the
 station took a message or a bed went on- or offline, checked four times a second.
 
