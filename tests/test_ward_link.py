@@ -18,7 +18,7 @@ from appliance.alerts.alarms import AlarmEvent
 from appliance.alerts.events import Event, as_event
 from appliance.alerts.turns import TurnEvent
 from appliance.alerts.ward_mqtt import mqtt_ward_link, release
-from appliance.alerts.wardlink import WardLink
+from appliance.alerts.wardlink import FAILED_FAST_S, FAILED_RETRY_S, MAX_RESEND_S, WardLink, failed_retry_wait
 from appliance.core.named_layouts import get_layout
 from appliance.core.protocols import default_protocol
 from appliance.errors import StoreCorrupt
@@ -366,15 +366,27 @@ def test_a_send_that_came_to_nothing_is_tried_again_soon_not_after_the_doubled_r
         assert transport.sends[1] == 4 and bed.published == 4
 
 
-def test_the_wait_after_each_failed_send_doubles_so_an_engine_without_a_quorum_is_not_flooded(tmp_path):
-    """Refused for ever: the tries come 1 s, then at least 2 s, then at least 4 s apart (the gaps are lower bounds,
-    which a busy machine only lengthens), not every second."""
+def test_failed_sends_are_retried_every_second_through_an_election_then_less_and_less_often():
+    """A leader's election takes seconds: retried every second for the first minute; an engine without a quorum
+    for longer is asked half as often after each failure, up to the resend ceiling."""
+    assert [failed_retry_wait(t, 1.0) for t in (0.0, 10.0, FAILED_FAST_S - 0.1)] == [FAILED_RETRY_S] * 3
+    waits, wait = [], FAILED_RETRY_S
+    for failing_for in range(int(FAILED_FAST_S), int(FAILED_FAST_S) + 600, 30):
+        wait = failed_retry_wait(failing_for, wait)
+        waits.append(wait)
+    assert waits[:6] == [2.0, 4.0, 8.0, 16.0, 32.0, MAX_RESEND_S] and set(waits[6:]) == {MAX_RESEND_S}
+
+
+def test_the_link_tries_a_failing_send_again_at_the_policys_waits(tmp_path, monkeypatch):
+    """Refused for ever, with the fast phase cut to 2.5 s: three tries a second apart, then gaps of at least 2 and
+    4 s (lower bounds, which a busy machine only lengthens)."""
+    monkeypatch.setattr("appliance.alerts.wardlink.FAILED_FAST_S", 2.5)
     transport = RefusingTransport(refusals=10 ** 6)
     with WardLink(transport, "bed7", Outbox(tmp_path / "outbox.db"), resend_after_s=60.0) as bed:
         bed.notify(alarm(1))
-        assert wait_until(lambda: transport.sends[1] == 4, 30)
+        assert wait_until(lambda: transport.sends[1] == 6, 40)
     gaps = [later - earlier for earlier, later in zip(transport.sent_at, transport.sent_at[1:], strict=False)]
-    assert gaps[0] >= 1.0 and gaps[1] >= 2.0 and gaps[2] >= 4.0
+    assert min(gaps[:2]) >= 1.0 and gaps[3] >= 2.0 and gaps[4] >= 4.0
 
 
 def test_an_idle_link_sleeps_until_its_next_resend_instead_of_polling_its_outbox(tmp_path):

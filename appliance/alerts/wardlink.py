@@ -18,12 +18,14 @@ what the bed is told, is here, the same for both.
 Resends: every unconfirmed event is sent on each new connection, and again after
 ``resend_after_s``, doubling up to ``MAX_RESEND_S``, so a station away for an hour
 finds a handful of copies of each event waiting, not thousands. A send the transport
-reports as come to nothing (``transport_failed``) is tried again ``FAILED_RETRY_S``
-later, then twice as long after each further failure: no copy of it is waiting
-anywhere, and the held events' wait would hold an alarm back 15 s after a leader's
-election. Once held, its wait starts again from ``resend_after_s``. With ``confirm``
-off (a broker with no ward station behind it) the transport's acknowledgement
-counts as delivery, and the screen says so.
+reports as come to nothing (``transport_failed``) is tried again every ``FAILED_RETRY_S``
+while it has been failing for less than ``FAILED_FAST_S``, then twice as long after each
+further failure (:func:`failed_retry_wait`): no copy of it is waiting anywhere, and a
+leader's election (seconds) should not hold an alarm back longer than itself, while an
+engine without a quorum for an hour is not asked every second for every event. Once
+held, its wait starts again from ``resend_after_s``. With ``confirm`` off (a broker
+with no ward station behind it) the transport's acknowledgement counts as delivery,
+and the screen says so.
 
 Commands from the ward station are taken on the transport's thread, checked, and
 held for the monitor loop (:meth:`WardLink.take_commands`), which applies each
@@ -50,9 +52,12 @@ log = logging.getLogger(__name__)
 MAX_RESEND_S = 60.0
 FAILED_RETRY_S = 1.0
 """How soon an event the transport could not hand over (the engine did not acknowledge it: a leader being
-elected) is first sent again, doubling with each failure up to ``MAX_RESEND_S``: nothing holds a copy yet, so it
-is not left to wait out the resend wait of one the broker or engine holds, yet an engine without a quorum for an
-hour is not asked again every second for every event."""
+elected) is sent again: nothing holds a copy yet, so it is not left to wait out the resend wait of one the
+broker or engine holds."""
+FAILED_FAST_S = 60.0
+"""How long failed sends are tried again every ``FAILED_RETRY_S``: longer than an election (the engine elects a
+new leader within seconds; its nodes paused for 45 s in the hospital soak) and short of an outage, after which
+the wait doubles with each failure up to ``MAX_RESEND_S``."""
 IDLE_WAKE_S = 1.0
 """The longest the sender sleeps with nothing due: it is woken by new events, answers, connections and the
 transport's word, and otherwise sleeps until the next resend falls due (a bed's link is idle most of the time)."""
@@ -98,6 +103,14 @@ class Transport(Protocol):
         """Say the bed is going offline and disconnect, within ``timeout_s``."""
 
 
+def failed_retry_wait(failing_for_s: float, last_wait_s: float) -> float:
+    """The wait before sending again an event whose sends have come to nothing for ``failing_for_s``, the last
+    wait having been ``last_wait_s``."""
+    if failing_for_s < FAILED_FAST_S:
+        return FAILED_RETRY_S
+    return min(max(2 * last_wait_s, FAILED_RETRY_S), MAX_RESEND_S)
+
+
 class WardLink:
     """Sends ``bed_id``'s events from ``outbox`` (which it closes) through ``transport`` until confirmed.
 
@@ -134,7 +147,7 @@ class WardLink:
         self._queued_steady: dict[int, float] = {}               # seq -> when it was queued, monotonic
         self._in_flight: set[int] = set()                        # handed over, awaiting the transport's word
         self._held: set[int] = set()                             # held by the broker or engine
-        self._failed: dict[int, float] = {}                      # seq -> wait after its last send came to nothing
+        self._failed: dict[int, tuple[float, float]] = {}       # seq -> (first send that came to nothing, wait)
         now = time.monotonic()
         for entry in outbox.pending():
             self._queued_steady[entry.seq] = now  # from an earlier run: the deadline starts again now
@@ -282,9 +295,11 @@ class WardLink:
             self._in_flight.discard(seq)
             sent = self._sends.get(seq)
             if sent is not None and seq in self._queued_steady:
-                retry = min(2 * self._failed[seq], MAX_RESEND_S) if seq in self._failed else FAILED_RETRY_S
-                self._failed[seq] = retry
-                self._sends[seq] = (sent[0], time.monotonic(), retry)
+                now = time.monotonic()
+                first, wait = self._failed.get(seq, (now, 0.0))
+                retry = failed_retry_wait(now - first, wait)
+                self._failed[seq] = (first, retry)
+                self._sends[seq] = (sent[0], now, retry)
         self._wake.set()
 
     def transport_confirmed(self, seq, station) -> None:
