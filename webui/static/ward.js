@@ -172,7 +172,8 @@ function timeOfDay(s) {
 }
 
 function historyLine(e) {
-  const li = element("li", "event " + e.type + (e.priority ? " " + e.priority : ""));
+  // classes of their own: a past alarm must not look like a live one (the page's .alarm.high flashes)
+  const li = element("li", "past-" + e.type + (e.priority ? " priority-" + e.priority : ""));
   const when = element("time", null, timeOfDay(e.stored_at));
   when.dateTime = new Date(e.stored_at * 1000).toISOString();
   // an alarm's words stay the same from raised to ended: its kind says what happened; a turn's words say it all
