@@ -175,11 +175,10 @@ async def _write_history(hospital, secrets: Path, db) -> None:
 
 
 def _overview(args) -> int:
-    import psycopg
-
     from appliance.cli_run import listen_address
     from appliance.errors import ConfigError
     from appliance.hospital.description import load_hospital
+    from appliance.hospital.history.reads import connector
     from appliance.service.config_sections import default_data_dir
     from webui import create_hospital_app
     from webui.server import serve
@@ -191,7 +190,7 @@ def _overview(args) -> int:
     dsn = args.dsn or f"dbname={hospital.history.database if hospital.history else ''}"
     host, port = listen_address(args.listen, "--listen")
     data_dir = args.data_dir or default_data_dir() / "hospital-overview"
-    app = create_hospital_app(data_dir, hospital, lambda: psycopg.connect(dsn), secure_cookies=not args.plain_http)
+    app = create_hospital_app(data_dir, hospital, connector(dsn), secure_cookies=not args.plain_http)
     signal.signal(signal.SIGTERM, _stop)
     print(f"hospital overview: {len(hospital.wards)} ward(s) from {dsn!r}; the screen on http://{host}:{port}/ "
           f"(accounts in {data_dir})", flush=True)

@@ -26,8 +26,8 @@ def add_parsers(sub) -> None:
     from appliance.cli_args import add_screen_options, whole_within
 
     p = sub.add_parser("ward", help="run the ward station: every bed's state and alarms from the MQTT broker")
-    p.add_argument("--config", type=Path, required=True, help="the station's TOML configuration ([broker], "
-                                                             "[station])")
+    p.add_argument("--config", type=Path, required=True, help="the station's TOML configuration ([broker] or "
+                                                             "[engine], [station], [history])")
     p.add_argument("--check-config", action="store_true", help="check the configuration, print it and exit")
     p.add_argument("--data-dir", type=Path, default=None,
                    help="where the screen's accounts, audit log and command journal are kept (default "
@@ -79,7 +79,9 @@ def _ward(args) -> int:
     with contextlib.ExitStack() as stack:
         station, source = open_station(config, data_dir, stack)
         app = create_ward_app(data_dir, station, config, secure_cookies=not args.plain_http)
-        print(f"ward station: beds {source}; the screen on http://{host}:{port}/ (accounts in {data_dir})",
+        history = "" if config.history is None else \
+            f"; the history of {config.history.ward}, the last {config.history.look_back_h:g} h"
+        print(f"ward station: beds {source}; the screen on http://{host}:{port}/ (accounts in {data_dir}){history}",
               flush=True)
         with contextlib.suppress(KeyboardInterrupt):
             serve(app, host, port, threads=args.threads, ident="appliance-ward", behind_proxy=args.behind_proxy)

@@ -1,4 +1,5 @@
-"""Shared fixtures: a clean environment, the built-in layouts and their models."""
+"""Shared fixtures: a clean environment, the built-in layouts and their models, a ward's broker, station and beds,
+and a throw-away PostgreSQL with the hospital history's tables."""
 
 import functools
 import os
@@ -177,3 +178,26 @@ def beds(broker, tmp_path):
     yield make
     for link in made:
         link.close(timeout_s=1.0)
+
+
+@pytest.fixture(scope="module")
+def postgres():
+    """A throw-away PostgreSQL server (``postgres_server``) shared by a module's tests; skipped without one."""
+    from postgres_server import running_postgres
+
+    with running_postgres() as server:
+        yield server
+
+
+@pytest.fixture
+def history_dsn(postgres, request):
+    """The connection string of a new database for this test on ``postgres``, with the history's tables."""
+    import psycopg
+
+    from appliance.hospital.history.schema import create_schema
+
+    name = request.node.name.lower().replace("[", "_").replace("]", "").replace("-", "_")[:60]
+    postgres.psql(f"CREATE DATABASE {name}")
+    with psycopg.connect(postgres.dsn(name)) as connection:
+        create_schema(connection)
+    return postgres.dsn(name)

@@ -339,15 +339,18 @@ def test_a_monitor_that_stops_writing_is_shown_as_stale_and_recovers(appliance, 
 
 
 def test_the_ward_station_shows_every_bed_a_new_alarm_within_2_s_and_a_stopped_bed_offline(
-        broker, beds, browser, tmp_path):
-    """Twelve beds publishing to a real broker, the station as `appliance ward`, the ward page in Chromium."""
+        broker, beds, browser, tmp_path, history_dsn):
+    """Twelve beds publishing to a real broker, the station as `appliance ward` reading the ward's last two hours
+    from the hospital history, the ward page in Chromium."""
     import threading
 
     from selenium.webdriver.common.by import By
     from ward_payloads import alarm, summary
 
+    write_ward_history(history_dsn)
     (tmp_path / "ward.toml").write_text(f'[broker]\nhost = "127.0.0.1"\nport = {broker.port}\n[station]\n'
-                                        'client_id = "browser-station"\nscreen_url = "https://{bed_id}.ward3.example/"\n')
+                                        'client_id = "browser-station"\nscreen_url = "https://{bed_id}.ward3.example/"\n'
+                                        f'[history]\ndsn = "{history_dsn}"\nward = "ward3"\n')
     port = free_port()
     with open(tmp_path / "ward.log", "w") as log:
         station = subprocess.Popen([sys.executable, "-m", "appliance", "ward", "--config", str(tmp_path / "ward.toml"),
@@ -381,6 +384,17 @@ def test_the_ward_station_shows_every_bed_a_new_alarm_within_2_s_and_a_stopped_b
         assert shown[0]["link"] == "https://ward3-bed04.ward3.example/"
         assert "SIMULATED: the virtual bed" in shown[1]["text"] and "SIMULATED" not in shown[0]["text"]
 
+        # from the history: each bed's sparkline of two hours, bed 4's rising to 40 mmHg, and the ward's events
+        wait_for(lambda: len(browser.find_elements(By.CSS_SELECTOR, "article.bed svg.sparkline")) == 12, 30,
+                 "a sparkline on every tile")
+        line, words, events = browser.execute_script(      # in one go: the page redraws on every update
+            "const trend = document.querySelector('article[data-bed=\"ward3-bed04\"] .trend');"
+            "return [trend.querySelector('path').getAttribute('d'), trend.querySelector('.trend-words').textContent,"
+            "        Array.from(document.querySelectorAll('#history-events li'), e => e.textContent)];")
+        assert line.startswith("M") and line.count("L") == 119 and words == "12 h: up to 40 mmHg"
+        assert [e[e.index("ward3-"):] for e in events] == ["ward3-bed07: turn recorded by n.lee",
+                                                        "ward3-bed04: alarm raised (high): Sacrum dose over limit"]
+
         # how fast it shows is measured in benchmarks/ward_load.py (median 137 ms, against the 2 s required)
         notifiers["ward3-bed11"].notify(alarm(alarm_id=7, time_s=time.time()))
         alarms["ward3-bed11"] = [(7, "high")]       # and in its summaries from now on, as a bed's would be
@@ -413,6 +427,34 @@ def test_the_ward_station_shows_every_bed_a_new_alarm_within_2_s_and_a_stopped_b
         publisher.join(timeout=5)
         station.terminate()
         station.wait(timeout=15)
+
+
+def write_ward_history(dsn: str) -> None:
+    """Two hours of every ward3 bed's minutes into the history at ``dsn``, bed 4's peak rising from 10 to 40 mmHg
+    and the others' at 20, and two of the ward's events."""
+    import datetime as dt
+
+    import psycopg
+
+    from appliance.hospital.history.store import StoredEvent, write_events, write_minutes
+    from appliance.hospital.history.trend import Minute
+
+    now = dt.datetime.now(dt.UTC).replace(second=0, microsecond=0)
+    minutes = []
+    for n in range(1, 13):
+        for ago in range(120, 0, -1):
+            peak = 40.0 - 30.0 * (ago - 1) / 119 if n == 4 else 20.0
+            minutes.append(Minute("ward3", f"ward3-bed{n:02d}", now - dt.timedelta(minutes=ago), 60, 60, peak, peak,
+                                  "supine", last_at=now - dt.timedelta(minutes=ago - 1)))
+    events = [StoredEvent(now - dt.timedelta(minutes=90), "ward3", "ward3-bed04", 1, "alarm",
+                          {"type": "alarm", "kind": "raised", "priority": "high", "alarm_id": 1,
+                           "bed_id": "ward3-bed04", "seq": 1, "message": "Sacrum dose over limit"}),
+              StoredEvent(now - dt.timedelta(minutes=30), "ward3", "ward3-bed07", 1, "turn",
+                          {"type": "turn", "kind": "recorded", "bed_id": "ward3-bed07", "seq": 1,
+                           "message": "turn recorded by n.lee"})]
+    with psycopg.connect(dsn) as db:
+        write_minutes(db, minutes)
+        write_events(db, events)
 
 
 def tiles(driver) -> list[dict]:

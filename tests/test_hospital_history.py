@@ -17,13 +17,12 @@ import psycopg
 import pytest
 from hospital_engine import logged_in, make_streams, running_cluster
 from mqtt_broker import wait_until
-from postgres_server import running_postgres
 
 from appliance.errors import ConfigError
 from appliance.hospital.description import HistoryPolicy, description_text, hospital_from_mapping, load_hospital
 from appliance.hospital.engine import BedPublisher
 from appliance.hospital.history.reads import alarm_counts, pressure_trend, recent_events, ward_trends
-from appliance.hospital.history.schema import EVENTS, PRESSURE, create_schema, drop_expired, ensure_ahead, partitions
+from appliance.hospital.history.schema import EVENTS, PRESSURE, drop_expired, ensure_ahead, partitions
 from appliance.hospital.history.store import StoredEvent, write_events, write_minutes
 from appliance.hospital.history.trend import MinuteTrend
 from appliance.hospital.history.writer import HistoryWriter
@@ -34,19 +33,10 @@ UTC = dt.UTC
 POLICY = HistoryPolicy(events_days=60, pressure_days=7)
 
 
-@pytest.fixture(scope="module")
-def postgres():
-    with running_postgres() as server:
-        yield server
-
-
 @pytest.fixture
-def db(postgres, request):
-    """A new database for each test, with the history's tables."""
-    name = request.node.name.lower().replace("[", "_").replace("]", "").replace("-", "_")[:60]
-    postgres.psql(f"CREATE DATABASE {name}")
-    with psycopg.connect(postgres.dsn(name)) as connection:
-        create_schema(connection)
+def db(history_dsn):
+    """A connection to a new database for each test, with the history's tables."""
+    with psycopg.connect(history_dsn) as connection:
         yield connection
 
 

@@ -5,12 +5,10 @@ import datetime as dt
 
 import psycopg
 import pytest
-from postgres_server import running_postgres
 from webui_client import client_as
 
 from appliance.hospital.description import hospital_from_mapping
 from appliance.hospital.history.reads import open_alarms
-from appliance.hospital.history.schema import create_schema
 from appliance.hospital.history.store import StoredEvent, write_events, write_minutes
 from appliance.hospital.history.trend import Minute
 from webui import create_hospital_app
@@ -24,12 +22,6 @@ HOSPITAL = hospital_from_mapping({
     "history": {"events_days": 3650, "pressure_days": 90}})
 
 
-@pytest.fixture(scope="module")
-def postgres():
-    with running_postgres() as server:
-        yield server
-
-
 def alarm(ward, bed, seq, minutes_ago, alarm_id, kind, priority=None, site="sacrum", now=NOW):
     body = {"type": "alarm", "kind": kind, "priority": priority, "alarm_id": alarm_id, "bed_id": bed, "seq": seq,
             "site": site, "message": f"{site} dose over limit"}
@@ -37,11 +29,8 @@ def alarm(ward, bed, seq, minutes_ago, alarm_id, kind, priority=None, site="sacr
 
 
 @pytest.fixture
-def history(postgres, request):
-    name = request.node.name.lower()[:60]
-    postgres.psql(f"CREATE DATABASE {name}")
-    with psycopg.connect(postgres.dsn(name)) as db:
-        create_schema(db)
+def history(history_dsn):
+    with psycopg.connect(history_dsn) as db:
         write_events(db, [
             alarm("ward3", "w3-bed01", 1, 50, 1, "raised", "medium"),
             alarm("ward3", "w3-bed01", 2, 20, 1, "escalated", "high"),        # open, high, not acknowledged
@@ -55,7 +44,7 @@ def history(postgres, request):
                                   last_at=NOW - dt.timedelta(seconds=30)) for bed in ("w3-bed01", "w3-bed02")]
                       + [Minute("ward4", "w4-bed01", NOW - dt.timedelta(minutes=10), 60, 60, 30.0, 30.0, "supine",
                                 last_at=NOW - dt.timedelta(minutes=9))])
-        yield postgres.dsn(name)
+    return history_dsn
 
 
 def test_open_alarms_are_the_unended_ones_highest_priority_first(history):

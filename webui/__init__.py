@@ -67,10 +67,22 @@ def create_app(data_dir, *, secure_cookies: bool = True, blueprints=BLUEPRINTS, 
 
 
 def create_ward_app(data_dir, station, ward_config, *, secure_cookies: bool = True, **config) -> Flask:
-    """The ward station's screen for a running ``WardStation``; accounts in ``data_dir`` (the station's own)."""
+    """The ward station's screen for a running ``WardStation``; accounts in ``data_dir`` (the station's own). With
+    a ``[history]`` in ``ward_config`` it reads the hospital history too, at most every ``HISTORY_REFRESH_S``
+    (Flask config; default ``webui.ward_history.REFRESH_S``): imported only then, as it needs the PostgreSQL
+    driver."""
     app = create_app(data_dir, secure_cookies=secure_cookies, blueprints=WARD_BLUEPRINTS, HOME="ward.page",
                      WARD=ward_config, **config)
     app.extensions["ward_station"] = station
+    if ward_config.history is not None:
+        from appliance.hospital.history.reads import connector
+        from webui import ward_history
+
+        source = ward_config.history
+        app.extensions["ward_history"] = ward_history.WardHistory(
+            connector(source.dsn), source.ward, source.look_back_h,
+            refresh_s=app.config.get("HISTORY_REFRESH_S", ward_history.REFRESH_S))
+        app.register_blueprint(ward_history.bp)
     app.add_url_rule("/", "home", lambda: redirect(url_for("ward.page")))
     return app
 

@@ -14,7 +14,7 @@ import datetime as dt
 
 from flask import Blueprint, current_app, jsonify, render_template
 
-from appliance.hospital.history.reads import alarm_counts, beds_heard, open_alarms, recent_events
+from appliance.hospital.history.reads import alarm_counts, beds_heard, open_alarms, reading, recent_events
 
 bp = Blueprint("hospital", __name__)
 HEARD_S = 180.0
@@ -30,8 +30,7 @@ def hospital_view(now: dt.datetime | None = None) -> dict:
     """The overview as data: the same for the page and ``/api/hospital``."""
     hospital = current_app.extensions["hospital"]
     now = now or dt.datetime.now(dt.UTC)
-    with current_app.extensions["history"]() as db:
-        db.read_only = True
+    with reading(current_app.extensions["history"]) as db:
         alarms = open_alarms(db, now - REACH)
         last_hour, last_day = alarm_counts(db, now - dt.timedelta(hours=1)), alarm_counts(db, now - REACH)
         heard = beds_heard(db, now - dt.timedelta(seconds=HEARD_S))

@@ -13,6 +13,9 @@ station's command journal, and sent to the bed
 (:class:`~appliance.ward.commands.CommandSender`); each bed's tile shows its
 latest commands, pending until the bed answers done or refused (with the bed's
 reason), or expired. The screen never touches a bed's alarms itself.
+
+A station configured with ``[history]`` also shows, from the hospital history, each bed's peak pressure over
+the last hours as a sparkline and the ward's events of that time (``webui.ward_history``).
 """
 
 from __future__ import annotations
@@ -71,7 +74,7 @@ def _change_key() -> tuple:
 
 @bp.route("/ward")
 def page():
-    return render_template("ward.html")
+    return render_template("ward.html", history=current_app.extensions.get("ward_history"))
 
 
 @bp.route("/api/ward")

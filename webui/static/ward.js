@@ -1,4 +1,5 @@
-// The ward: one tile per bed, in the station's order (alarming beds first, then the offline ones).
+// The ward: one tile per bed, in the station's order (alarming beds first, then the offline ones); with the hospital
+// history, each tile's peak pressure over the last hours and the ward's events of that time below the tiles.
 "use strict";
 
 function element(tag, className, text) {
@@ -11,6 +12,9 @@ function element(tag, className, text) {
 const COMMAND_WORDS = {"acknowledge": "Acknowledge", "record-turn": "Record turn"};
 const STATE_WORDS = {"pending": "pending", "done": "done", "refused": "refused", "expired": "expired"};
 let canAct = false;
+let lastWard = null;        // the board as last pushed, drawn again when the history arrives
+let wardHistory = null;     // the latest answer of /api/ward/history, null until one came
+let historyTop = 1;         // the sparklines' common scale: the ward's highest peak in the look-back, mmHg
 
 // A nurse's command to a bed: posted with the session's CSRF token; the stream shows it pending, then done.
 function act(button, path) {
@@ -80,6 +84,7 @@ function tile(bed) {
   if (bed.regions.length) {
     div.appendChild(element("p", "facts", bed.regions.map(r => `${r.words || r.zone || "region"} ${Math.round(100 * (r.dose || 0))} %`).join(" · ")));
   }
+  if (wardHistory && wardHistory.available) div.appendChild(trend(wardHistory.trends[bed.bed_id] || []));
   if (canAct) {
     div.appendChild(button("Record turn", `/ward/${encodeURIComponent(bed.bed_id)}/turn`, `Record a turn at bed ${bed.bed_id}`));
     for (const c of bed.commands) div.appendChild(commandLine(c));
@@ -88,6 +93,7 @@ function tile(bed) {
 }
 
 function draw(ward) {
+  lastWard = ward;
   document.getElementById("lost").hidden = true;
   document.getElementById("broker").hidden = ward.connected;
   canAct = ward.can_act;
@@ -111,3 +117,92 @@ function listen() {
 }
 
 listen();
+
+// The hospital history: each bed's highest peak per minute and the ward's events over the look-back, polled as
+// often as the station reads it; only on a station that has one (the page then has a #history section).
+const SVG = "http://www.w3.org/2000/svg";
+const SPARK_W = 200, SPARK_H = 32;
+const GAP_S = 90;           // minutes further apart than this were not heard: the line breaks there
+
+function hours() {
+  return `${wardHistory.look_back_h} h`;
+}
+
+function highestPeak(points) {
+  return points.reduce((top, [, peak]) => peak === null || (top !== null && top >= peak) ? top : peak, null);
+}
+
+function trend(points) {
+  const p = element("p", "trend");
+  const highest = highestPeak(points);
+  if (highest === null) {
+    p.textContent = `no pressure in the history for the last ${hours()}`;
+    return p;
+  }
+  const svg = document.createElementNS(SVG, "svg");
+  svg.setAttribute("class", "sparkline");
+  svg.setAttribute("viewBox", `0 0 ${SPARK_W} ${SPARK_H}`);
+  svg.setAttribute("preserveAspectRatio", "none");
+  svg.setAttribute("role", "img");
+  const words = `highest peak pressure per minute over the last ${hours()}: up to ${highest.toFixed(0)} mmHg`;
+  svg.setAttribute("aria-label", words);
+  const title = document.createElementNS(SVG, "title");
+  title.textContent = words;
+  svg.appendChild(title);
+  const span = wardHistory.read_at - wardHistory.since;
+  let d = "", pen = "M", last = null;
+  for (const [t, peak] of points) {
+    if (last !== null && t - last > GAP_S) pen = "M";
+    last = t;
+    if (peak === null) { pen = "M"; continue; }            // a minute without a map
+    const x = (t - wardHistory.since) / span * SPARK_W, y = SPARK_H - 1 - peak / historyTop * (SPARK_H - 2);
+    d += `${pen}${x.toFixed(1)},${y.toFixed(1)}` + (pen === "M" ? "h0" : "");   // a lone minute: a dot
+    pen = "L";
+  }
+  const line = document.createElementNS(SVG, "path");
+  line.setAttribute("d", d);
+  svg.appendChild(line);
+  p.appendChild(svg);
+  p.appendChild(element("span", "trend-words", `${hours()}: up to ${highest.toFixed(0)} mmHg`));
+  return p;
+}
+
+function timeOfDay(s) {
+  return new Date(s * 1000).toLocaleTimeString([], {hour: "2-digit", minute: "2-digit"});
+}
+
+function historyLine(e) {
+  // classes of their own: a past alarm must not look like a live one (the page's .alarm.high flashes)
+  const li = element("li", "past-" + e.type + (e.priority ? " priority-" + e.priority : ""));
+  const when = element("time", null, timeOfDay(e.stored_at));
+  when.dateTime = new Date(e.stored_at * 1000).toISOString();
+  // an alarm's words stay the same from raised to ended: its kind says what happened; a turn's words say it all
+  const what = e.type === "alarm"
+    ? `alarm ${e.kind}` + (e.priority ? ` (${e.priority})` : "") + (e.message ? `: ${e.message}` : "")
+    : e.message || `${e.type} ${e.kind}`;
+  li.append(when, ` ${e.bed_id}: ${what}`);
+  return li;
+}
+
+function drawHistory(answer, refreshS) {
+  wardHistory = answer;
+  historyTop = Object.values(answer.trends).reduce((top, points) => Math.max(top, highestPeak(points) || 0), 1);
+  const state = document.getElementById("history-state");
+  state.className = "history-state" + (answer.available ? "" : " unavailable");
+  state.textContent = !answer.available
+    ? `The hospital history is unavailable (its database does not answer): trying again in ${refreshS} s.`
+    : answer.events.length ? `${answer.events.length} event(s), newest first` : "no events in this time";
+  document.getElementById("history-events").replaceChildren(...answer.events.map(historyLine));
+  if (lastWard) draw(lastWard);
+}
+
+function pollHistory(refreshS) {
+  fetch("/api/ward/history", {headers: {"Accept": "application/json"}})
+    .then(r => { if (!r.ok) throw new Error(`answered ${r.status}`); return r.json(); })
+    .then(answer => drawHistory(answer, refreshS))
+    .catch(() => drawHistory({available: false, trends: {}, events: []}, refreshS))
+    .finally(() => setTimeout(() => pollHistory(refreshS), refreshS * 1000));
+}
+
+const historySection = document.getElementById("history");
+if (historySection) pollHistory(Math.max(1, Number(historySection.dataset.refreshS)));

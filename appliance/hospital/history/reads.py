@@ -1,5 +1,5 @@
 """What the ward and hospital screens ask of the history: recent events, alarm counts per ward, a bed's pressure
-and a ward's pressure trends.
+and a ward's pressure trends; and how a screen connects to it, read-only.
 
 Each is one indexed query on the partitioned tables, with the time bound that lets PostgreSQL skip every
 partition outside it.
@@ -7,10 +7,32 @@ partition outside it.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
+import functools
+from collections.abc import Callable, Iterator
 
 import psycopg
 from psycopg.rows import dict_row
+
+CONNECT_TIMEOUT_S = 5
+"""A screen gives up on a database that does not answer within this (libpq's ``connect_timeout``, whole seconds):
+without it a connection to a host that is down waits for the operating system's TCP timeout, minutes."""
+
+
+def connector(dsn: str) -> Callable[[], psycopg.Connection]:
+    """How a screen reaches the history at ``dsn``: a new connection for each read, given up after
+    ``CONNECT_TIMEOUT_S``."""
+    return functools.partial(psycopg.connect, dsn, connect_timeout=CONNECT_TIMEOUT_S)
+
+
+@contextlib.contextmanager
+def reading(connect: Callable[[], psycopg.Connection]) -> Iterator[psycopg.Connection]:
+    """A connection from ``connect()`` put in read-only mode before any query, closed afterwards: the screens
+    read the history and never change it, whatever the role they log in as may do."""
+    with connect() as db:
+        db.read_only = True
+        yield db
 
 
 def recent_events(db: psycopg.Connection, since: dt.datetime, *, ward: str | None = None,
