@@ -38,6 +38,7 @@ from appliance.ward.engine_station import EngineStation
 
 WAIT_S = 90.0               # generous: a redelivery comes after the consumer's acknowledgement wait, on a busy machine
 USER = "notify-phones"
+STREAM_ATTEMPTS = 3
 
 
 class Gateway:
@@ -92,7 +93,13 @@ def gateway():
 @pytest.fixture
 def cluster(tmp_path, gateway):
     with running_cluster(tmp_path, [Notifier("phones", ("ward1",), gateway.url)]) as running:
-        asyncio.run(make_streams(running))
+        for attempt in range(STREAM_ATTEMPTS):
+            try:
+                asyncio.run(make_streams(running))
+                break
+            except TimeoutError:            # the nodes may still be electing their leader on a busy machine
+                if attempt == STREAM_ATTEMPTS - 1:
+                    raise
         yield running
 
 
