@@ -15,8 +15,9 @@ each alarm event of its priorities (turn and episode events are not paged), in t
    acknowledged there by a quorum, and only then is the event acknowledged to the ward's stream.
 
 Any other answer, a timeout or a refused connection leaves the event unacknowledged: the stream gives it again
-after the consumer's acknowledgement wait, and the service waits longer after each failure, up to
-``RETRY_MAX_S``. While the gateway takes no pages, :meth:`NotificationService.conditions` says so (a technical
+after the consumer's acknowledgement wait, and the service tries again at that pace for the first
+``RETRY_STEADY_S`` of an outage (most are a gateway's restart or failover), then waits longer after each failure,
+up to ``RETRY_MAX_S``. While the gateway takes no pages, :meth:`NotificationService.conditions` says so (a technical
 alarm, as the ward link's), and the log says it once when the outage begins and once when it ends. After an
 outage pages may reach the gateway out of order: each carries its bed's ``seq`` and ``time_s``.
 """
@@ -54,6 +55,8 @@ RECORD_TIMEOUT_S = 2.0
 """How long the service waits for the confirmation stream's acknowledgement before it leaves the event to be
 given again."""
 RETRY_FIRST_S = 1.0
+RETRY_STEADY_S = 60.0
+"""How long into an outage the gateway is still tried at the first pace, so a short one holds no page long."""
 RETRY_MAX_S = 30.0
 FETCH_BATCH = 20
 """Events fetched at once: few, because they are paged one after the other and each must be acknowledged
@@ -159,9 +162,10 @@ class NotificationService:
                 if reader.subscription is None:
                     await reader.open()
                 await reader.read(FETCH_BATCH, handle=handle)
-            except GatewayUnavailable:                  # given again by the stream; wait longer each time
+            except GatewayUnavailable:                  # given again by the stream; past a minute, less often
                 await asyncio.sleep(self._retry_s)
-                self._retry_s = min(2 * self._retry_s, RETRY_MAX_S)
+                if self._down_since is not None and time.monotonic() - self._down_since > RETRY_STEADY_S:
+                    self._retry_s = min(2 * self._retry_s, RETRY_MAX_S)
             except nats.js.errors.NotFoundError:
                 log.warning("%s: ward %s has no stream yet (appliance hospital streams makes it)", self.user, ward)
                 await asyncio.sleep(STREAM_WAIT_S)
