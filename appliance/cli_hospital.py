@@ -4,7 +4,8 @@
 ``config`` writes each node's nats-server configuration and everyone's passwords from the hospital
 description; ``streams`` creates or updates every ward's replicated alarm and confirmation streams on a running
 cluster; ``start-local`` runs a whole cluster on loopback for trials, until Ctrl-C, and writes its description
-beside it for the other two; ``history`` runs the history writer into PostgreSQL until stopped; ``overview``
+beside it for the other two; ``history`` runs the history writer into PostgreSQL until stopped; ``notify`` runs
+one notification service, paging its wards' alarm changes to its messaging gateway, until stopped; ``overview``
 serves the hospital overview from it; ``install`` writes what a hospital server runs, for
 ``systemd/install-hospital-server.sh``.
 """
@@ -55,6 +56,16 @@ def add_parsers(sub) -> None:
                                                "on the local Unix socket, as the system user running this)")
     p.set_defaults(run=_history)
 
+    p = hospital.add_parser("notify", help="page a notification service's alarm changes to its messaging gateway, "
+                                           "recording each on the engine, until stopped")
+    p.add_argument("--description", type=Path, required=True, help="the hospital description, with the [[notifier]]")
+    p.add_argument("--secrets", type=Path, required=True, metavar="DIR",
+                   help="the secrets/ folder `appliance hospital config` wrote (for notify-NAME's password)")
+    p.add_argument("--notifier", required=True, metavar="NAME", help="the [[notifier]] of the description to run")
+    p.add_argument("--journal", type=Path, default=None, metavar="FILE",
+                   help="the journal of what it has paged (default: the data folder's hospital-notify/NAME.db)")
+    p.set_defaults(run=_notify)
+
     p = hospital.add_parser("overview", help="serve the hospital overview (every ward's beds and open alarms, "
                                              "from the history) until stopped")
     p.add_argument("--description", type=Path, required=True, help="the hospital description, with [history]")
@@ -72,6 +83,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--node", action="append", default=None, metavar="NAME",
                    help="a node this server runs (repeat; default: every node of the description)")
     p.add_argument("--no-history", action="store_true", help="this server does not run the history writer")
+    p.add_argument("--notifier", action="append", default=None, metavar="NAME",
+                   help="a notification service this server runs (repeat; default: none)")
     p.set_defaults(run=_install)
 
 
@@ -174,6 +187,44 @@ async def _write_history(hospital, secrets: Path, db) -> None:
         await connection.close()
 
 
+def _notify(args) -> int:
+    from appliance.hospital.description import load_hospital
+    from appliance.service.config_sections import default_data_dir
+    from appliance.ward.applied import AppliedJournal
+
+    hospital = load_hospital(args.description)
+    notifier = hospital.notifier(args.notifier)
+    path = args.journal or default_data_dir() / "hospital-notify" / f"{notifier.name}.db"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    journal = AppliedJournal(path)
+    try:
+        asyncio.run(_run_notifier(hospital, notifier, args.secrets, journal, path))
+    finally:
+        journal.close()
+    return 0
+
+
+async def _run_notifier(hospital, notifier, secrets: Path, journal, path: Path) -> None:
+    from appliance.hospital.engine import connect
+    from appliance.hospital.nodeconfig import notifier_user, read_password
+    from appliance.hospital.notify import NotificationService
+
+    user = notifier_user(notifier.name)
+    connection = await connect([node.client_url for node in hospital.nodes], user, read_password(secrets, user))
+    try:
+        service = NotificationService(connection, notifier, journal)
+        loop = asyncio.get_running_loop()
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(signum, service.stop)
+        print(f"notification service {notifier.name}: the {', '.join(notifier.priorities)} alarm changes of "
+              f"{', '.join(notifier.wards)} to {notifier.url}; journal {path}", flush=True)
+        await service.run()
+        print(f"notification service {notifier.name} stopped: {service.paged} paged, {service.refused} refused by "
+              f"the gateway, {service.repeats} given again and not paged twice")
+    finally:
+        await connection.close()
+
+
 def _overview(args) -> int:
     from appliance.cli_run import listen_address
     from appliance.errors import ConfigError
@@ -205,7 +256,8 @@ def _install(args) -> int:
     from appliance.hospital.description import load_hospital
     from appliance.hospital.install import install
 
-    installed = install(load_hospital(args.description), args.root, args.node, history=not args.no_history)
+    installed = install(load_hospital(args.description), args.root, args.node, history=not args.no_history,
+                        notifiers=args.notifier)
     print(f"wrote {installed.folder}: node configurations, secrets/, hospital.toml"
           + (f", {installed.sql.name}" if installed.sql else ""), file=sys.stderr)
     print("\n".join(installed.units))

@@ -3,22 +3,24 @@
 # runs, the history writer, as systemd units of the account appliance-hospital. Run as root from a checkout:
 #
 #   systemd/install-hospital-server.sh --description hospital.toml [--node NAME]... [--no-history]
-#                                     [--prefix DIR] [--root DIR]
+#                                     [--notifier NAME]... [--prefix DIR] [--root DIR]
 #
 # --node (repeat) names the description's nodes this server runs (default: all of them, a one-server trial);
-# --no-history leaves out PostgreSQL and the writer. --prefix (default /opt/appliance) is the appliance's
+# --no-history leaves out PostgreSQL and the writer; --notifier (repeat) names the description's notification
+# services this server runs (default: none). --prefix (default /opt/appliance) is the appliance's
 # environment, made and filled from this checkout with the `hospital` extra if it has no pip yet; --root (default
 # /) is where the files go. It can be run again: passwords are kept, the database and role are made once.
 # Then, once every server runs its node: appliance hospital streams --description ... --secrets
 # /etc/appliance/hospital/secrets, which makes the wards' streams.
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/.." && pwd)
-description="" nodes=() history=yes prefix=/opt/appliance root=/
+description="" nodes=() notifiers=() history=yes prefix=/opt/appliance root=/
 while [ $# -gt 0 ]; do
     case $1 in
         --description) description=${2:?--description needs a file}; shift 2 ;;
         --node) nodes+=("--node" "${2:?--node needs a name}"); shift 2 ;;
         --no-history) history=no; shift ;;
+        --notifier) notifiers+=("--notifier" "${2:?--notifier needs a name}"); shift 2 ;;
         --prefix) prefix=${2:?--prefix needs a folder}; shift 2 ;;
         --root) root=${2:?--root needs a folder}; shift 2 ;;
         *) echo "install-hospital-server.sh: unknown option '$1' (see the comment at the top of this script)" >&2
@@ -38,9 +40,10 @@ apt-get install -y -qq "${packages[@]}"
 install -D -m 0644 "$repo/systemd/appliance-hospital.sysusers" "$root/usr/lib/sysusers.d/appliance-hospital.conf"
 systemd-sysusers --root="$root" "$root/usr/lib/sysusers.d/appliance-hospital.conf"
 install -D -m 0644 -t "$root/usr/lib/systemd/system" "$repo/systemd/appliance-hospital-node@.service" \
-    "$repo/systemd/appliance-hospital-history.service" "$repo/systemd/appliance-hospital-overview.service"
+    "$repo/systemd/appliance-hospital-history.service" "$repo/systemd/appliance-hospital-overview.service" \
+    "$repo/systemd/appliance-hospital-notify@.service"
 
-install_args=(--description "$description" --root "$root" "${nodes[@]}")
+install_args=(--description "$description" --root "$root" "${nodes[@]}" "${notifiers[@]}")
 [ "$history" = yes ] || install_args+=(--no-history)
 units=$("$prefix/bin/appliance" hospital install "${install_args[@]}")
 chown -R appliance-hospital:appliance-hospital "$root/etc/appliance/hospital"

@@ -7,6 +7,7 @@ alarm path whose tests silently do not run would hide a broken alarm path.
 """
 
 import contextlib
+import dataclasses
 
 from appliance.hospital.cluster import LocalCluster, loopback_hospital
 from appliance.hospital.description import Ward
@@ -17,9 +18,11 @@ WARDS = [Ward("ward1", ("bed1", "bed2"), ("station1",)), Ward("ward2", ("bed3",)
 
 
 @contextlib.contextmanager
-def running_cluster(folder):
-    """Three nodes on free ports, storing and logging in ``folder``; stopped when the block ends."""
-    with LocalCluster(loopback_hospital(folder / "store", WARDS), folder / "config") as running:
+def running_cluster(folder, notifiers=()):
+    """Three nodes on free ports, storing and logging in ``folder``, with ``notifiers`` (notification services)
+    among the users; stopped when the block ends."""
+    hospital = dataclasses.replace(loopback_hospital(folder / "store", WARDS), notifiers=tuple(notifiers))
+    with LocalCluster(hospital, folder / "config") as running:
         yield running
 
 

@@ -6,9 +6,9 @@ must be refused before anything expensive is built: a model build would show as 
 test that takes minutes. The web screen's forms and uploads are held to the same rule:
 a 4xx naming what is wrong, never a 500 and never "nothing changed".
 
-324 command-line cases (layout 13, protocol 11, simulate 26, reconstruct 34, sim load-test 18,
+325 command-line cases (layout 13, protocol 11, simulate 26, reconstruct 34, sim load-test 18,
 sim run 36, sim replay 14, sim map 20, acquire 24, selftest 5, run 33, calibrate pressure 28,
-calibrate sensitivity 11, ward 14, ward-broker 17, hospital 11, provision 6, the parser itself 3), all
+calibrate sensitivity 11, ward 14, ward-broker 17, hospital 12, provision 6, the parser itself 3), all
 exiting 2; 61 web cases (settings 28, patient 7, accounts 8, engineering 18), all answered with a 4xx.
 """
 
@@ -407,6 +407,8 @@ CASES = [
     (["hospital", "config", "--description", "{t}/hospital.toml", "--out", "{t}/nofolder/engine"], "nofolder"),
     (["hospital", "streams", "--description", "{t}/hospital.toml", "--secrets", "{t}/folder"],
      "hospital-admin.password does not exist"),
+    (["hospital", "notify", "--description", "{t}/hospital.toml", "--secrets", "{t}/folder", "--notifier", "pagers"],
+     "no [[notifier]] named 'pagers'"),
     (["hospital", "start-local", "--beds", "0"], "--beds"),
     (["hospital", "start-local", "--beds", "x"], "--beds"),
     (["hospital"], "HOSPITAL_COMMAND"),

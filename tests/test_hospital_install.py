@@ -95,6 +95,17 @@ def test_install_refuses_what_the_units_could_not_run(tmp_path, change, options,
     assert message in str(raised.value)
 
 
+def test_a_notification_service_installs_only_when_named_and_only_one_the_description_has(tmp_path):
+    hospital = hospital_from_mapping(tomllib.loads(DESCRIPTION.replace(
+        "[history]", '[[notifier]]\nname = "phones"\nwards = ["ward3"]\nurl = "https://pager.example/"\n\n[history]')))
+    assert install(hospital, tmp_path, ["n1"], history=False, notifiers=["phones"]).units == (
+        "appliance-hospital-node@n1.service", "appliance-hospital-notify@phones.service")
+    assert read_password(tmp_path / "etc/appliance/hospital/secrets", "notify-phones")
+    assert install(hospital, tmp_path, ["n1"], history=False).units == ("appliance-hospital-node@n1.service",)
+    with pytest.raises(ConfigError, match="no \\[\\[notifier\\]\\] named 'pagers'.*its notifiers: phones"):
+        install(hospital, tmp_path, notifiers=["pagers"])
+
+
 def test_without_a_policy_only_the_nodes_install(tmp_path):
     hospital = hospital_from_mapping(tomllib.loads(DESCRIPTION.split("[history]")[0]))
     with pytest.raises(ConfigError, match="no \\[history\\] table .* or install without the history writer"):
@@ -155,7 +166,7 @@ def test_the_install_script_runs_each_step_on_the_description(tmp_path, descript
         "systemctl enable --now appliance-hospital-node@n1.service appliance-hospital-history.service "
         "appliance-hospital-overview.service"]
     for unit in ("appliance-hospital-node@.service", "appliance-hospital-history.service",
-                 "appliance-hospital-overview.service"):
+                 "appliance-hospital-overview.service", "appliance-hospital-notify@.service"):
         assert (root / "usr/lib/systemd/system" / unit).read_text() == (REPO / "systemd" / unit).read_text()
     assert (root / "etc/appliance/hospital/n1.conf").exists()
     assert "installed and started: appliance-hospital-node@n1.service appliance-hospital-history.service " \

@@ -55,7 +55,8 @@ def directives(path: Path) -> dict[str, list[str]]:
 def test_every_unit_verifies_without_a_warning(tmp_path):
     assert {p.name for p in SERVICES} == {"appliance-monitor.service", "appliance-screen.service",
                                           "appliance-ward.service", "appliance-hospital-node@.service",
-                                          "appliance-hospital-history.service", "appliance-hospital-overview.service"}
+                                          "appliance-hospital-history.service", "appliance-hospital-overview.service",
+                                          "appliance-hospital-notify@.service"}
     result = verify({p.name: p.read_text() for p in SERVICES}, tmp_path)
     assert result.returncode == 0 and result.stdout + result.stderr == "", result.stdout + result.stderr
 
@@ -138,6 +139,18 @@ def test_the_overview_reads_the_history_as_the_engines_account_behind_the_proxy(
                        "--listen", "127.0.0.1:8095", "--behind-proxy"]
     assert unit["User"] == [ACCOUNT] and unit["StateDirectory"] == ["appliance-hospital-overview"]
     assert "postgresql.service" in unit["After"][0].split() and unit["ProtectSystem"] == ["strict"]
+
+
+def test_a_notification_service_runs_its_notifier_as_the_engines_account_with_its_journal_in_its_state():
+    unit = directives(UNITS / "appliance-hospital-notify@.service")
+    command = (UNITS / "appliance-hospital-notify@.service").read_text().split("ExecStart=")[1].split("\n")
+    command = " ".join(line.rstrip("\\") for line in command[:2]).split()
+    assert command == ["/opt/appliance/bin/appliance", "hospital", "notify", "--description",
+                       f"{CONFIG_DIR}/hospital.toml", "--secrets", f"{CONFIG_DIR}/secrets", "--notifier", "%i",
+                       "--journal", "/var/lib/appliance-hospital-notify/%i.db"]
+    assert unit["User"] == [ACCOUNT] and unit["StateDirectory"] == ["appliance-hospital-notify"]
+    assert unit["Restart"] == ["always"] and unit["RestartPreventExitStatus"] == ["2"]
+    assert unit["ProtectSystem"] == ["strict"] and unit["NoNewPrivileges"] == ["yes"]
 
 
 def made_by_sysusers(root: Path, name: str) -> tuple[dict, dict]:

@@ -20,6 +20,12 @@
     beds = ["w3-bed01", "w3-bed02"]
     stations = ["ward3-station"]
 
+    [[notifier]]                   # optional, any number: a notification service (appliance.hospital.notify)
+    name = "phones"                # its engine user is notify-phones
+    wards = ["ward3"]              # whose alarm changes it pages
+    url = "https://pager.example/pages"        # the messaging gateway it POSTs each page to
+    priorities = ["high", "medium"]            # the alarms it pages (default high and medium)
+
     [history]                      # optional: the history store in PostgreSQL (appliance.hospital.history)
     database = "appliance_history" # the database's name (default appliance_history)
     events_days = 3650             # alarm, turn and episode events are kept this many days, then dropped
@@ -33,9 +39,11 @@ characters; a bed id or station is unique in the hospital, not only in its ward.
 from __future__ import annotations
 
 import unicodedata
+import urllib.parse
 from dataclasses import dataclass
 from pathlib import Path
 
+from appliance.alerts.alarms import PRIORITIES
 from appliance.core.toml_files import check_keys, read_toml_as, toml_value
 from appliance.errors import ConfigError
 
@@ -48,6 +56,8 @@ MAX_RETENTION_DAYS = 36525
 REPLICAS = (1, 3)
 """1 for a trial on one node; 3 for a stream that keeps taking writes, and loses none it acknowledged, when one
 node dies (a quorum of 2). 2 would stop at the loss of either node and is refused."""
+PAGED_PRIORITIES = ("high", "medium")
+"""What a notification service pages unless its description says otherwise: low alarms wait for the screen."""
 
 
 @dataclass(frozen=True)
@@ -81,6 +91,16 @@ class HistoryPolicy:
 
 
 @dataclass(frozen=True)
+class Notifier:
+    """A service paging its wards' alarm changes of ``priorities`` to the messaging gateway at ``url``."""
+
+    name: str
+    wards: tuple[str, ...]
+    url: str
+    priorities: tuple[str, ...] = PAGED_PRIORITIES
+
+
+@dataclass(frozen=True)
 class Hospital:
     cluster: str
     store_dir: Path
@@ -88,6 +108,15 @@ class Hospital:
     wards: tuple[Ward, ...]
     replicas: int = 3
     history: HistoryPolicy | None = None
+    notifiers: tuple[Notifier, ...] = ()
+
+    def notifier(self, name: str) -> Notifier:
+        """The notification service ``name``, or a ConfigError naming the ones there are."""
+        for service in self.notifiers:
+            if service.name == name:
+                return service
+        raise ConfigError(f"no [[notifier]] named {name!r} in the hospital description; its notifiers: "
+                          f"{', '.join(s.name for s in self.notifiers) or 'none'}")
 
 
 def load_hospital(path) -> Hospital:
@@ -96,7 +125,7 @@ def load_hospital(path) -> Hospital:
 
 
 def hospital_from_mapping(data: dict, base: Path | None = None) -> Hospital:
-    check_keys(data, {"hospital", "node", "ward", "history"}, "the hospital description", ConfigError)
+    check_keys(data, {"hospital", "node", "ward", "history", "notifier"}, "the hospital description", ConfigError)
     top = _table(data.get("hospital"), "[hospital]")
     check_keys(top, {"cluster", "store_dir", "replicas"}, "[hospital]", ConfigError)
     cluster = check_name(_string(top, "cluster", "[hospital]"), "[hospital] cluster")
@@ -116,7 +145,12 @@ def hospital_from_mapping(data: dict, base: Path | None = None) -> Hospital:
     _unique([ward.name for ward in wards], "ward name")
     _unique([name for ward in wards for name in (*ward.beds, *ward.stations)], "bed id or station")
     history = None if "history" not in data else history_policy(data["history"])
-    return Hospital(cluster, store_dir, nodes, wards, replicas, history)
+    notifiers = data.get("notifier", [])
+    if not isinstance(notifiers, list):
+        raise ConfigError("notifier must be [[notifier]] tables, one per notification service")
+    services = tuple(_notifier(table, number, wards) for number, table in enumerate(notifiers, start=1))
+    _unique([service.name for service in services], "notifier name")
+    return Hospital(cluster, store_dir, nodes, wards, replicas, history, services)
 
 
 def history_policy(table) -> HistoryPolicy:
@@ -154,6 +188,9 @@ def description_text(hospital: Hospital) -> str:
     for ward in hospital.wards:
         lines += ["", "[[ward]]", f"name = {toml_value(ward.name)}", f"beds = {toml_value(ward.beds)}",
                   f"stations = {toml_value(ward.stations)}"]
+    for service in hospital.notifiers:
+        lines += ["", "[[notifier]]", f"name = {toml_value(service.name)}", f"wards = {toml_value(service.wards)}",
+                  f"url = {toml_value(service.url)}", f"priorities = {toml_value(service.priorities)}"]
     if hospital.history is not None:
         lines += ["", "[history]", f"database = {toml_value(hospital.history.database)}",
                   f"events_days = {hospital.history.events_days}", f"pressure_days = {hospital.history.pressure_days}"]
@@ -194,6 +231,31 @@ def _ward(table, number: int) -> Ward:
     stations = tuple(check_name(station, f"[[ward]] {name} station")
                      for station in _strings(table, "stations", f"[[ward]] {name}"))
     return Ward(name, beds, stations)
+
+
+def _notifier(table, number: int, wards: tuple[Ward, ...]) -> Notifier:
+    where = f"[[notifier]] number {number}"
+    table = _table(table, where)
+    check_keys(table, {"name", "wards", "url", "priorities"}, where, ConfigError)
+    name = check_name(_string(table, "name", where), f"{where} name")
+    where = f"[[notifier]] {name}"
+    known = [ward.name for ward in wards]
+    served = _strings(table, "wards", where)
+    for ward in served:
+        if ward not in known:
+            raise ConfigError(f"{where} wards: {ward!r} is not a [[ward]] of the hospital; its wards: "
+                              f"{', '.join(known)}")
+    _unique(served, f"{where} ward")
+    url = _string(table, "url", where)
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme not in ("http", "https") or not parts.hostname or any(c.isspace() for c in url):
+        raise ConfigError(f"{where} url {url!r}: must be an http:// or https:// address with a host")
+    priorities = table.get("priorities", list(PAGED_PRIORITIES))
+    if not isinstance(priorities, list) or not priorities or any(p not in PRIORITIES for p in priorities):
+        raise ConfigError(f"{where} priorities must be a non-empty list of {', '.join(PRIORITIES)}, got "
+                          f"{priorities!r}")
+    _unique(priorities, f"{where} priority")
+    return Notifier(name, tuple(served), url, tuple(priorities))
 
 
 def _ports(node: Node) -> list[int]:

@@ -28,7 +28,7 @@ from nats.js import JetStreamContext, api
 from appliance.hospital.description import Hospital, Ward
 from appliance.hospital.nodeconfig import DUPLICATE_WINDOW_S
 from appliance.hospital.subjects import (CONFIRMED, MSG_ID, bed_subject, confirms_stream_name, inbox_prefix,
-                                         parse_message_id, stream_name, stream_subjects)
+                                         notified_subject, parse_message_id, stream_name, stream_subjects)
 
 log = logging.getLogger(__name__)
 
@@ -87,10 +87,12 @@ def ward_stream_config(ward: Ward, replicas: int) -> api.StreamConfig:
 
 
 def confirms_stream_config(ward: Ward, replicas: int) -> api.StreamConfig:
-    """The ward's confirmation stream: on disk, ``replicas`` copies, the latest confirmation of each event, for
-    ``CONFIRMS_KEPT_S``, which a bed may read one by one (direct get, answered by any replica)."""
-    return api.StreamConfig(name=confirms_stream_name(ward.name), subjects=[bed_subject(ward.name, "*", CONFIRMED)
-                                                                            + ".*"],
+    """The ward's confirmation stream: on disk, ``replicas`` copies, the latest confirmation of each event and
+    each notification service's record of it, for ``CONFIRMS_KEPT_S``, which a bed may read one by one (direct
+    get, answered by any replica)."""
+    return api.StreamConfig(name=confirms_stream_name(ward.name),
+                            subjects=[bed_subject(ward.name, "*", CONFIRMED) + ".*",
+                                      notified_subject(ward.name, "*", "*", "*")],
                             storage=api.StorageType.FILE, num_replicas=replicas, retention=api.RetentionPolicy.LIMITS,
                             max_msgs_per_subject=1, max_age=CONFIRMS_KEPT_S, allow_direct=True)
 

@@ -4,8 +4,9 @@ and database; and the systemd units to enable there.
 
 ``systemd/install-hospital-server.sh`` runs it on Debian as root (``appliance hospital install --root /``), then
 runs the SQL as PostgreSQL's superuser and enables the units it printed. The units are templates from
-``systemd/``: ``appliance-hospital-node@<node>.service`` reads ``/etc/appliance/hospital/<node>.conf``, and
-``appliance-hospital-history.service`` runs the writer. Both run as the account ``appliance-hospital``, whose
+``systemd/``: ``appliance-hospital-node@<node>.service`` reads ``/etc/appliance/hospital/<node>.conf``,
+``appliance-hospital-history.service`` runs the writer, and ``appliance-hospital-notify@<name>.service`` a
+notification service. All run as the account ``appliance-hospital``, whose
 state folder holds the nodes' stores, and the writer reaches PostgreSQL on its Unix socket as the role of the
 same name (Debian's peer authentication: no password to keep).
 """
@@ -42,6 +43,10 @@ def node_unit(name: str) -> str:
     return f"appliance-hospital-node@{name}.service"
 
 
+def notify_unit(name: str) -> str:
+    return f"appliance-hospital-notify@{name}.service"
+
+
 def setup_sql(policy: HistoryPolicy) -> str:
     """psql input, safe to run again, that makes the writer's role and the history's database it owns; nobody
     else may connect."""
@@ -57,14 +62,18 @@ def setup_sql(policy: HistoryPolicy) -> str:
         ""])
 
 
-def install(hospital: Hospital, root: Path, nodes: list[str] | None = None, history: bool = True) -> Installed:
+def install(hospital: Hospital, root: Path, nodes: list[str] | None = None, history: bool = True,
+            notifiers: list[str] | None = None) -> Installed:
     """Write what the server runs into ``root`` (``/`` on the server itself): ``nodes`` (all by default) are the
-    ones this server runs; ``history`` whether it runs the history writer too."""
+    ones this server runs; ``history`` whether it runs the history writer too; ``notifiers`` the notification
+    services it runs (none by default)."""
     names = [node.name for node in hospital.nodes]
     chosen = names if nodes is None else nodes
     for name in chosen:
         if name not in names:
             raise ConfigError(f"node {name!r} is not in the hospital description; its nodes: {', '.join(names)}")
+    for name in notifiers or []:
+        hospital.notifier(name)                     # a ConfigError naming the ones there are
     store = PurePosixPath(hospital.store_dir)
     if chosen and store != STATE_DIR and STATE_DIR not in store.parents:
         raise ConfigError(f"[hospital] store_dir {str(store)!r} must be {STATE_DIR} or a folder in it: the node's "
@@ -81,5 +90,6 @@ def install(hospital: Hospital, root: Path, nodes: list[str] | None = None, hist
         assert hospital.history is not None
         sql = folder / SETUP_SQL
         write_atomic(sql, setup_sql(hospital.history))
-    units = tuple(node_unit(name) for name in chosen) + ((HISTORY_UNIT, OVERVIEW_UNIT) if history else ())
+    units = tuple(node_unit(name) for name in chosen) + ((HISTORY_UNIT, OVERVIEW_UNIT) if history else ()) \
+        + tuple(notify_unit(name) for name in notifiers or [])
     return Installed(folder, sql, units)

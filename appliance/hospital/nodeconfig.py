@@ -22,7 +22,9 @@ Users and what they may do (``appliance.hospital.subjects`` names the subjects):
   (create, fetch, acknowledge), never change or delete it;
 - ``hospital-admin`` may do everything: it creates the streams (``appliance hospital streams``);
 - ``hospital-history``, the history writer, reads every ward's stream through its own consumers and hears every
-  bed's summary (``appliance.hospital.history``).
+  bed's summary (``appliance.hospital.history``);
+- ``notify-<name>``, each ``[[notifier]]``, reads the streams of the wards it serves through its own consumers and
+  records its own ``notified`` records in their confirmation streams, nothing else (``appliance.hospital.notify``).
 
 Running it again keeps every existing password and adds or drops users. A running node reads its file again
 on ``nats-server --signal reload`` (SIGHUP), so a bed is added without a restart.
@@ -37,18 +39,26 @@ from pathlib import Path
 
 from appliance.errors import ConfigError
 from appliance.files import read_secret, write_atomic
-from appliance.hospital.description import Hospital, Node, Ward
+from appliance.hospital.description import Hospital, Node, Notifier, Ward
 from appliance.hospital.subjects import (BED_KINDS, CONFIRM, CONFIRMED, ROOT, SUMMARY, answer_subject, bed_subject,
-                                         command_subject, confirms_stream_name, inbox_prefix, stream_name)
+                                         command_subject, confirms_stream_name, inbox_prefix, notified_subject,
+                                         stream_name)
 
 ADMIN = "hospital-admin"
 HISTORY = "hospital-history"
 """The history writer's user: it reads every ward's stream and the beds' summaries, and publishes nothing else."""
+NOTIFIER_PREFIX = "notify-"
+"""A notification service's user is its name after this: the name of its durable consumers too."""
 ROUTE_USER = "route"
 ACCOUNT = "HOSPITAL"
 PASSWORD_BYTES = 24
 DUPLICATE_WINDOW_S = 900.0
 """How long each ward's stream remembers a message id: a bed's resends within it are stored once."""
+
+
+def notifier_user(name: str) -> str:
+    """The engine user (and consumer) of notification service ``name``."""
+    return f"{NOTIFIER_PREFIX}{name}"
 
 
 @dataclass(frozen=True)
@@ -63,11 +73,16 @@ class NodeConfigs:
 
 def write_node_configs(hospital: Hospital, folder: Path) -> NodeConfigs:
     """Write every node's configuration and the users' passwords into ``folder`` (made if missing)."""
-    users = [ADMIN, HISTORY, *(name for ward in hospital.wards for name in (*ward.beds, *ward.stations))]
+    users = [ADMIN, HISTORY, *(name for ward in hospital.wards for name in (*ward.beds, *ward.stations)),
+             *(notifier_user(service.name) for service in hospital.notifiers)]
     if users.count(ADMIN) > 1:
         raise ConfigError(f"{ADMIN!r} is the engine's administrator: no bed or station may take that name")
     if users.count(HISTORY) > 1:
         raise ConfigError(f"{HISTORY!r} is the history writer: no bed or station may take that name")
+    for service in hospital.notifiers:
+        if users.count(notifier_user(service.name)) > 1:
+            raise ConfigError(f"{notifier_user(service.name)!r} is notification service {service.name}'s user: no "
+                              f"bed or station may take that name")
     folder = Path(folder).absolute()
     if folder.exists() and not folder.is_dir():
         raise ConfigError(f"configuration folder {folder} is a file, not a folder")
@@ -126,6 +141,9 @@ def node_config_text(hospital: Hospital, node: Node, passwords: dict[str, str]) 
         lines += [f"      {_user(bed, passwords[bed], bed_permissions(ward, bed))}" for bed in ward.beds]
         lines += [f"      {_user(station, passwords[station], station_permissions(ward, station))}"
                   for station in ward.stations]
+    for service in hospital.notifiers:
+        user = notifier_user(service.name)
+        lines.append(f"      {_user(user, passwords[user], notifier_permissions(service))}")
     lines += ["    ]", "  }", "}"]
     return "\n".join(lines) + "\n"
 
@@ -144,26 +162,34 @@ def bed_permissions(ward: Ward, bed: str) -> dict:
 def station_permissions(ward: Ward, station: str) -> dict:
     """Read the ward (the beds' answers too), confirm to and command its beds, and consume (never change) the
     ward's stream."""
-    stream = stream_name(ward.name)
     return {"publish": {"allow": [bed_subject(ward.name, "*", CONFIRM), command_subject(ward.name, "*"),
                                   f"{bed_subject(ward.name, '*', CONFIRMED)}.*",
-                                  f"$JS.API.STREAM.INFO.{stream}",
-                                  f"$JS.API.CONSUMER.CREATE.{stream}.>",
-                                  f"$JS.API.CONSUMER.DURABLE.CREATE.{stream}.>",
-                                  f"$JS.API.CONSUMER.INFO.{stream}.>",
-                                  f"$JS.API.CONSUMER.MSG.NEXT.{stream}.>",
-                                  f"$JS.ACK.{stream}.>"]},
+                                  *consumer_permissions(stream_name(ward.name))]},
             "subscribe": {"allow": [f"{ROOT}.{ward.name}.>", f"{inbox_prefix(station)}.>"]}}
 
 
 def history_permissions(hospital: Hospital) -> dict:
     """Consume (never change) every ward's stream through its own durable consumers, and hear every summary."""
-    allow = [f"$JS.API.{call}.{stream_name(ward.name)}{rest}" for ward in hospital.wards
-             for call, rest in (("STREAM.INFO", ""), ("CONSUMER.CREATE", ".>"), ("CONSUMER.DURABLE.CREATE", ".>"),
-                                ("CONSUMER.INFO", ".>"), ("CONSUMER.MSG.NEXT", ".>"))]
-    allow += [f"$JS.ACK.{stream_name(ward.name)}.>" for ward in hospital.wards]
+    allow = [call for ward in hospital.wards for call in consumer_permissions(stream_name(ward.name))]
     return {"publish": {"allow": allow},
             "subscribe": {"allow": [bed_subject("*", "*", SUMMARY), f"{inbox_prefix(HISTORY)}.>"]}}
+
+
+def notifier_permissions(service: Notifier) -> dict:
+    """Consume (never change) the streams of the wards it serves, and record only its own notifications in their
+    confirmation streams: it cannot publish a bed's event or a station's confirmation."""
+    allow = [call for ward in service.wards for call in consumer_permissions(stream_name(ward))]
+    allow += [notified_subject(ward, "*", "*", service.name) for ward in service.wards]
+    return {"publish": {"allow": allow},
+            "subscribe": {"allow": [f"{inbox_prefix(notifier_user(service.name))}.>"]}}
+
+
+def consumer_permissions(stream: str) -> list[str]:
+    """The API calls that read ``stream`` through a durable consumer: look the stream up, make, look up and fetch
+    from a consumer, acknowledge; none that changes or deletes a stream."""
+    return [f"$JS.API.STREAM.INFO.{stream}", f"$JS.API.CONSUMER.CREATE.{stream}.>",
+            f"$JS.API.CONSUMER.DURABLE.CREATE.{stream}.>", f"$JS.API.CONSUMER.INFO.{stream}.>",
+            f"$JS.API.CONSUMER.MSG.NEXT.{stream}.>", f"$JS.ACK.{stream}.>"]
 
 
 def read_password(secrets_folder: Path, user: str) -> str:

@@ -3,9 +3,11 @@
 ``hospital.<ward>.<bed>.<kind>``: a bed publishes its ``alarm``, ``turn`` and ``episode`` events (kept in the
 ward's stream), its ``status`` and ``summary``, and reads its ``confirm``. A station stores each confirmation
 first as ``hospital.<ward>.<bed>.confirmed.<seq>`` in the ward's confirmation stream, and only once that is
-acknowledged sends it to the bed on ``confirm``. A station's commands to a bed go on the bed's ``command`` and
-the bed answers on its ``command-result`` (payloads in ``appliance.alerts.ward_commands``), plain messages that
-no stream keeps: the station sends a command again until it is answered. Over MQTT the same subject is the
+acknowledged sends it to the bed on ``confirm``. A notification service (``appliance.hospital.notify``) records
+what it did with an alarm change as ``hospital.<ward>.<bed>.notified.<seq>.<service>`` in the same stream, once
+the messaging gateway took the page or refused it for good. A station's commands to a bed go on the bed's
+``command`` and the bed answers on its ``command-result`` (payloads in ``appliance.alerts.ward_commands``), plain
+messages that no stream keeps: the station sends a command again until it is answered. Over MQTT the same subject is the
 topic ``hospital/<ward>/<bed>/<kind>``, and the kinds are the MQTT ward's topics. Every event carries the
 header ``Nats-Msg-Id: <bed>:<seq>`` (the bed's own sequence number), so the stream keeps one copy of a resend
 inside its duplicate window and a station applies each number once after it.
@@ -20,6 +22,8 @@ inside its duplicate window and a station applies each number once after it.
 ('w3-bed01', 17)
 >>> confirmation_subject("ward3", "w3-bed01", 17)
 'hospital.ward3.w3-bed01.confirmed.17'
+>>> notified_subject("ward3", "w3-bed01", 17, "phones")
+'hospital.ward3.w3-bed01.notified.17.phones'
 >>> command_subject("ward3", "w3-bed01"), answer_subject("ward3", "w3-bed01")
 ('hospital.ward3.w3-bed01.command', 'hospital.ward3.w3-bed01.command-result')
 """
@@ -35,6 +39,7 @@ BED_KINDS = (*EVENT_TYPES, "status", SUMMARY)
 """What a bed publishes; the events (EVENT_TYPES) are the ones the ward's stream keeps."""
 CONFIRM = "confirm"
 CONFIRMED = "confirmed"
+NOTIFIED = "notified"
 COMMAND = COMMAND_TOPIC
 """What a station asks a bed to do."""
 ANSWER = RESULT_TOPIC
@@ -75,6 +80,13 @@ def confirmation_subject(ward: str, bed: str, seq: int) -> str:
     """Where the confirmation of ``bed``'s event ``seq`` is kept: one subject per event, so a bed can look its
     own up by number."""
     return f"{bed_subject(ward, bed, CONFIRMED)}.{seq}"
+
+
+def notified_subject(ward: str, bed: str, seq: int | str, service: str) -> str:
+    """Where notification service ``service`` records what became of ``bed``'s event ``seq``: one subject per
+    event and service, so each service's record of an event is kept beside the station's confirmation (any of
+    them may be ``*``)."""
+    return f"{bed_subject(ward, bed, NOTIFIED)}.{seq}.{service}"
 
 
 def inbox_prefix(user: str) -> str:

@@ -4,6 +4,10 @@ confirms anything, so a station restarted (or killed) applies no event twice and
 The engine gives a message again when the station died before acknowledging it, and a bed resends what it has no
 confirmation for: both come back here as numbers already taken. Each event is written (``synchronous=FULL``)
 before its confirmation leaves the station, so a confirmation never names an event the station could forget.
+
+A notification service (``appliance.hospital.notify``) keeps one too, of the alarm changes it has paged: there each
+event is written with what the gateway answered, after the gateway answered and before the service records it on
+the engine, so a service restarted pages nothing again that the gateway had taken.
 """
 
 from __future__ import annotations
@@ -40,6 +44,12 @@ class AppliedJournal:
                 "INSERT OR IGNORE INTO applied (bed_id, seq, kind, event, applied_at) VALUES (?, ?, ?, ?, ?)",
                 (delivery.bed, delivery.seq, delivery.kind, json.dumps(delivery.event, allow_nan=False),
                  time.time())).rowcount == 1
+
+    def event(self, bed_id: str, seq: int) -> dict | None:
+        """What was journalled as bed ``bed_id``'s event ``seq``, or None when that number was never taken."""
+        with self._lock:
+            row = self._db.execute("SELECT event FROM applied WHERE bed_id = ? AND seq = ?", (bed_id, seq)).fetchone()
+        return None if row is None else json.loads(row[0])
 
     def seqs(self, bed_id: str) -> list[int]:
         """Bed ``bed_id``'s numbers in the order applied."""

@@ -14,6 +14,10 @@ A bed is offline when its status says so or when nothing came from it for
 ``stale_after_s``: a monitor whose loop has hung can still hold its connection.
 Payloads that are not what the bed promises are counted and logged, never
 raised: one broken bed must not blind the station to the rest of the ward.
+
+On the hospital engine a notification service records what became of each
+alarm change it paged (``appliance.hospital.notify``); the board keeps each
+alarm's latest record per service, and shows it with the alarm while it is open.
 """
 
 from __future__ import annotations
@@ -42,6 +46,11 @@ EVENTS_KEPT = 50
 SEEN_KEPT = 1000
 """Event seqs remembered per bed to drop repeats: far more than a retry or a restart can repeat."""
 
+PAGES_KEPT = 100
+"""Alarms per bed whose pages are remembered: far more than a bed has open at once."""
+
+PAGE_OUTCOMES = ("paged", "refused")
+
 ALARM_FIELDS = ("alarm_id", "key", "priority", "state", "message", "acknowledged_by")
 
 
@@ -61,6 +70,7 @@ class BedState:
     alarm_seqs: dict[int, int] = field(default_factory=dict)  # alarm_id -> seq of the last event applied to it
     events: deque = field(default_factory=lambda: deque(maxlen=EVENTS_KEPT))  # each with its "received_at"
     seen: dict[int, None] = field(default_factory=dict)                       # an ordered set of event seqs
+    pages: dict[int, dict[str, dict]] = field(default_factory=dict)  # alarm_id -> service -> its latest record
     duplicates: int = 0
 
     def online(self, steady_now: float, stale_after_s: float) -> bool:
@@ -170,6 +180,28 @@ class WardBoard:
             self.bad_payloads += 1
         log.warning("ward: bad payload (%s) ignored: %s", what, problem)
 
+    def take_page(self, bed_id: str, payload: bytes) -> dict | None:
+        """Take a notification service's record of bed ``bed_id``'s alarm change: the record, or None when it is
+        bad (counted and logged, never raised). A record older than the one kept for its alarm and service, of an
+        event of no one alarm, or of a bed not heard from, changes nothing."""
+        try:
+            record = _page(json.loads(payload), bed_id)
+        except (ValueError, TypeError, UnicodeDecodeError) as exc:     # json's errors are ValueErrors
+            self.refused(f"a page record of {bed_id}", exc)
+            return None
+        with self._lock:
+            bed = self._beds.get(bed_id)
+            if bed is None or record["alarm_id"] is None:
+                return record
+            pages = bed.pages
+            kept = pages.setdefault(record["alarm_id"], {})
+            if record["seq"] >= kept.get(record["notifier"], {"seq": 0})["seq"]:
+                kept[record["notifier"]] = record
+                self.version += 1
+            if len(pages) > PAGES_KEPT:
+                del pages[next(iter(pages))]
+        return record
+
     def changed(self) -> None:
         with self._lock:
             self.version += 1
@@ -188,7 +220,9 @@ class WardBoard:
             return tuple(bed.online(time.monotonic(), self.stale_after_s) for bed in self._beds.values())
 
     def _view(self, bed: BedState, steady_now: float, events: bool) -> dict:
-        alarms = sorted(bed.open_alarms.values(),
+        alarms = sorted(({**alarm, "pages": [{k: page[k] for k in ("notifier", "outcome", "status", "notified_at")}
+                                              for _, page in sorted(bed.pages.get(alarm["alarm_id"], {}).items())]}
+                         for alarm in bed.open_alarms.values()),
                         key=lambda a: (-PRIORITIES.index(a["priority"]) if a["priority"] in PRIORITIES else 1,
                                        a["alarm_id"]))
         return {"bed_id": bed.bed_id, "online": bed.online(steady_now, self.stale_after_s), "status": bed.status,
@@ -234,6 +268,24 @@ def _summary(body, bed_id: str) -> dict:
         if not isinstance(alarm, dict) or not isinstance(alarm.get("alarm_id"), int) \
                 or alarm.get("priority") not in PRIORITIES:
             raise ValueError(f"summary alarm {alarm!r} needs an integer alarm_id and a priority in {PRIORITIES}")
+    return body
+
+
+def _page(body, bed_id: str) -> dict:
+    """``body`` if it is a notification service's record of one of ``bed_id``'s alarm changes; else ValueError
+    saying what is wrong."""
+    if not isinstance(body, dict):
+        raise TypeError(f"a page record must be a JSON object, got {type(body).__name__}")
+    if body.get("bed_id") != bed_id:
+        raise ValueError(f"page record of bed {body.get('bed_id')!r} on bed {bed_id!r}'s subject")
+    _check_seq(body.get("seq"), 1, "page record")
+    alarm_id = body.get("alarm_id")
+    if alarm_id is not None and (not isinstance(alarm_id, int) or isinstance(alarm_id, bool)):
+        raise ValueError(f"page record alarm_id must be an integer or null, got {alarm_id!r}")
+    if not isinstance(body.get("notifier"), str) or body.get("outcome") not in PAGE_OUTCOMES \
+            or not _number(body.get("notified_at")) or not isinstance(body.get("status"), int):
+        raise ValueError(f"page record needs a notifier, an outcome in {PAGE_OUTCOMES}, a status and notified_at, "
+                         f"got {body!r:.200}")
     return body
 
 

@@ -15,6 +15,10 @@ missed). With a command journal the station's nurses act on its beds as on an MQ
 command goes to the bed's ``command`` subject and the answers come from the ward's ``command-result`` subjects,
 plain messages both. What is pending goes again at once when the station connects and when its bed says it is
 online. The engine lets a station send commands only to the beds of its own ward.
+
+The records of the ward's notification services (``appliance.hospital.notify``: an alarm change paged to the
+phones, or refused by their gateway) are heard as they are stored, and shown with their alarms; those stored
+while the station was not running are not read back.
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ from nats.aio.client import Client
 
 from appliance.hospital.engine import RETRYABLE, Delivery, WardReader, cancel_the_rest, connect
 from appliance.hospital.subjects import (CONFIRM, answer_subject, bed_subject, command_subject, confirmation_subject,
-                                         confirms_stream_name)
+                                         confirms_stream_name, notified_subject)
 from appliance.ward.applied import AppliedJournal
 from appliance.ward.board import EVENTS_KEPT, WardBoard
 from appliance.ward.commands import DEFAULT_EXPIRY_S, DEFAULT_RESEND_S, CommandSender
@@ -148,6 +152,7 @@ class EngineStation:
             return
         for kind in ("status", "summary"):
             await connection.subscribe(bed_subject(self.ward, "*", kind), cb=self._on_bed_message)
+        await connection.subscribe(notified_subject(self.ward, "*", "*", "*"), cb=self._on_page)
         if self.commands is not None:
             # the engine takes this before any command the station publishes after it, so no answer is missed
             await connection.subscribe(answer_subject(self.ward, "*"), cb=self._on_answer)
@@ -181,6 +186,9 @@ class EngineStation:
         body = self.board.take(bed, kind, message.data)
         if kind == "status" and body == "online" and self.commands is not None:
             await asyncio.to_thread(self.commands.bed_online, bed)
+
+    async def _on_page(self, message) -> None:
+        self.board.take_page(message.subject.split(".")[2], message.data)
 
     async def _on_answer(self, message) -> None:
         """A bed's answer to a command, into the command journal off the engine's thread; a bad one is counted."""

@@ -50,6 +50,14 @@ function commandLine(c) {
   return p;
 }
 
+// What a notification service did with the alarm's latest change: paged to the phones, or refused by their gateway.
+function pageLine(page) {
+  const at = new Date(page.notified_at * 1000).toLocaleTimeString([], {hour: "2-digit", minute: "2-digit"});
+  const words = page.outcome === "paged" ? `paged (${page.notifier}) at ${at}`
+                                         : `page refused (${page.notifier}, HTTP ${page.status}) at ${at}`;
+  return element("span", "page " + page.outcome, words);
+}
+
 function tile(bed) {
   const div = element("article", "bed " + (!bed.online ? "offline" : bed.highest_priority || "quiet"));
   div.dataset.bed = bed.bed_id;
@@ -70,6 +78,7 @@ function tile(bed) {
                  (a.acknowledged_by ? ` (acknowledged by ${a.acknowledged_by})` : "");
     const p = element("p", "alarm " + a.priority, text);
     p.dataset.alarm = a.alarm_id;
+    for (const page of a.pages || []) p.appendChild(pageLine(page));
     if (canAct && !a.acknowledged_by) {
       p.appendChild(button("Acknowledge", `/ward/${encodeURIComponent(bed.bed_id)}/alarms/${a.alarm_id}/acknowledge`,
                            `Acknowledge alarm ${a.alarm_id} at bed ${bed.bed_id}`));

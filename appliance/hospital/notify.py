@@ -1,0 +1,232 @@
+"""The notification service: the alarm changes of a hospital's wards paged to a messaging gateway (the nurses'
+phones and pagers), and what became of each page recorded on the engine.
+
+A service (a ``[[notifier]]`` of the hospital description) reads each of its wards' streams through its own
+durable consumer, named as its engine user (``notify-<name>``), apart from the stations' and the history's. For
+each alarm event of its priorities (turn and episode events are not paged), in this order:
+
+1. its journal (an :class:`~appliance.ward.applied.AppliedJournal` on disk, which the caller opens) is asked
+   whether the event was dealt with before: one given again after that is not POSTed again;
+2. the event is POSTed as JSON to the gateway with the header ``Idempotency-Key: <bed>:<seq>`` (the engine's
+   message id), so the gateway drops the second copy of the one page a crash can repeat, the one in flight;
+3. a 2xx answer is journalled as paged; a 400, 404, 413 or 422 (a page the gateway will never take) as refused,
+   with its status;
+4. that record goes to the ward's confirmation stream as ``hospital.<ward>.<bed>.notified.<seq>.<name>`` and is
+   acknowledged there by a quorum, and only then is the event acknowledged to the ward's stream.
+
+Any other answer, a timeout or a refused connection leaves the event unacknowledged: the stream gives it again
+after the consumer's acknowledgement wait, and the service tries again at that pace for the first
+``RETRY_STEADY_S`` of an outage (most are a gateway's restart or failover), then waits longer after each failure,
+up to ``RETRY_MAX_S``. While the gateway takes no pages, :meth:`NotificationService.conditions` says so (a technical
+alarm, as the ward link's), and the log says it once when the outage begins and once when it ends. After an
+outage pages may reach the gateway out of order: each carries its bed's ``seq`` and ``time_s``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import http.client
+import json
+import logging
+import sqlite3
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Callable
+from typing import Protocol
+
+import nats.js.errors
+from nats.aio.client import Client
+
+from appliance.hospital.description import Notifier
+from appliance.hospital.engine import RETRYABLE, Delivery, WardReader
+from appliance.hospital.nodeconfig import notifier_user
+from appliance.hospital.subjects import confirms_stream_name, message_id, notified_subject
+
+log = logging.getLogger(__name__)
+
+IDEMPOTENCY_KEY = "Idempotency-Key"
+REFUSED_FOR_GOOD = frozenset({400, 404, 413, 422})
+"""Answers no retry would change: the gateway refuses the page's content, or has no such address."""
+PAGED, REFUSED = "paged", "refused"
+POST_TIMEOUT_S = 5.0
+"""How long one POST waits for the gateway's answer before the page counts as not taken."""
+RECORD_TIMEOUT_S = 2.0
+"""How long the service waits for the confirmation stream's acknowledgement before it leaves the event to be
+given again."""
+RETRY_FIRST_S = 1.0
+RETRY_STEADY_S = 60.0
+"""How long into an outage the gateway is still tried at the first pace, so a short one holds no page long."""
+RETRY_MAX_S = 30.0
+FETCH_BATCH = 20
+"""Events fetched at once: few, because they are paged one after the other and each must be acknowledged
+within the consumer's acknowledgement wait or it is given again (and then found in the journal)."""
+STREAM_WAIT_S = 10.0
+
+
+class GatewayUnavailable(Exception):
+    """The gateway did not take a page this time: no answer, or one that a later try may change."""
+
+
+class PageJournal(Protocol):
+    """What the service has dealt with, on disk: ``take`` journals an event's record, ``event`` finds it."""
+
+    def take(self, delivery: Delivery) -> bool:
+        """Journal ``delivery`` (its event is the record); False when its bed's number was taken before."""
+
+    def event(self, bed_id: str, seq: int) -> dict | None:
+        """The record journalled for bed ``bed_id``'s event ``seq``, or None."""
+
+
+class _NoRedirects(urllib.request.HTTPRedirectHandler):
+    """A redirect is not followed (urllib would send a POST on as a GET without its body): it is an answer that
+    a later try may change, once the gateway's address is corrected."""
+
+    def redirect_request(self, req, fp, code, msg, headers, newurl):
+        return None
+
+
+_OPENER = urllib.request.build_opener(_NoRedirects)
+
+
+def post_page(url: str, key: str, body: bytes, timeout_s: float) -> int:
+    """POST JSON ``body`` to ``url`` with idempotency key ``key``: the HTTP status the gateway answered, or
+    GatewayUnavailable when it did not answer within ``timeout_s``."""
+    request = urllib.request.Request(url, data=body, method="POST",
+                                     headers={"Content-Type": "application/json", IDEMPOTENCY_KEY: key})
+    try:
+        with _OPENER.open(request, timeout=timeout_s) as reply:
+            return reply.status
+    except urllib.error.HTTPError as exc:
+        exc.close()
+        return exc.code
+    except (OSError, http.client.HTTPException) as exc:     # refused, reset, timed out, or not HTTP
+        raise GatewayUnavailable(str(getattr(exc, "reason", exc)) or type(exc).__name__) from exc
+
+
+class NotificationService:
+    """``notifier``'s service on ``connection`` (logged in as its user), keeping what it did in ``journal``;
+    ``post`` sends one page (:func:`post_page`). Counters: ``paged`` and ``refused`` (each event once),
+    ``repeats`` (events given again that had been dealt with), ``failures`` (tries the gateway did not take)."""
+
+    def __init__(self, connection: Client, notifier: Notifier, journal: PageJournal, *,
+                 post: Callable[[str, str, bytes, float], int] = post_page, timeout_s: float = POST_TIMEOUT_S):
+        self.connection, self.notifier, self.journal = connection, notifier, journal
+        self.user = notifier_user(notifier.name)
+        self.js = connection.jetstream()
+        self.post, self.timeout_s = post, timeout_s
+        self.paged = self.refused = self.repeats = self.failures = 0
+        self._down_since: float | None = None         # time.monotonic() of the first try the gateway did not take
+        self._down_reason = ""
+        self._retry_s = RETRY_FIRST_S
+        self._stopping = asyncio.Event()
+
+    def conditions(self) -> dict[str, str]:
+        """The technical alarm the service earns now: its gateway not taking pages."""
+        if self._down_since is None:
+            return {}
+        down_s = time.monotonic() - self._down_since
+        return {f"technical:{self.user}": f"the {self.notifier.name} gateway has taken no page for {down_s:.0f} s "
+                                          f"({self._down_reason}): alarm changes are not reaching "
+                                          f"{self.notifier.name}"}
+
+    async def run(self) -> None:
+        """Page every ward's alarm changes until :meth:`stop`; a ward's reader that fails raises its error here."""
+        readers = [asyncio.create_task(self._serve(ward), name=f"{self.user} {ward}") for ward in self.notifier.wards]
+        stopping = asyncio.create_task(self._stopping.wait())
+        try:
+            done, _ = await asyncio.wait([stopping, *readers], return_when=asyncio.FIRST_COMPLETED)
+            for task in done - {stopping}:
+                task.result()
+        finally:
+            for task in (stopping, *readers):
+                task.cancel()
+            await asyncio.gather(stopping, *readers, return_exceptions=True)
+
+    def stop(self) -> None:
+        """End :meth:`run`: what was not acknowledged is given again at the next start."""
+        self._stopping.set()
+
+    def pages(self, delivery: Delivery) -> bool:
+        """Whether ``delivery`` is paged: an alarm change of one of the service's priorities."""
+        return delivery.kind == "alarm" and delivery.event.get("priority") in self.notifier.priorities
+
+    async def _serve(self, ward: str) -> None:
+        reader = WardReader(self.connection, ward, self.user)
+
+        async def handle(delivery: Delivery, fresh: bool) -> None:
+            await self._handle(ward, delivery)
+
+        while True:
+            try:
+                if reader.subscription is None:
+                    await reader.open()
+                await reader.read(FETCH_BATCH, handle=handle)
+            except GatewayUnavailable:                  # given again by the stream; past a minute, less often
+                await asyncio.sleep(self._retry_s)
+                if self._down_since is not None and time.monotonic() - self._down_since > RETRY_STEADY_S:
+                    self._retry_s = min(2 * self._retry_s, RETRY_MAX_S)
+            except nats.js.errors.NotFoundError:
+                log.warning("%s: ward %s has no stream yet (appliance hospital streams makes it)", self.user, ward)
+                await asyncio.sleep(STREAM_WAIT_S)
+            except RETRYABLE as exc:
+                log.warning("%s: ward %s's stream is not readable now: %r", self.user, ward, exc)
+                await asyncio.sleep(RETRY_FIRST_S)
+            except sqlite3.Error as exc:                # what was not journalled is not acknowledged: given again
+                log.error("%s: the journal of pages refuses writes: %s", self.user, exc)
+                await asyncio.sleep(RETRY_MAX_S)
+
+    async def _handle(self, ward: str, delivery: Delivery) -> None:
+        """Page ``delivery`` unless the journal has it, journal the outcome, record it on a quorum; raises when
+        the gateway did not take it or the engine could not keep the record, so the event is given again."""
+        if not self.pages(delivery):
+            return
+        record = await asyncio.to_thread(self.journal.event, delivery.bed, delivery.seq)
+        if record is None:
+            status = await self._page(ward, delivery)
+            record = {"bed_id": delivery.bed, "seq": delivery.seq, "notifier": self.notifier.name,
+                      "outcome": PAGED if status < 300 else REFUSED, "status": status,
+                      "alarm_id": delivery.event.get("alarm_id"), "kind": delivery.event.get("kind"),
+                      "notified_at": time.time()}
+            await asyncio.to_thread(self.journal.take, Delivery(delivery.bed, delivery.seq, delivery.kind, record))
+            if record["outcome"] == PAGED:
+                self.paged += 1
+            else:
+                self.refused += 1
+        else:
+            self.repeats += 1
+        await self.js.publish(notified_subject(ward, delivery.bed, delivery.seq, self.notifier.name),
+                              json.dumps(record).encode(), timeout=RECORD_TIMEOUT_S, stream=confirms_stream_name(ward))
+
+    async def _page(self, ward: str, delivery: Delivery) -> int:
+        """POST the event: the gateway's status when it took the page or refused it for good, else
+        GatewayUnavailable."""
+        body = json.dumps({**delivery.event, "ward": ward}, separators=(",", ":")).encode()
+        try:
+            status = await asyncio.to_thread(self.post, self.notifier.url, message_id(delivery.bed, delivery.seq),
+                                             body, self.timeout_s)
+            if not (200 <= status < 300 or status in REFUSED_FOR_GOOD):
+                raise GatewayUnavailable(f"HTTP {status}")
+        except GatewayUnavailable as exc:
+            self.failures += 1
+            self._gateway_down(str(exc))
+            raise
+        self._gateway_up()
+        if status in REFUSED_FOR_GOOD:
+            log.error("%s: the gateway refused %s's alarm change %d for good (HTTP %d): recorded as refused",
+                      self.user, delivery.bed, delivery.seq, status)
+        return status
+
+    def _gateway_down(self, reason: str) -> None:
+        self._down_reason = reason
+        if self._down_since is None:
+            self._down_since = time.monotonic()
+            log.error("%s: the gateway %s takes no pages (%s): alarm changes are held and tried again until it "
+                      "does", self.user, self.notifier.url, reason)
+
+    def _gateway_up(self) -> None:
+        self._retry_s = RETRY_FIRST_S
+        if self._down_since is not None:
+            log.warning("%s: the gateway takes pages again after %.0f s", self.user,
+                        time.monotonic() - self._down_since)
+            self._down_since = None
