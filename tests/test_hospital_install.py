@@ -21,7 +21,7 @@ from appliance.hospital.description import HistoryPolicy, hospital_from_mapping,
 from appliance.hospital.history.reads import recent_events
 from appliance.hospital.history.schema import create_schema
 from appliance.hospital.history.store import StoredEvent, write_events
-from appliance.hospital.install import ACCOUNT, install, setup_sql
+from appliance.hospital.install import ACCOUNT, READER, install, setup_sql
 from appliance.hospital.nodeconfig import read_password
 
 REPO = Path(__file__).resolve().parents[1]
@@ -113,7 +113,8 @@ def test_without_a_policy_only_the_nodes_install(tmp_path):
     assert install(hospital, tmp_path, history=False).units[-1] == "appliance-hospital-node@n3.service"
 
 
-def test_the_setup_sql_makes_a_database_only_its_role_reaches_and_the_writer_can_build_in_it(tmp_path, description):
+def test_the_setup_sql_makes_a_database_only_its_roles_reach_that_the_writer_builds_in_and_readers_read(
+        tmp_path, description):
     sql = setup_sql(load_hospital(description).history)
     with running_postgres() as postgres:
         postgres.psql(sql)
@@ -128,6 +129,11 @@ def test_the_setup_sql_makes_a_database_only_its_role_reaches_and_the_writer_can
         postgres.psql("CREATE ROLE someone LOGIN")
         with pytest.raises(psycopg.OperationalError, match="permission denied for database"):
             psycopg.connect(postgres.dsn("st_mary_history", "someone"))
+        postgres.psql(f'CREATE ROLE "ward3-station" LOGIN IN ROLE "{READER}"')    # as the SQL's comment says
+        with psycopg.connect(postgres.dsn("st_mary_history", "ward3-station")) as station:
+            assert [e["seq"] for e in recent_events(station, now - dt.timedelta(minutes=1), ward="ward3")] == [1]
+            with pytest.raises(psycopg.errors.InsufficientPrivilege, match="permission denied for table event"):
+                station.execute("DELETE FROM event")
 
 
 RECORDER = """#!/bin/sh

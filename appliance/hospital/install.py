@@ -27,6 +27,9 @@ ACCOUNT = "appliance-hospital"
 """The system account of the units (systemd/appliance-hospital.sysusers) and the writer's PostgreSQL role."""
 HISTORY_UNIT = "appliance-hospital-history.service"
 OVERVIEW_UNIT = "appliance-hospital-overview.service"
+READER = "appliance-history-reader"
+"""The PostgreSQL group role that may read the history, nothing else: ward IT makes each ward station's login role
+a member of it (the stations' ``[history]``)."""
 SETUP_SQL = "history-setup.sql"
 
 
@@ -48,17 +51,26 @@ def notify_unit(name: str) -> str:
 
 
 def setup_sql(policy: HistoryPolicy) -> str:
-    """psql input, safe to run again, that makes the writer's role and the history's database it owns; nobody
-    else may connect."""
+    """psql input, safe to run again, that makes the writer's role and the history's database it owns, and the
+    readers' group role, which may connect and read every table the writer makes; nobody else may connect."""
     return "\n".join([
-        "-- The history's role and database, for appliance-hospital-history.service: run as PostgreSQL's superuser",
+        "-- The history's roles and database, for appliance-hospital-history.service: run as PostgreSQL's superuser",
         "-- (runuser -u postgres -- psql -v ON_ERROR_STOP=1 -f - < this-file). It can be run again.",
         f"SELECT format('CREATE ROLE %I LOGIN', '{ACCOUNT}') WHERE NOT EXISTS "
         f"(SELECT FROM pg_roles WHERE rolname = '{ACCOUNT}') \\gexec",
+        f"SELECT format('CREATE ROLE %I NOLOGIN', '{READER}') WHERE NOT EXISTS "
+        f"(SELECT FROM pg_roles WHERE rolname = '{READER}') \\gexec",
         f"SELECT format('CREATE DATABASE %I OWNER %I', '{policy.database}', '{ACCOUNT}') WHERE NOT EXISTS "
         f"(SELECT FROM pg_database WHERE datname = '{policy.database}') \\gexec",
         f'REVOKE ALL ON DATABASE "{policy.database}" FROM PUBLIC;',
         f'GRANT ALL ON DATABASE "{policy.database}" TO "{ACCOUNT}";',
+        f'GRANT CONNECT ON DATABASE "{policy.database}" TO "{READER}";',
+        "-- A ward station reads as a member of the readers' role, e.g.",
+        f'-- CREATE ROLE "ward3-station" LOGIN PASSWORD \'...\' IN ROLE "{READER}";  (and a pg_hba.conf line)',
+        f'\\connect "{policy.database}"',
+        f'GRANT USAGE ON SCHEMA public TO "{READER}";',
+        f'GRANT SELECT ON ALL TABLES IN SCHEMA public TO "{READER}";',
+        f'ALTER DEFAULT PRIVILEGES FOR ROLE "{ACCOUNT}" IN SCHEMA public GRANT SELECT ON TABLES TO "{READER}";',
         ""])
 
 
