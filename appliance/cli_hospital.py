@@ -167,22 +167,33 @@ def _history(args) -> int:
 
 
 async def _write_history(hospital, secrets: Path, db) -> None:
-    from appliance.hospital.engine import connect
     from appliance.hospital.history.writer import HistoryWriter
-    from appliance.hospital.nodeconfig import HISTORY, read_password
+    from appliance.hospital.nodeconfig import HISTORY
 
-    connection = await connect([node.client_url for node in hospital.nodes], HISTORY, read_password(secrets, HISTORY))
+    policy = hospital.history
+    await _serve_on_engine(
+        hospital, HISTORY, secrets, lambda connection: HistoryWriter(db, connection, hospital),
+        f"history writer: {len(hospital.wards)} ward stream(s) into database {policy.database}; events kept "
+        f"{policy.events_days} days, pressure minutes {policy.pressure_days}",
+        lambda writer: f"history writer stopped: {writer.stored} event(s) stored, {writer.duplicates} redelivered "
+                       f"and dropped, {writer.heard} summaries heard, {writer.rejected} refused")
+
+
+async def _serve_on_engine(hospital, user: str, secrets: Path, make, started: str, stopped) -> None:
+    """Log in to the engine as ``user``, run the service ``make(connection)`` gives until SIGTERM or SIGINT stops
+    it, printing ``started`` and then ``stopped(service)``."""
+    from appliance.hospital.engine import connect
+    from appliance.hospital.nodeconfig import read_password
+
+    connection = await connect([node.client_url for node in hospital.nodes], user, read_password(secrets, user))
     try:
-        writer = HistoryWriter(db, connection, hospital)
+        service = make(connection)
         loop = asyncio.get_running_loop()
         for signum in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(signum, writer.stop)
-        print(f"history writer: {len(hospital.wards)} ward stream(s) into database {hospital.history.database}; "
-              f"events kept {hospital.history.events_days} days, pressure minutes {hospital.history.pressure_days}",
-              flush=True)
-        await writer.run()
-        print(f"history writer stopped: {writer.stored} event(s) stored, {writer.duplicates} redelivered and "
-              f"dropped, {writer.heard} summaries heard, {writer.rejected} refused")
+            loop.add_signal_handler(signum, service.stop)
+        print(started, flush=True)
+        await service.run()
+        print(stopped(service))
     finally:
         await connection.close()
 
@@ -205,24 +216,16 @@ def _notify(args) -> int:
 
 
 async def _run_notifier(hospital, notifier, secrets: Path, journal, path: Path) -> None:
-    from appliance.hospital.engine import connect
-    from appliance.hospital.nodeconfig import notifier_user, read_password
+    from appliance.hospital.nodeconfig import notifier_user
     from appliance.hospital.notify import NotificationService
 
-    user = notifier_user(notifier.name)
-    connection = await connect([node.client_url for node in hospital.nodes], user, read_password(secrets, user))
-    try:
-        service = NotificationService(connection, notifier, journal)
-        loop = asyncio.get_running_loop()
-        for signum in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(signum, service.stop)
-        print(f"notification service {notifier.name}: the {', '.join(notifier.priorities)} alarm changes of "
-              f"{', '.join(notifier.wards)} to {notifier.url}; journal {path}", flush=True)
-        await service.run()
-        print(f"notification service {notifier.name} stopped: {service.paged} paged, {service.refused} refused by "
-              f"the gateway, {service.repeats} given again and not paged twice")
-    finally:
-        await connection.close()
+    await _serve_on_engine(
+        hospital, notifier_user(notifier.name), secrets,
+        lambda connection: NotificationService(connection, notifier, journal),
+        f"notification service {notifier.name}: the {', '.join(notifier.priorities)} alarm changes of "
+        f"{', '.join(notifier.wards)} to {notifier.url}; journal {path}",
+        lambda service: f"notification service {notifier.name} stopped: {service.paged} paged, {service.refused} "
+                        f"refused by the gateway, {service.repeats} given again and not paged twice")
 
 
 def _overview(args) -> int:
