@@ -862,6 +862,13 @@ counting. Beds send no summaries in the soak: only alarm changes, which are what
 
 """
 
+def measured_record(plan: Plan, run: Run, m: Measured) -> dict:
+    """The run's counts, faults and technical alarms, without the per-event latencies (the report has those)."""
+    counts = {k: v for k, v in asdict(m).items() if k not in ("latency_steady", "confirm_steady", "latency_windows")}
+    return {"beds": plan.beds, "wards": len(plan.wards), "ward_size": plan.ward_size, "faults": run.faults,
+            "fault_windows": len(m.latency_windows), **counts}
+
+
 def ms(values: list[float], q: float) -> str:
     return f"{1000 * percentile(values, q):.0f}" if values else "-"
 
@@ -930,6 +937,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--keep", type=Path, help="keep the records in this folder")
     parser.add_argument("--out", type=Path, default=HERE / "hospital.md")
     parser.add_argument("--append", action="store_true", help="add the section to --out instead of replacing it")
+    parser.add_argument("--json", type=Path, help="also write the counts and the faults as JSON here (for a test)")
     args = parser.parse_args(argv)
     plan = Plan(args.beds, args.ward_size, args.minutes * 60, args.transport, rate=args.rate, workers=args.workers,
                 wards_per_station=args.wards_per_station, timing=COMPRESSED if args.compressed else FULL)
@@ -943,6 +951,8 @@ def main(argv: list[str] | None = None) -> int:
     command = "python benchmarks/hospital.py " + " ".join(shown)             # where records were kept is no figure
     section = report(plan, run, measured, command, time.time() - began)
     print(section)
+    if args.json:
+        args.json.write_text(json.dumps(measured_record(plan, run, measured)))
     text = HEADER + section if not args.append or not args.out.exists() else \
         args.out.read_text().rstrip() + "\n\n" + section
     args.out.write_text(text if text.endswith("\n") else text + "\n")

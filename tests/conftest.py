@@ -17,6 +17,43 @@ from appliance.core.network import build_network_model, network_for_layout
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 PERIPHERAL_AND_GRID = ("circular-16", "square-16", "grid-4x4")
+BACKGROUND = "background"
+"""Marks a test whose subject runs beside the whole suite (``background_soak``): its run starts once the tests are
+collected and the test itself comes last."""
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", f"{BACKGROUND}: its run starts when the suite does; the test comes last")
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config, items):
+    items.sort(key=lambda item: item.get_closest_marker(BACKGROUND) is not None)      # stable: the rest keep order
+
+
+def pytest_collection_finish(session):
+    if not session.config.option.collectonly and any(item.get_closest_marker(BACKGROUND) for item in session.items):
+        from background_soak import BackgroundSoak
+
+        session.config.stash[SOAK] = BackgroundSoak()
+
+
+def pytest_sessionfinish(session):
+    soak = session.config.stash.get(SOAK, None)
+    if soak is not None:
+        soak.stop()
+
+
+SOAK = pytest.StashKey()
+
+
+@pytest.fixture(scope="session")
+def background_soak(request):
+    """The full-size hospital soak started when the suite began (only when a test marked ``background`` asks)."""
+    soak = request.config.stash.get(SOAK, None)
+    if soak is None:
+        pytest.fail("the background soak starts only for a test marked background")
+    return soak
 
 
 @pytest.fixture(autouse=True)
