@@ -85,10 +85,24 @@ def test_the_screen_shows_each_beds_trend_and_the_wards_events_of_the_look_back(
         ("w3-bed01", 4, "alarm", "raised", "high", "Sacrum dose over limit"),
         ("w3-bed02", 9, "turn", "recorded", None, "turn recorded by n.lee")]
     assert history["events"][0]["stored_at"] == (now - 10 * MINUTE).timestamp()
+    assert history["events_cut"] is False
 
     assert "trends" not in get(nurse, "/api/ward")                  # the live board and its stream stay small
     page = nurse.get("/ward").get_data(as_text=True)
     assert 'id="history"' in page and "Ward history, last 12 h" in page and 'data-refresh-s="30.0"' in page
+
+
+def test_a_look_back_with_more_events_than_listed_lists_the_newest_and_says_older_ones_are_left_out(
+        tmp_path, station, history_dsn):
+    from webui.ward_history import EVENTS_SHOWN
+
+    now = this_minute()
+    with psycopg.connect(history_dsn) as db:
+        write_events(db, [event("ward3", "w3-bed01", seq, now - (EVENTS_SHOWN + 1 - seq) * dt.timedelta(seconds=10),
+                                "alarm", "raised", "medium") for seq in range(EVENTS_SHOWN + 1)])
+    history = get(client_as(ward_app(tmp_path, station, history_dsn), "nurse"), "/api/ward/history")
+    assert history["events_cut"] is True
+    assert [e["seq"] for e in history["events"]] == list(range(EVENTS_SHOWN, 0, -1))     # seq 0, the oldest, left out
 
 
 def test_the_history_is_read_at_most_once_a_period_and_again_after_a_failure(tmp_path, history_dsn):
@@ -131,7 +145,7 @@ def test_with_the_database_stopped_the_board_still_answers_and_says_the_history_
         nurse = client_as(app, "nurse")
         assert list(get(nurse, "/api/ward/history")["trends"]) == ["w3-bed05"]
     history = get(nurse, "/api/ward/history")                           # the server is stopped and gone
-    assert (history["available"], history["trends"], history["events"]) == (False, {}, [])
+    assert (history["available"], history["trends"], history["events"], history["events_cut"]) == (False, {}, [], False)
     beds("w3-bed05").summarise(summary("w3-bed05"))
     assert wait_until(lambda: [b["bed_id"] for b in get(nurse, "/api/ward")["beds"]] == ["w3-bed05"])
     page = nurse.get("/ward")

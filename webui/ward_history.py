@@ -29,7 +29,8 @@ bp = Blueprint("ward_history", __name__)
 REFRESH_S = 30.0
 """How often the history is read, and the screen asks: the trend gains a row a minute."""
 EVENTS_SHOWN = 200
-"""The ward's latest events in the look-back: more than a shift brings on a working ward."""
+"""The ward's latest events in the look-back: more than a shift brings on a working ward. When the look-back holds
+more, the answer says so (``events_cut``) and the screen says that older ones are not listed."""
 EVENT_FIELDS = ("bed_id", "seq", "type", "kind", "priority", "alarm_id")
 
 
@@ -59,16 +60,16 @@ class WardHistory:
         try:
             with reading(self.connect) as db:
                 trends = ward_trends(db, self.ward, since)
-                events = recent_events(db, since, ward=self.ward, limit=EVENTS_SHOWN)
+                events = recent_events(db, since, ward=self.ward, limit=EVENTS_SHOWN + 1)     # one more: cut?
         except psycopg.Error as exc:
             log.warning("ward history: the history of %s is not readable, shown as unavailable until the next try "
                         "in %.0f s: %s", self.ward, self.refresh_s, str(exc).strip())
-            return {**answer, "available": False, "trends": {}, "events": []}
-        return {**answer, "available": True,
+            return {**answer, "available": False, "trends": {}, "events": [], "events_cut": False}
+        return {**answer, "available": True, "events_cut": len(events) > EVENTS_SHOWN,
                 "trends": {bed: [[minute.timestamp(), None if peak is None else round(peak, 1)]
                                  for minute, peak in minutes] for bed, minutes in trends.items()},
                 "events": [{"stored_at": event["stored_at"].timestamp(), **{k: event[k] for k in EVENT_FIELDS},
-                            "message": event["body"].get("message")} for event in events]}
+                            "message": event["body"].get("message")} for event in events[:EVENTS_SHOWN]]}
 
 
 @bp.route("/api/ward/history")

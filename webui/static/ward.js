@@ -200,6 +200,8 @@ function drawHistory(answer, refreshS) {
   state.className = "history-state" + (answer.available ? "" : " unavailable");
   state.textContent = !answer.available
     ? `The hospital history is unavailable (its database does not answer): trying again in ${refreshS} s.`
+    : answer.events_cut ? `the newest ${answer.events.length} events, newest first (older ones of the last ${hours()} `
+      + "are in the hospital history, not listed here)"
     : answer.events.length ? `${answer.events.length} event(s), newest first` : "no events in this time";
   document.getElementById("history-events").replaceChildren(...answer.events.map(historyLine));
   if (lastWard) draw(lastWard);
