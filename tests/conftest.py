@@ -22,10 +22,6 @@ BACKGROUND = "background"
 collected and the test itself comes last."""
 
 
-def pytest_configure(config):
-    config.addinivalue_line("markers", f"{BACKGROUND}: its run starts when the suite does; the test comes last")
-
-
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: item.get_closest_marker(BACKGROUND) is not None)      # stable: the rest keep order
