@@ -14,7 +14,7 @@ on (they were fitted on S1-S3, S5, S7-S10).
   the whole chain (virtual bed, parallel board, reconstruction, calibration).
 * Nights: held-out recordings held for hours (turned every 2 h through supine and
   30 degree tilts; unturned supine; side-lying; a restless night of small shifts).
-  The truth is the dose rule applied to the true maps at the hand-labelled sites;
+  The truth is the dose rule applied to the true maps at the sites of the consensus labels;
   the alert layer is fed the true maps (``appliance sim replay``'s path) and the
   maps read through the chain (``appliance sim run``'s path), one map a minute.
 * CPU and memory: ``appliance run`` in real time (1 frame/s) as a separate
@@ -418,7 +418,8 @@ last sure lying posture, so such a map neither counts as a turn nor renames the 
 
 ## Sites against the hand labels
 
-The hand labels of the same 51 maps (`tests/data/site_labels`, named by eye on the 10 mm maps) against the
+The hand labels of the same 51 maps (`tests/data/site_labels/consensus`, named by eye on the 10 mm maps by
+two readers apart, their disagreements settled by a third, none of them seeing the locator) against the
 locator, which works on the posture the model estimated (`benchmarks/site_labels.py` scores them). A
 labelled spot counts when the true map is at or above 32 mmHg within one of the monitor's pixels of it; the
 locator's label for it is the site the locator gives the monitor pixel the spot lies in (`label_cells`;
@@ -434,8 +435,8 @@ Each night holds the middle frame of held-out recordings for hours, one map a mi
 (supine, left 30, supine, right 30, supine, left 30: 12 h), unturned supine (8 h), side-lying at 90 degrees
 (4 h; S6 on the right side, the others on the left) and a restless night (8 h of supine variants, arms moved,
 shifted by up to 40 mm across and 30 mm along every 5 to 10 min, the sacrum never offloaded). **Truth**: the
-dose rule (the alert layer's own `SiteDose`, Reswick-Rogers, dose 1) applied to each hand-labelled site's
-peak within {MATCH_MM:g} mm on the true map averaged over the monitor's pixels. **True maps**: the alert layer
+dose rule (the alert layer's own `SiteDose`, Reswick-Rogers, dose 1) applied to each site of those labels at
+its peak within {MATCH_MM:g} mm on the true map averaged over the monitor's pixels. **True maps**: the alert layer
 (posture model, site locator, site doses) fed those true maps, as `appliance sim replay` does. **Chain**: the
 alert layer fed the maps read through the virtual bed, as `appliance sim run` does. Late in minutes (+ =
 after the truth); a false alarm is a site alarm where the truth has none.
