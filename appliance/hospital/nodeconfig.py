@@ -190,7 +190,9 @@ def notifier_permissions(service: Notifier) -> dict:
 def page_replay_permissions(ward: str) -> list[str]:
     """The API calls that read ``ward``'s page records back: make a consumer of the confirmation stream whose
     filter is those records (the filter is part of the call's subject, which the server checks against the
-    consumer's), and fetch from it; no look-up, acknowledgement or change of the stream."""
+    consumer's), and fetch from it; no look-up, acknowledgement or change of the stream. Only records the station
+    cannot write: the server does not hold a consumer's delivery subject to its maker's permissions, so a station
+    must not be able to send what it wrote itself (its confirmations) anywhere through one."""
     confirms = confirms_stream_name(ward)
     return [f"$JS.API.CONSUMER.CREATE.{confirms}.*.{notified_subject(ward, '*', '*', '*')}",
             f"$JS.API.CONSUMER.MSG.NEXT.{confirms}.*"]
