@@ -67,6 +67,7 @@ alarms long ended. An alarm open for longer than this shows no page after a rest
 REPLAY_BATCH = 200
 REPLAY_WAIT_S = 1.0
 """How long the read-back waits for a record before it takes the look-back to hold no more."""
+READ_BACK_RETRY_MAX_S = 60.0
 REPLAY_IDLE_S = 30.0
 """The engine drops the read-back's consumer once it is read from no more for this long (a station may not
 delete consumers)."""
@@ -228,7 +229,9 @@ class EngineStation:
         self._read_back = asyncio.create_task(self._read_back_pages(), name="ward-station page read-back")
 
     async def _read_back_pages(self) -> None:
-        """Every page record of the last ``PAGES_LOOK_BACK_S`` onto the board, tried again until it is read."""
+        """Every page record of the last ``PAGES_LOOK_BACK_S`` onto the board, tried again, less and less often,
+        until it is read (an engine whose permissions predate the read-back answers nothing)."""
+        wait_s = CONNECT_RETRY_S
         while not self._stopping:
             try:
                 await self._read_back_once()
@@ -237,9 +240,10 @@ class EngineStation:
                 log.warning("ward: ward %s has no confirmation stream yet (appliance hospital streams makes it): "
                             "no page records read back", self.ward)
                 return
-            except RETRYABLE as exc:
-                log.warning("ward: the page records are not readable now: %r", exc)
-                await asyncio.sleep(CONNECT_RETRY_S)
+            except (*RETRYABLE, nats.errors.Error) as exc:      # the live records still come, older ones wait
+                log.warning("ward: the page records are not readable now (%r): trying again in %.0f s", exc, wait_s)
+                await asyncio.sleep(wait_s)
+                wait_s = min(2 * wait_s, READ_BACK_RETRY_MAX_S)
 
     async def _read_back_once(self) -> None:
         assert self._connection is not None
