@@ -64,11 +64,11 @@ PAGES_LOOK_BACK_S = 24 * 3600.0
 alarm while that is open, and keeps the latest record of each alarm and service: a day covers every alarm a
 shift can still have open, while the whole confirmation stream (a week) would be read at every start mostly for
 alarms long ended. An alarm open for longer than this shows no page after a restart."""
-REPLAY_BATCH = 200
-REPLAY_WAIT_S = 1.0
+READ_BACK_BATCH = 200
+READ_BACK_WAIT_S = 1.0
 """How long the read-back waits for a record before it takes the look-back to hold no more."""
 READ_BACK_RETRY_MAX_S = 60.0
-REPLAY_IDLE_S = 30.0
+READ_BACK_IDLE_S = 30.0
 """The engine drops the read-back's consumer once it is read from no more for this long (a station may not
 delete consumers)."""
 
@@ -250,13 +250,13 @@ class EngineStation:
         start = datetime.datetime.now(datetime.UTC) - datetime.timedelta(seconds=PAGES_LOOK_BACK_S)
         config = api.ConsumerConfig(ack_policy=api.AckPolicy.NONE, deliver_policy=api.DeliverPolicy.BY_START_TIME,
                                     opt_start_time=start, mem_storage=True, num_replicas=1,
-                                    inactive_threshold=REPLAY_IDLE_S)
+                                    inactive_threshold=READ_BACK_IDLE_S)
         subscription = await self._connection.jetstream().pull_subscribe(
             notified_subject(self.ward, "*", "*", "*"), stream=confirms_stream_name(self.ward), config=config)
         try:
             while True:
                 try:
-                    messages = await subscription.fetch(REPLAY_BATCH, timeout=REPLAY_WAIT_S)
+                    messages = await subscription.fetch(READ_BACK_BATCH, timeout=READ_BACK_WAIT_S)
                 except nats.errors.TimeoutError:
                     return                              # no more records in the look-back
                 for message in messages:
