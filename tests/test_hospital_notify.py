@@ -3,7 +3,9 @@ its priorities POSTed once with its idempotency key and recorded on the engine, 
 a gateway down held as a technical alarm and every page delivered once it is back; a page journalled but not
 recorded not posted again after a restart; a service killed mid-stream posting nothing twice but the page in
 flight; a page refused for good recorded and not tried again; each outcome shown with its alarm at the ward
-station; the service's user held to its own records; the description's [[notifier]] tables checked."""
+station, again after the station's restart and once however often it comes; the ward screen told when pages do
+not go out and when the service went quiet; the service's and the station's users held to their own ward's
+records and status; the description's [[notifier]] tables checked."""
 
 import asyncio
 import contextlib
@@ -11,6 +13,7 @@ import dataclasses
 import http.server
 import json
 import logging
+import re
 import signal
 import subprocess
 import sys
@@ -23,6 +26,8 @@ import nats.js.errors
 import pytest
 from hospital_engine import WARDS, logged_in, make_streams, running_cluster
 from mqtt_broker import wait_until
+from test_ward_screen import ward, ward_app
+from webui_client import client_as
 
 from appliance.alerts.events import Event
 from appliance.errors import ConfigError
@@ -31,9 +36,9 @@ from appliance.hospital.engine import BedPublisher, confirms_stream_config
 from appliance.hospital.nodeconfig import ADMIN, notifier_permissions, read_password, write_node_configs
 from appliance.hospital.notify import IDEMPOTENCY_KEY, NotificationService
 from appliance.hospital.subjects import (bed_subject, confirmation_subject, confirms_stream_name, notified_subject,
-                                         stream_name)
+                                         paging_status_subject, stream_name)
 from appliance.ward.applied import AppliedJournal
-from appliance.ward.board import WardBoard
+from appliance.ward.board import PAGING_FIRST_WORD_S, STALE_MARGIN_S, WardBoard
 from appliance.ward.engine_station import EngineStation
 
 WAIT_S = 90.0               # generous: a redelivery comes after the consumer's acknowledgement wait, on a busy machine
@@ -113,12 +118,12 @@ def turn():
 
 
 @contextlib.asynccontextmanager
-async def running_service(cluster, folder):
+async def running_service(cluster, folder, **options):
     """The service of the cluster's notifier in this loop, its journal in ``folder``; stopped when the block ends."""
     journal = AppliedJournal(folder / "notify.db")
     try:
         async with logged_in(cluster, USER) as connection:
-            service = NotificationService(connection, cluster.hospital.notifier("phones"), journal)
+            service = NotificationService(connection, cluster.hospital.notifier("phones"), journal, **options)
             running = asyncio.create_task(service.run())
             try:
                 yield service
@@ -168,6 +173,26 @@ async def wait_acknowledged(cluster) -> None:
                 return
             assert asyncio.get_running_loop().time() < give_up, f"not all acknowledged: {info}"
             await asyncio.sleep(0.2)
+
+
+def ward1_station(cluster, path):
+    """Station1 of ward1 on the cluster, its journal at ``path``, reading its ward."""
+    station = EngineStation(cluster.urls, "ward1", "station1", read_password(cluster.configs.secrets_folder,
+                                                                             "station1"), AppliedJournal(path))
+    assert station.wait_subscribed(WAIT_S)
+    return station
+
+
+def close(station):
+    station.close()
+    station.journal.close()
+
+
+def shown_pages(station, bed="bed1"):
+    """What ``station`` shows of ``bed``'s open alarms' pages: alarm id -> [(service, outcome, status, time)]."""
+    alarms = next((b["alarms"] for b in station.beds(events=False) if b["bed_id"] == bed), [])
+    return {a["alarm_id"]: [(p["notifier"], p["outcome"], p["status"], p["notified_at"]) for p in a["pages"]]
+            for a in alarms}
 
 
 async def until(condition, what):
@@ -374,6 +399,164 @@ def test_the_services_user_records_only_its_own_and_no_one_else_records_for_it(c
     assert own.stream == "CONFIRMS_ward1"
 
 
+def test_a_restarted_station_reads_the_pages_back_and_shows_each_once(cluster, gateway, tmp_path):
+    """Two alarms paged (one refused) while the station runs, a third while it is closed; the station started
+    again on its journal shows all three pages as before, and a record given again (a service's repeat) once."""
+    gateway.answer = lambda body: 422 if body["seq"] == 2 else 200
+    journal = tmp_path / "station.db"
+
+    async def run():
+        async with running_service(cluster, tmp_path):
+            first = ward1_station(cluster, journal)
+            try:
+                await send(cluster, "bed1", [("alarm", alarm("raised", alarm_id=n)) for n in (1, 2)])
+                await until(lambda: all(shown_pages(first).get(n) for n in (1, 2)), "the running station shows both")
+                before = shown_pages(first)
+            finally:
+                close(first)
+            async with logged_in(cluster, "bed1") as connection:
+                await BedPublisher(connection, "ward1", "bed1").send("alarm", 3, alarm("raised", alarm_id=3))
+            stored_while_closed = await recorded(cluster, "bed1", [3])
+        again = ward1_station(cluster, journal)
+        try:
+            await until(lambda: all(shown_pages(again).get(n) for n in (1, 2, 3)), "the restarted station shows all")
+            after = shown_pages(again)
+            async with logged_in(cluster, ADMIN) as admin:
+                kept = await admin.jetstream().get_last_msg(confirms_stream_name("ward1"),
+                                                            notified_subject("ward1", "bed1", 1, "phones"))
+            version = again.version
+            async with logged_in(cluster, USER) as service:           # the service's record of event 1, again
+                await service.jetstream().publish(kept.subject, kept.data, stream=confirms_stream_name("ward1"))
+            await until(lambda: again.version > version, "the repeat heard")
+            return before, stored_while_closed, after, shown_pages(again)
+        finally:
+            close(again)
+
+    before, stored_while_closed, after, repeated = asyncio.run(run())
+    assert {n: [(p[0], p[1], p[2]) for p in pages] for n, pages in before.items()} == {
+        1: [("phones", "paged", 200)], 2: [("phones", "refused", 422)]}
+    assert after == {**before, 3: [("phones", "paged", 200, stored_while_closed[3]["notified_at"])]}
+    assert repeated == after                                  # one page line per alarm and service
+
+
+def test_the_ward_screen_says_while_pages_do_not_go_out_and_when_the_service_went_quiet(cluster, gateway, tmp_path):
+    """The gateway answers 503: the service says so to the ward, and the screen's JSON shows it not delivering
+    (a station started afresh too, within the service's period); once the gateway takes pages, delivering; the
+    service stopped, unknown after a few of its periods, never delivering."""
+    gateway.answer = lambda body: 503
+    every_s = 0.5
+    (tmp_path / "screen").mkdir()
+
+    def paging(station):
+        return {s["notifier"]: (s["state"], s["reason"]) for s in station.paging()}
+
+    async def run():
+        station = ward1_station(cluster, tmp_path / "station.db")
+        try:
+            nurse = client_as(ward_app(tmp_path / "screen", station), "nurse")
+            async with running_service(cluster, tmp_path, status_every_s=every_s) as service:
+                await until(lambda: paging(station) == {"phones": ("delivering", "")}, "the service heard")
+                await send(cluster, "bed1", [("alarm", alarm("raised"))])
+                await until(lambda: paging(station) == {"phones": ("not delivering", "HTTP 503")}, "not delivering")
+                failing = ward(nurse)["paging"]
+                fresh = ward1_station(cluster, tmp_path / "fresh.db")
+                try:
+                    await until(lambda: paging(fresh) == {"phones": ("not delivering", "HTTP 503")},
+                                "a station started afresh told")
+                finally:
+                    close(fresh)
+                gateway.answer = lambda body: 200
+                await until(lambda: paging(station) == {"phones": ("delivering", "")}, "delivering again")
+                await until(lambda: service.paged == 1, "the page taken")
+                recovered = ward(nurse)["paging"]
+            await until(lambda: paging(station)["phones"][0] == "unknown", "the silent service shown unknown")
+            quiet = ward(nurse)["paging"]
+            return failing, recovered, quiet
+        finally:
+            close(station)
+
+    before = time.time()
+    failing, recovered, quiet = asyncio.run(run())
+    assert [(s["notifier"], s["state"], s["reason"]) for s in failing] == [("phones", "not delivering", "HTTP 503")]
+    assert before <= failing[0]["since"] <= recovered[0]["since"] <= quiet[0]["since"]
+    assert [(s["notifier"], s["state"]) for s in recovered] == [("phones", "delivering")]
+    assert [(s["notifier"], s["state"]) for s in quiet] == [("phones", "unknown")]
+    assert quiet[0]["since"] == quiet[0]["heard_at"]          # when it was last heard
+
+
+def test_the_board_shows_a_service_silent_for_a_few_periods_or_never_heard_as_unknown():
+    board = WardBoard()
+    steady = time.monotonic()
+
+    def status(delivering=False, since=1.0e9, reason="HTTP 503", every_s=5.0, notifier="phones"):
+        return json.dumps({"notifier": notifier, "delivering": delivering, "since": since, "reason": reason,
+                           "every_s": every_s}).encode()
+
+    assert board.take_paging("phones", status(), now=2.0e9)["delivering"] is False
+    version = board.version
+    board.take_paging("phones", status(), now=2.0e9 + 5)          # the same word again: nothing changed
+    assert board.version == version
+    assert [(s["state"], s["since"], s["reason"]) for s in board.paging(steady)] == [
+        ("not delivering", 1.0e9, "HTTP 503")]
+    later = steady + 3 * 5.0 + STALE_MARGIN_S + 1
+    assert [(s["state"], s["since"]) for s in board.paging(later)] == [("unknown", 2.0e9 + 5)]
+    board.take_page("bed1", json.dumps({"bed_id": "bed1", "seq": 1, "notifier": "pagers", "outcome": "paged",
+                                        "status": 200, "alarm_id": 1, "kind": "raised",
+                                        "notified_at": 1.0e9}).encode())
+    assert [s["notifier"] for s in board.paging(steady)] == ["phones"]      # pagers not judged yet
+    assert [(s["notifier"], s["state"], s["since"]) for s in board.paging(steady + PAGING_FIRST_WORD_S + 1)] == [
+        ("pagers", "unknown", None), ("phones", "unknown", 2.0e9 + 5)]
+    for bad in (status(notifier="pagers"), status(every_s=0), b'{"notifier": "phones"}', b"[]"):
+        assert board.take_paging("phones", bad) is None
+    assert board.bad_payloads == 4
+
+
+def test_a_station_reads_back_and_hears_only_its_own_wards_pages_and_only_the_service_says_its_status(cluster):
+    refused: dict[str, list[str]] = {USER: [], "station1": [], "bed1": []}
+
+    def note(user):
+        async def on_error(error):
+            refused[user].append(str(error))
+        return on_error
+
+    async def run():
+        async with logged_in(cluster, USER, on_error=note(USER)) as service, \
+                logged_in(cluster, "station1", on_error=note("station1")) as station, \
+                logged_in(cluster, "bed1", on_error=note("bed1")) as bed:
+            js = station.jetstream()
+            for stream, subject in ((confirms_stream_name("ward2"), notified_subject("ward2", "*", "*", "*")),
+                                    (confirms_stream_name("ward1"), f"{bed_subject('ward1', '*', 'confirmed')}.*")):
+                with pytest.raises(nats.errors.TimeoutError):     # the engine drops the call: no answer
+                    await js.pull_subscribe(subject, stream=stream)
+            await station.subscribe(paging_status_subject("ward2", "*"))
+            await station.publish(paging_status_subject("ward1", "phones"), b"{}")
+            await bed.publish(paging_status_subject("ward1", "phones"), b"{}")
+            await service.publish(paging_status_subject("ward2", "phones"), b"{}")    # not its ward
+            await service.publish(paging_status_subject("ward1", "pagers"), b"{}")    # not its name
+            await until(lambda: len(refused["station1"]) >= 4 and refused["bed1"] and len(refused[USER]) >= 2,
+                        "refusals")
+            await service.jetstream().publish(notified_subject("ward1", "bed1", 1, "phones"), b"{}",
+                                              stream=confirms_stream_name("ward1"))
+            own = await js.pull_subscribe(notified_subject("ward1", "*", "*", "*"),
+                                          stream=confirms_stream_name("ward1"))
+            return [message.subject for message in await own.fetch(1, timeout=WAIT_S)]
+
+    assert asyncio.run(run()) == ["hospital.ward1.bed1.notified.1.phones"]        # its own ward's, read back
+    unnamed = sorted(re.sub(r"(create\.confirms_ward\d)\.\w+\.", r"\1.<name>.", error, flags=re.IGNORECASE)
+                     for error in refused["station1"])
+    assert unnamed == [
+        'nats: permissions violation for publish to "$js.api.consumer.create.confirms_ward1.<name>.hospital.ward1.*.'
+        'confirmed.*"',
+        'nats: permissions violation for publish to "$js.api.consumer.create.confirms_ward2.<name>.hospital.ward2.*.'
+        'notified.*.*"',
+        'nats: permissions violation for publish to "hospital.ward1.paging.status.phones"',
+        'nats: permissions violation for subscription to "hospital.ward2.paging.status.*"']
+    assert refused["bed1"] == ['nats: permissions violation for publish to "hospital.ward1.paging.status.phones"']
+    assert sorted(refused[USER]) == [
+        'nats: permissions violation for publish to "hospital.ward1.paging.status.pagers"',
+        'nats: permissions violation for publish to "hospital.ward2.paging.status.phones"']
+
+
 DESCRIBED = {"hospital": {"cluster": "st-mary", "store_dir": "/var/lib/h"},
              "node": [{"name": "n1", "host": "127.0.0.1"}], "ward": [{"name": w.name, "beds": list(w.beds),
                                                                       "stations": list(w.stations)} for w in WARDS]}
@@ -391,8 +574,8 @@ def test_a_notifier_is_described_with_its_defaults_and_written_back_the_same(tmp
     assert hospital_from_mapping(described(priorities=["low"])).notifier("phones").priorities == ("low",)
     written = write_node_configs(hospital, tmp_path / "out")
     assert USER in written.added
-    assert notifier_permissions(hospital.notifier("phones"))["publish"]["allow"][-1] == \
-        "hospital.ward1.*.notified.*.phones"
+    assert notifier_permissions(hospital.notifier("phones"))["publish"]["allow"][-2:] == \
+        ["hospital.ward1.*.notified.*.phones", "hospital.ward1.paging.status.phones"]
     with pytest.raises(ConfigError, match="no \\[\\[notifier\\]\\] named 'pagers'.*its notifiers: phones"):
         hospital.notifier("pagers")
 

@@ -14,6 +14,9 @@ station's command journal, and sent to the bed
 latest commands, pending until the bed answers done or refused (with the bed's
 reason), or expired. The screen never touches a bed's alarms itself.
 
+On the hospital engine a banner says when a notification service's pages are not going out, or when it has
+not said for too long whether they do (``paging``: :meth:`appliance.ward.board.WardBoard.paging`).
+
 A station configured with ``[history]`` also shows, from the hospital history, each bed's peak pressure over
 the last hours as a sparkline and the ward's events of that time (``webui.ward_history``).
 """
@@ -48,7 +51,7 @@ def ward_view() -> dict:
     beds = [{**_bed(bed, now, config), "commands": commands.get(bed["bed_id"], [])[:COMMANDS_SHOWN]}
             for bed in station.beds(events=False)]
     return {"now": now, "connected": station.connected, "stale_after_s": station.stale_after_s,
-            "can_act": station.commands is not None,
+            "can_act": station.commands is not None, "paging": station.paging(),
             "counts": {"beds": len(beds), "offline": sum(not b["online"] for b in beds),
                        "alarming": sum(b["highest_priority"] is not None for b in beds)},
             "beds": beds}
@@ -67,9 +70,11 @@ def _bed(bed: dict, now: float, config) -> dict:
 
 
 def _change_key() -> tuple:
-    """Changes when the station took a message, lost or regained the broker, or a bed went silent."""
+    """Changes when the station took a message, lost or regained the broker, or a bed or a notification service
+    went silent."""
     station = current_app.extensions["ward_station"]
-    return station.version, station.connected, station.online_flags()
+    return (station.version, station.connected, station.online_flags(),
+            tuple((service["notifier"], service["state"]) for service in station.paging()))
 
 
 @bp.route("/ward")

@@ -19,12 +19,14 @@ Users and what they may do (``appliance.hospital.subjects`` names the subjects):
   ``command`` and its own inbox, and may look up its own confirmations in the ward's confirmation stream;
 - a station reads every subject of its ward (its beds' answers among them), writes its beds' ``confirm`` and
   ``command`` and the ward's confirmation stream, and may only read its ward's event stream through a consumer
-  (create, fetch, acknowledge), never change or delete it;
+  (create, fetch, acknowledge), never change or delete it; it reads the notification services' records back from
+  the ward's confirmation stream through consumers it makes filtered on them, nothing else of that stream;
 - ``hospital-admin`` may do everything: it creates the streams (``appliance hospital streams``);
 - ``hospital-history``, the history writer, reads every ward's stream through its own consumers and hears every
   bed's summary (``appliance.hospital.history``);
-- ``notify-<name>``, each ``[[notifier]]``, reads the streams of the wards it serves through its own consumers and
-  records its own ``notified`` records in their confirmation streams, nothing else (``appliance.hospital.notify``).
+- ``notify-<name>``, each ``[[notifier]]``, reads the streams of the wards it serves through its own consumers,
+  records its own ``notified`` records in their confirmation streams and says its own paging status to them,
+  nothing else (``appliance.hospital.notify``).
 
 Running it again keeps every existing password and adds or drops users. A running node reads its file again
 on ``nats-server --signal reload`` (SIGHUP), so a bed is added without a restart.
@@ -42,7 +44,7 @@ from appliance.files import read_secret, write_atomic
 from appliance.hospital.description import Hospital, Node, Notifier, Ward
 from appliance.hospital.subjects import (BED_KINDS, CONFIRM, CONFIRMED, ROOT, SUMMARY, answer_subject, bed_subject,
                                          command_subject, confirms_stream_name, inbox_prefix, notified_subject,
-                                         stream_name)
+                                         paging_status_subject, stream_name)
 
 ADMIN = "hospital-admin"
 HISTORY = "hospital-history"
@@ -160,11 +162,11 @@ def bed_permissions(ward: Ward, bed: str) -> dict:
 
 
 def station_permissions(ward: Ward, station: str) -> dict:
-    """Read the ward (the beds' answers too), confirm to and command its beds, and consume (never change) the
-    ward's stream."""
+    """Read the ward (the beds' answers too), confirm to and command its beds, consume (never change) the ward's
+    stream, and read the ward's page records back (:func:`page_replay_permissions`)."""
     return {"publish": {"allow": [bed_subject(ward.name, "*", CONFIRM), command_subject(ward.name, "*"),
                                   f"{bed_subject(ward.name, '*', CONFIRMED)}.*",
-                                  *consumer_permissions(stream_name(ward.name))]},
+                                  *consumer_permissions(stream_name(ward.name)), *page_replay_permissions(ward.name)]},
             "subscribe": {"allow": [f"{ROOT}.{ward.name}.>", f"{inbox_prefix(station)}.>"]}}
 
 
@@ -179,9 +181,21 @@ def notifier_permissions(service: Notifier) -> dict:
     """Consume (never change) the streams of the wards it serves, and record only its own notifications in their
     confirmation streams: it cannot publish a bed's event or a station's confirmation."""
     allow = [call for ward in service.wards for call in consumer_permissions(stream_name(ward))]
-    allow += [notified_subject(ward, "*", "*", service.name) for ward in service.wards]
+    allow += [subject for ward in service.wards for subject in (notified_subject(ward, "*", "*", service.name),
+                                                                paging_status_subject(ward, service.name))]
     return {"publish": {"allow": allow},
             "subscribe": {"allow": [f"{inbox_prefix(notifier_user(service.name))}.>"]}}
+
+
+def page_replay_permissions(ward: str) -> list[str]:
+    """The API calls that read ``ward``'s page records back: make a consumer of the confirmation stream whose
+    filter is those records (the filter is part of the call's subject, which the server checks against the
+    consumer's), and fetch from it; no look-up, acknowledgement or change of the stream. Only records the station
+    cannot write: the server does not hold a consumer's delivery subject to its maker's permissions, so a station
+    must not be able to send what it wrote itself (its confirmations) anywhere through one."""
+    confirms = confirms_stream_name(ward)
+    return [f"$JS.API.CONSUMER.CREATE.{confirms}.*.{notified_subject(ward, '*', '*', '*')}",
+            f"$JS.API.CONSUMER.MSG.NEXT.{confirms}.*"]
 
 
 def consumer_permissions(stream: str) -> list[str]:

@@ -20,11 +20,19 @@ after the consumer's acknowledgement wait, and the service tries again at that p
 up to ``RETRY_MAX_S``. While the gateway takes no pages, :meth:`NotificationService.conditions` says so (a technical
 alarm, as the ward link's), and the log says it once when the outage begins and once when it ends. After an
 outage pages may reach the gateway out of order: each carries its bed's ``seq`` and ``time_s``.
+
+The nurses see it too: the service tells each of its wards' stations whether pages go out (:func:`paging_status`
+on ``hospital.<ward>.paging.status.<name>``), at once when that changes and again every ``STATUS_EVERY_S``. A
+plain message, repeated, rather than a last value kept in a stream: a station must notice a service that stopped
+saying anything (dead, or cut off from the engine), which only a message expected at a known pace shows, and
+once that pace is there it also tells a station started afresh within one period; a stream would add a quorum
+write every period and still need the pace.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import http.client
 import json
 import logging
@@ -35,13 +43,14 @@ import urllib.request
 from collections.abc import Callable
 from typing import Protocol
 
+import nats.errors
 import nats.js.errors
 from nats.aio.client import Client
 
 from appliance.hospital.description import Notifier
 from appliance.hospital.engine import RETRYABLE, Delivery, WardReader
 from appliance.hospital.nodeconfig import notifier_user
-from appliance.hospital.subjects import confirms_stream_name, message_id, notified_subject
+from appliance.hospital.subjects import confirms_stream_name, message_id, notified_subject, paging_status_subject
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +71,9 @@ FETCH_BATCH = 20
 """Events fetched at once: few, because they are paged one after the other and each must be acknowledged
 within the consumer's acknowledgement wait or it is given again (and then found in the journal)."""
 STREAM_WAIT_S = 10.0
+STATUS_EVERY_S = 5.0
+"""How often the service says whether pages go out, when nothing changed: a station that hears nothing for a few
+of these shows the service's state as unknown."""
 
 
 class GatewayUnavailable(Exception):
@@ -104,20 +116,31 @@ def post_page(url: str, key: str, body: bytes, timeout_s: float) -> int:
         raise GatewayUnavailable(str(getattr(exc, "reason", exc)) or type(exc).__name__) from exc
 
 
+def paging_status(notifier: str, delivering: bool, since: float, reason: str, every_s: float) -> bytes:
+    """What a station hears of notification service ``notifier``: whether its gateway takes pages, since when
+    (``time.time()``), why not (``reason``, empty while it does), and the pace it says this at."""
+    return json.dumps({"notifier": notifier, "delivering": delivering, "since": since, "reason": reason,
+                       "every_s": every_s}).encode()
+
+
 class NotificationService:
     """``notifier``'s service on ``connection`` (logged in as its user), keeping what it did in ``journal``;
-    ``post`` sends one page (:func:`post_page`). Counters: ``paged`` and ``refused`` (each event once),
-    ``repeats`` (events given again that had been dealt with), ``failures`` (tries the gateway did not take)."""
+    ``post`` sends one page (:func:`post_page`); its wards' stations hear whether pages go out every
+    ``status_every_s``. Counters: ``paged`` and ``refused`` (each event once), ``repeats`` (events given again that
+    had been dealt with), ``failures`` (tries the gateway did not take)."""
 
     def __init__(self, connection: Client, notifier: Notifier, journal: PageJournal, *,
-                 post: Callable[[str, str, bytes, float], int] = post_page, timeout_s: float = POST_TIMEOUT_S):
+                 post: Callable[[str, str, bytes, float], int] = post_page, timeout_s: float = POST_TIMEOUT_S,
+                 status_every_s: float = STATUS_EVERY_S):
         self.connection, self.notifier, self.journal = connection, notifier, journal
         self.user = notifier_user(notifier.name)
         self.js = connection.jetstream()
-        self.post, self.timeout_s = post, timeout_s
+        self.post, self.timeout_s, self.status_every_s = post, timeout_s, status_every_s
         self.paged = self.refused = self.repeats = self.failures = 0
         self._down_since: float | None = None         # time.monotonic() of the first try the gateway did not take
         self._down_reason = ""
+        self._state_since = time.time()               # when pages last began or stopped going out, for the nurses
+        self._state_changed = asyncio.Event()
         self._retry_s = RETRY_FIRST_S
         self._stopping = asyncio.Event()
 
@@ -133,6 +156,7 @@ class NotificationService:
     async def run(self) -> None:
         """Page every ward's alarm changes until :meth:`stop`; a ward's reader that fails raises its error here."""
         readers = [asyncio.create_task(self._serve(ward), name=f"{self.user} {ward}") for ward in self.notifier.wards]
+        readers.append(asyncio.create_task(self._tell_stations(), name=f"{self.user} status"))
         stopping = asyncio.create_task(self._stopping.wait())
         try:
             done, _ = await asyncio.wait([stopping, *readers], return_when=asyncio.FIRST_COMPLETED)
@@ -175,6 +199,21 @@ class NotificationService:
             except sqlite3.Error as exc:                # what was not journalled is not acknowledged: given again
                 log.error("%s: the journal of pages refuses writes: %s", self.user, exc)
                 await asyncio.sleep(RETRY_MAX_S)
+
+    async def _tell_stations(self) -> None:
+        """Say to every ward whether pages go out: at once when that changes, else every ``status_every_s``. A
+        status the engine does not take now is not kept: the next one says the same, newer."""
+        while True:
+            self._state_changed.clear()
+            status = paging_status(self.notifier.name, self._down_since is None, self._state_since,
+                                   self._down_reason if self._down_since is not None else "", self.status_every_s)
+            for ward in self.notifier.wards:
+                try:
+                    await self.connection.publish(paging_status_subject(ward, self.notifier.name), status)
+                except nats.errors.Error as exc:
+                    log.debug("%s: status to %s not sent: %r", self.user, ward, exc)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._state_changed.wait(), self.status_every_s)
 
     async def _handle(self, ward: str, delivery: Delivery) -> None:
         """Page ``delivery`` unless the journal has it, journal the outcome, record it on a quorum; raises when
@@ -220,7 +259,8 @@ class NotificationService:
     def _gateway_down(self, reason: str) -> None:
         self._down_reason = reason
         if self._down_since is None:
-            self._down_since = time.monotonic()
+            self._down_since, self._state_since = time.monotonic(), time.time()
+            self._state_changed.set()
             log.error("%s: the gateway %s takes no pages (%s): alarm changes are held and tried again until it "
                       "does", self.user, self.notifier.url, reason)
 
@@ -229,4 +269,5 @@ class NotificationService:
         if self._down_since is not None:
             log.warning("%s: the gateway takes pages again after %.0f s", self.user,
                         time.monotonic() - self._down_since)
-            self._down_since = None
+            self._down_since, self._state_since = None, time.time()
+            self._state_changed.set()

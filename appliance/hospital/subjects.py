@@ -5,7 +5,9 @@ ward's stream), its ``status`` and ``summary``, and reads its ``confirm``. A sta
 first as ``hospital.<ward>.<bed>.confirmed.<seq>`` in the ward's confirmation stream, and only once that is
 acknowledged sends it to the bed on ``confirm``. A notification service (``appliance.hospital.notify``) records
 what it did with an alarm change as ``hospital.<ward>.<bed>.notified.<seq>.<service>`` in the same stream, once
-the messaging gateway took the page or refused it for good. A station's commands to a bed go on the bed's
+the messaging gateway took the page or refused it for good, and says on ``hospital.<ward>.paging.status.<service>``
+whether its gateway takes pages (a plain message, repeated: ``appliance.hospital.notify``); five tokens, so no bed's
+subject and no stream's takes it, whatever the names. A station's commands to a bed go on the bed's
 ``command`` and the bed answers on its ``command-result`` (payloads in ``appliance.alerts.ward_commands``), plain
 messages that no stream keeps: the station sends a command again until it is answered. Over MQTT the same subject is the
 topic ``hospital/<ward>/<bed>/<kind>``, and the kinds are the MQTT ward's topics. Every event carries the
@@ -24,6 +26,8 @@ inside its duplicate window and a station applies each number once after it.
 'hospital.ward3.w3-bed01.confirmed.17'
 >>> notified_subject("ward3", "w3-bed01", 17, "phones")
 'hospital.ward3.w3-bed01.notified.17.phones'
+>>> paging_status_subject("ward3", "phones")
+'hospital.ward3.paging.status.phones'
 >>> command_subject("ward3", "w3-bed01"), answer_subject("ward3", "w3-bed01")
 ('hospital.ward3.w3-bed01.command', 'hospital.ward3.w3-bed01.command-result')
 """
@@ -40,6 +44,7 @@ BED_KINDS = (*EVENT_TYPES, "status", SUMMARY)
 CONFIRM = "confirm"
 CONFIRMED = "confirmed"
 NOTIFIED = "notified"
+PAGING_STATUS = "paging.status"
 COMMAND = COMMAND_TOPIC
 """What a station asks a bed to do."""
 ANSWER = RESULT_TOPIC
@@ -87,6 +92,11 @@ def notified_subject(ward: str, bed: str, seq: int | str, service: str) -> str:
     event and service, so each service's record of an event is kept beside the station's confirmation (any of
     them may be ``*``)."""
     return f"{bed_subject(ward, bed, NOTIFIED)}.{seq}.{service}"
+
+
+def paging_status_subject(ward: str, service: str) -> str:
+    """Where notification service ``service`` says whether ``ward``'s pages go out (``service`` may be ``*``)."""
+    return f"{ROOT}.{ward}.{PAGING_STATUS}.{service}"
 
 
 def inbox_prefix(user: str) -> str:

@@ -18,6 +18,13 @@ raised: one broken bed must not blind the station to the rest of the ward.
 On the hospital engine a notification service records what became of each
 alarm change it paged (``appliance.hospital.notify``); the board keeps each
 alarm's latest record per service, and shows it with the alarm while it is open.
+A record may come before its bed is heard from (read back at a station's start)
+or twice (read back and heard live): it is kept either way, and shown once.
+
+Each service also says, at its own pace, whether its pages go out; the board
+keeps the latest word of each service it heard from or has a record of, and
+shows a service that has not said anything for a few of its periods as unknown,
+never as delivering: the nurses must not trust pages that may not be sent.
 """
 
 from __future__ import annotations
@@ -51,6 +58,16 @@ PAGES_KEPT = 100
 
 PAGE_OUTCOMES = ("paged", "refused")
 
+PAGING_PERIODS_MISSED = 3
+"""A notification service not heard for this many of its periods (plus ``STALE_MARGIN_S``) is shown unknown."""
+
+PAGING_FIRST_WORD_S = 20.0
+"""How long a service known only from its records may take to be heard before it is shown unknown: a few of its
+periods at the services' default pace (``appliance.hospital.notify.STATUS_EVERY_S``), so a station just started
+does not flash a warning before the first word comes."""
+
+DELIVERING, NOT_DELIVERING, UNKNOWN = "delivering", "not delivering", "unknown"
+
 ALARM_FIELDS = ("alarm_id", "key", "priority", "state", "message", "acknowledged_by")
 
 
@@ -70,7 +87,6 @@ class BedState:
     alarm_seqs: dict[int, int] = field(default_factory=dict)  # alarm_id -> seq of the last event applied to it
     events: deque = field(default_factory=lambda: deque(maxlen=EVENTS_KEPT))  # each with its "received_at"
     seen: dict[int, None] = field(default_factory=dict)                       # an ordered set of event seqs
-    pages: dict[int, dict[str, dict]] = field(default_factory=dict)  # alarm_id -> service -> its latest record
     duplicates: int = 0
 
     def online(self, steady_now: float, stale_after_s: float) -> bool:
@@ -126,6 +142,27 @@ class BedState:
             alarm["acknowledged_by"] = event["user"]
 
 
+@dataclass
+class PagingState:
+    """What the station heard of one notification service: its latest status (None before the first), when it
+    was heard (wall clock, for display; monotonic, to judge silence) and when the station learnt of it."""
+
+    known_steady: float
+    status: dict | None = None
+    heard_at: float | None = None
+    heard_steady: float | None = None
+
+    def view(self, name: str, steady_now: float) -> dict:
+        status = self.status
+        if status is not None and self.heard_steady is not None and \
+                steady_now - self.heard_steady <= PAGING_PERIODS_MISSED * status["every_s"] + STALE_MARGIN_S:
+            return {"notifier": name, "state": DELIVERING if status["delivering"] else NOT_DELIVERING,
+                    "since": status["since"], "reason": status["reason"], "heard_at": self.heard_at}
+        if status is None and steady_now - self.known_steady <= PAGING_FIRST_WORD_S:
+            return {"notifier": name, "state": None}            # not judged yet: left out
+        return {"notifier": name, "state": UNKNOWN, "since": self.heard_at, "reason": "", "heard_at": self.heard_at}
+
+
 class WardBoard:
     """Every bed's state as its messages come, from any thread. ``stale_after_s`` defaults to three summary
     intervals plus ``STALE_MARGIN_S``. Counters: ``messages``, ``bad_payloads``; ``version`` grows with every
@@ -135,6 +172,8 @@ class WardBoard:
         self.stale_after_s = 3 * summary_interval_s + STALE_MARGIN_S if stale_after_s is None else stale_after_s
         self.messages = self.bad_payloads = self.version = 0
         self._beds: dict[str, BedState] = {}
+        self._pages: dict[str, dict[int, dict[str, dict]]] = {}  # bed -> alarm_id -> service -> its latest record
+        self._paging: dict[str, PagingState] = {}
         self._lock = threading.Lock()
 
     def take(self, bed_id: str, kind: str, payload: bytes, now: float | None = None) -> dict | str | None:
@@ -182,18 +221,18 @@ class WardBoard:
 
     def take_page(self, bed_id: str, payload: bytes) -> dict | None:
         """Take a notification service's record of bed ``bed_id``'s alarm change: the record, or None when it is
-        bad (counted and logged, never raised). A record older than the one kept for its alarm and service, of an
-        event of no one alarm, or of a bed not heard from, changes nothing."""
+        bad (counted and logged, never raised). A record older than the one kept for its alarm and service, or
+        of an event of no one alarm, changes nothing; the service becomes known to the board."""
         try:
             record = _page(json.loads(payload), bed_id)
         except (ValueError, TypeError, UnicodeDecodeError) as exc:     # json's errors are ValueErrors
             self.refused(f"a page record of {bed_id}", exc)
             return None
         with self._lock:
-            bed = self._beds.get(bed_id)
-            if bed is None or record["alarm_id"] is None:
+            self._paging.setdefault(record["notifier"], PagingState(time.monotonic()))
+            if record["alarm_id"] is None:
                 return record
-            pages = bed.pages
+            pages = self._pages.setdefault(bed_id, {})
             kept = pages.setdefault(record["alarm_id"], {})
             if record["seq"] >= kept.get(record["notifier"], {"seq": 0})["seq"]:
                 kept[record["notifier"]] = record
@@ -201,6 +240,31 @@ class WardBoard:
             if len(pages) > PAGES_KEPT:
                 del pages[next(iter(pages))]
         return record
+
+    def take_paging(self, notifier: str, payload: bytes, now: float | None = None) -> dict | None:
+        """Take notification service ``notifier``'s word on whether its pages go out: the status, or None when it
+        is bad (counted and logged, never raised)."""
+        try:
+            status = _paging(json.loads(payload), notifier)
+        except (ValueError, TypeError, UnicodeDecodeError) as exc:     # json's errors are ValueErrors
+            self.refused(f"the paging status of {notifier}", exc)
+            return None
+        with self._lock:
+            state = self._paging.setdefault(notifier, PagingState(time.monotonic()))
+            if state.status is None or any(state.status[k] != status[k] for k in ("delivering", "since", "reason")):
+                self.version += 1
+            state.status, state.heard_steady = status, time.monotonic()
+            state.heard_at = time.time() if now is None else now
+        return status
+
+    def paging(self, steady_now: float | None = None) -> list[dict]:
+        """Each notification service known, by name: its ``state`` (delivering, not delivering, or unknown when
+        it has not said anything for too long), ``since`` when (for unknown: when last heard, or None), its
+        ``reason`` and when it was last heard (``heard_at``, or None). ``steady_now`` is ``time.monotonic()``."""
+        steady_now = time.monotonic() if steady_now is None else steady_now
+        with self._lock:
+            views = [state.view(name, steady_now) for name, state in sorted(self._paging.items())]
+        return [view for view in views if view["state"] is not None]
 
     def changed(self) -> None:
         with self._lock:
@@ -211,7 +275,8 @@ class WardBoard:
         rest, each group by bed id. ``events=False`` leaves out each bed's latest events, the costly part to
         copy, for a screen that polls."""
         with self._lock:
-            beds = [self._view(bed, time.monotonic(), events) for bed in self._beds.values()]
+            beds = [self._view(bed, self._pages.get(bed.bed_id, {}), time.monotonic(), events)
+                    for bed in self._beds.values()]
         return sorted(beds, key=lambda b: (_rank(b), b["bed_id"]))
 
     def online_flags(self) -> tuple[bool, ...]:
@@ -219,9 +284,9 @@ class WardBoard:
         with self._lock:
             return tuple(bed.online(time.monotonic(), self.stale_after_s) for bed in self._beds.values())
 
-    def _view(self, bed: BedState, steady_now: float, events: bool) -> dict:
+    def _view(self, bed: BedState, pages: dict[int, dict[str, dict]], steady_now: float, events: bool) -> dict:
         alarms = sorted(({**alarm, "pages": [{k: page[k] for k in ("notifier", "outcome", "status", "notified_at")}
-                                              for _, page in sorted(bed.pages.get(alarm["alarm_id"], {}).items())]}
+                                              for _, page in sorted(pages.get(alarm["alarm_id"], {}).items())]}
                          for alarm in bed.open_alarms.values()),
                         key=lambda a: (-PRIORITIES.index(a["priority"]) if a["priority"] in PRIORITIES else 1,
                                        a["alarm_id"]))
@@ -285,6 +350,19 @@ def _page(body, bed_id: str) -> dict:
     if not isinstance(body.get("notifier"), str) or body.get("outcome") not in PAGE_OUTCOMES \
             or not _number(body.get("notified_at")) or not isinstance(body.get("status"), int):
         raise ValueError(f"page record needs a notifier, an outcome in {PAGE_OUTCOMES}, a status and notified_at, "
+                         f"got {body!r:.200}")
+    return body
+
+
+def _paging(body, notifier: str) -> dict:
+    """``body`` if it is notification service ``notifier``'s paging status; else ValueError saying what is wrong."""
+    if not isinstance(body, dict):
+        raise TypeError(f"a paging status must be a JSON object, got {type(body).__name__}")
+    if body.get("notifier") != notifier:
+        raise ValueError(f"paging status of {body.get('notifier')!r} on {notifier!r}'s subject")
+    if not isinstance(body.get("delivering"), bool) or not _number(body.get("since")) \
+            or not isinstance(body.get("reason"), str) or not _number(body.get("every_s")) or body["every_s"] <= 0:
+        raise ValueError(f"paging status needs delivering (true or false), since, a reason and every_s over 0, "
                          f"got {body!r:.200}")
     return body
 

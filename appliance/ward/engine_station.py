@@ -17,13 +17,20 @@ plain messages both. What is pending goes again at once when the station connect
 online. The engine lets a station send commands only to the beds of its own ward.
 
 The records of the ward's notification services (``appliance.hospital.notify``: an alarm change paged to the
-phones, or refused by their gateway) are heard as they are stored, and shown with their alarms; those stored
-while the station was not running are not read back.
+phones, or refused by their gateway) are shown with their alarms. They are heard as they are stored, and each
+time the station (re)connects it also reads back those of the last ``PAGES_LOOK_BACK_S`` from the ward's
+confirmation stream, through a consumer of its own filtered on them that it reads to the end: so a station
+restarted, or cut off for a while, shows the pages it would have shown had it run on, and the board shows a
+record heard twice once. Live records come on the plain subscription, which needs no consumer kept alive across
+a node's death. Each service's word on whether its pages go out is heard the same way (plain, repeated), and the
+board shows a service gone quiet as unknown.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import datetime
 import json
 import logging
 import sqlite3
@@ -32,11 +39,13 @@ import time
 from collections.abc import Sequence
 
 import nats.errors
+import nats.js.errors
 from nats.aio.client import Client
+from nats.js import api
 
 from appliance.hospital.engine import RETRYABLE, Delivery, WardReader, cancel_the_rest, connect
 from appliance.hospital.subjects import (CONFIRM, answer_subject, bed_subject, command_subject, confirmation_subject,
-                                         confirms_stream_name, notified_subject)
+                                         confirms_stream_name, notified_subject, paging_status_subject)
 from appliance.ward.applied import AppliedJournal
 from appliance.ward.board import EVENTS_KEPT, WardBoard
 from appliance.ward.commands import DEFAULT_EXPIRY_S, DEFAULT_RESEND_S, CommandSender
@@ -50,6 +59,18 @@ CONFIRM_TIMEOUT_S = 2.0
 given again."""
 RETRY_S = 0.5
 CONNECT_RETRY_S = 2.0
+PAGES_LOOK_BACK_S = 24 * 3600.0
+"""How far back a station reads the page records when it (re)connects. The board shows a page only with its
+alarm while that is open, and keeps the latest record of each alarm and service: a day covers every alarm a
+shift can still have open, while the whole confirmation stream (a week) would be read at every start mostly for
+alarms long ended. An alarm open for longer than this shows no page after a restart."""
+READ_BACK_BATCH = 200
+READ_BACK_WAIT_S = 1.0
+"""How long the read-back waits for a record before it takes the look-back to hold no more."""
+READ_BACK_RETRY_MAX_S = 60.0
+READ_BACK_IDLE_S = 30.0
+"""The engine drops the read-back's consumer once it is read from no more for this long (a station may not
+delete consumers)."""
 
 
 class EngineStation:
@@ -75,6 +96,7 @@ class EngineStation:
         self._ready = threading.Event()
         self._stopping = False
         self._connection: Client | None = None
+        self._read_back: asyncio.Task | None = None
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, name="ward-station-engine", daemon=True)
         self._thread.start()
@@ -109,6 +131,10 @@ class EngineStation:
 
     def online_flags(self) -> tuple[bool, ...]:
         return self.board.online_flags()
+
+    def paging(self) -> list[dict]:
+        """Whether each notification service of the ward gets pages out (:meth:`WardBoard.paging`)."""
+        return self.board.paging()
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Stop reading and disconnect; what was not acknowledged is given again at the next start, and commands
@@ -153,6 +179,8 @@ class EngineStation:
         for kind in ("status", "summary"):
             await connection.subscribe(bed_subject(self.ward, "*", kind), cb=self._on_bed_message)
         await connection.subscribe(notified_subject(self.ward, "*", "*", "*"), cb=self._on_page)
+        await connection.subscribe(paging_status_subject(self.ward, "*"), cb=self._on_paging)
+        self._read_pages_back()
         if self.commands is not None:
             # the engine takes this before any command the station publishes after it, so no answer is missed
             await connection.subscribe(answer_subject(self.ward, "*"), cb=self._on_answer)
@@ -178,6 +206,7 @@ class EngineStation:
 
     async def _up(self) -> None:
         self._ready.set()
+        self._read_pages_back()
         if self.commands is not None:
             self.commands.connected(True)
 
@@ -189,6 +218,54 @@ class EngineStation:
 
     async def _on_page(self, message) -> None:
         self.board.take_page(message.subject.split(".")[2], message.data)
+
+    async def _on_paging(self, message) -> None:
+        self.board.take_paging(message.subject.rpartition(".")[2], message.data)
+
+    def _read_pages_back(self) -> None:
+        """Start reading the page records of the look-back, again from its start if a read was under way."""
+        if self._read_back is not None:
+            self._read_back.cancel()
+        self._read_back = asyncio.create_task(self._read_back_pages(), name="ward-station page read-back")
+
+    async def _read_back_pages(self) -> None:
+        """Every page record of the last ``PAGES_LOOK_BACK_S`` onto the board, tried again, less and less often,
+        until it is read (an engine whose permissions predate the read-back answers nothing)."""
+        wait_s = CONNECT_RETRY_S
+        while not self._stopping:
+            try:
+                await self._read_back_once()
+                return
+            except nats.js.errors.NotFoundError:
+                log.warning("ward: ward %s has no confirmation stream yet (appliance hospital streams makes it): "
+                            "no page records read back", self.ward)
+                return
+            except (*RETRYABLE, nats.errors.Error) as exc:      # the live records still come, older ones wait
+                log.warning("ward: the page records are not readable now (%r): trying again in %.0f s", exc, wait_s)
+                await asyncio.sleep(wait_s)
+                wait_s = min(2 * wait_s, READ_BACK_RETRY_MAX_S)
+
+    async def _read_back_once(self) -> None:
+        assert self._connection is not None
+        start = datetime.datetime.now(datetime.UTC) - datetime.timedelta(seconds=PAGES_LOOK_BACK_S)
+        config = api.ConsumerConfig(ack_policy=api.AckPolicy.NONE, deliver_policy=api.DeliverPolicy.BY_START_TIME,
+                                    opt_start_time=start, mem_storage=True, num_replicas=1,
+                                    inactive_threshold=READ_BACK_IDLE_S)
+        subscription = await self._connection.jetstream().pull_subscribe(
+            notified_subject(self.ward, "*", "*", "*"), stream=confirms_stream_name(self.ward), config=config)
+        try:
+            while True:
+                try:
+                    messages = await subscription.fetch(READ_BACK_BATCH, timeout=READ_BACK_WAIT_S)
+                except nats.errors.TimeoutError:
+                    return                              # no more records in the look-back
+                for message in messages:
+                    self.board.take_page(message.subject.split(".")[2], message.data)
+                if messages[-1].metadata.num_pending == 0:
+                    return
+        finally:
+            with contextlib.suppress(nats.errors.Error):       # a closed connection took the subscription with it
+                await subscription.unsubscribe()
 
     async def _on_answer(self, message) -> None:
         """A bed's answer to a command, into the command journal off the engine's thread; a bad one is counted."""

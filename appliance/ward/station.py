@@ -149,6 +149,10 @@ class WardStation:
     def online_flags(self) -> tuple[bool, ...]:
         return self.board.online_flags()
 
+    def paging(self) -> list[dict]:
+        """No notification service pages a ward broker's alarms: none to show (:meth:`WardBoard.paging`)."""
+        return self.board.paging()
+
     def close(self) -> None:
         """Disconnect; the broker keeps the session, and the events for it, until the station is back. Commands
         not yet answered stay in the journal, sent again at the next start."""

@@ -101,10 +101,25 @@ function tile(bed) {
   return div;
 }
 
+// A notification service whose pages are not going out, or that has not said for too long whether they do: the
+// nurses must not count on the phones.
+function pagingLine(service) {
+  const since = service.since === null ? "" : ` since ${timeOfDay(service.since)}`;
+  const words = service.state === "not delivering"
+    ? `Paging (${service.notifier}) not delivering${since}: call nurses directly`
+      + (service.reason ? ` (${service.reason})` : "")
+    : `Paging (${service.notifier}) unknown: no word from it${since}; pages may not be going out: call nurses directly`;
+  return element("p", "paging " + service.state.replace(" ", "-"), words);
+}
+
 function draw(ward) {
   lastWard = ward;
   document.getElementById("lost").hidden = true;
   document.getElementById("broker").hidden = ward.connected;
+  const failing = (ward.paging || []).filter(s => s.state !== "delivering");
+  const paging = document.getElementById("paging");
+  paging.replaceChildren(...failing.map(pagingLine));
+  paging.hidden = failing.length === 0;
   canAct = ward.can_act;
   const c = ward.counts;
   document.getElementById("counts").textContent =
