@@ -29,9 +29,9 @@ from nats.js import JetStreamContext, api
 
 from appliance.hospital.description import Hospital, Ward
 from appliance.hospital.nodeconfig import DUPLICATE_WINDOW_S
-from appliance.hospital.tls import client_context, tls_urls
 from appliance.hospital.subjects import (CONFIRMED, MSG_ID, bed_subject, confirms_stream_name, inbox_prefix,
                                          notified_subject, parse_message_id, stream_name, stream_subjects)
+from appliance.hospital.tls import client_context, tls_urls
 
 log = logging.getLogger(__name__)
 

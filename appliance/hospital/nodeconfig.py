@@ -43,10 +43,10 @@ from pathlib import Path
 from appliance.errors import ConfigError
 from appliance.files import read_secret, write_atomic
 from appliance.hospital.description import Hospital, Node, Notifier, Ward
-from appliance.hospital.tls import HANDSHAKE_TIMEOUT_S
 from appliance.hospital.subjects import (BED_KINDS, CONFIRM, CONFIRMED, ROOT, SUMMARY, answer_subject, bed_subject,
                                          command_subject, confirms_stream_name, inbox_prefix, notified_subject,
                                          stream_name)
+from appliance.hospital.tls import HANDSHAKE_TIMEOUT_S
 
 ADMIN = "hospital-admin"
 HISTORY = "hospital-history"
