@@ -119,6 +119,17 @@ def test_without_tls_no_listener_is_configured_for_it(tmp_path):
     assert "tls" not in write_node_configs(hospital, tmp_path / "config").files["n1"].read_text()
 
 
+@pytest.mark.parametrize("table, message", [
+    ({"folder": "tls"}, "unknown key 'folder'"),
+    ({"dir": 3}, "[tls]: 'dir' must be a non-empty string, got 3"),
+    ("tls", "[tls] is missing or not a table"),
+])
+def test_a_bad_tls_table_is_refused_naming_what_is_wrong(table, message):
+    with pytest.raises(ConfigError) as raised:
+        hospital_from_mapping({**tomllib.loads(DESCRIPTION), "tls": table})
+    assert message in str(raised.value)
+
+
 def test_a_missing_tls_file_is_named(tmp_path):
     hospital = tls_hospital(tmp_path)
     make_certificates(hospital)
