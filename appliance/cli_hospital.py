@@ -2,11 +2,12 @@
 (``appliance.hospital``).
 
 ``config`` writes each node's nats-server configuration and everyone's passwords from the hospital
-description; ``streams`` creates or updates every ward's replicated alarm and confirmation streams on a running
-cluster; ``start-local`` runs a whole cluster on loopback for trials, until Ctrl-C, and writes its description
-beside it for the other two; ``history`` runs the history writer into PostgreSQL until stopped; ``notify`` runs
-one notification service, paging its wards' alarm changes to its messaging gateway, until stopped; ``overview``
-serves the hospital overview from it; ``install`` writes what a hospital server runs, for
+description; ``certs`` makes the CA and node certificates its ``[tls]`` folder lacks; ``streams`` creates or
+updates every ward's replicated alarm and confirmation streams on a running cluster; ``start-local`` runs a whole
+cluster on loopback for trials, until Ctrl-C, and writes its description beside it for the other two;
+``history`` runs the history writer into PostgreSQL until stopped; ``notify`` runs one notification service,
+paging its wards' alarm changes to its messaging gateway, until stopped; ``overview`` serves the hospital
+overview from it; ``install`` writes what a hospital server runs, for
 ``systemd/install-hospital-server.sh``.
 """
 
@@ -32,6 +33,11 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="the folder for <node>.conf and secrets/ (made if missing; earlier passwords are kept)")
     p.set_defaults(run=_config)
+
+    p = hospital.add_parser("certs", help="make the hospital CA and each node's certificate and key that the "
+                                          "description's [tls] folder does not hold yet")
+    p.add_argument("--description", type=Path, required=True, help="the hospital description, with [tls]")
+    p.set_defaults(run=_certs)
 
     p = hospital.add_parser("streams", help="create or update every ward's alarm and confirmation streams on the "
                                             "running cluster")
@@ -102,6 +108,21 @@ def _config(args) -> int:
     print(f"  {written.secrets_folder}/USER.password  each user's password; added: "
           f"{', '.join(written.added) or 'none'}; removed: {', '.join(written.removed) or 'none'}")
     print("a running node reads its file again, with its users and permissions, on: nats-server --signal reload")
+    return 0
+
+
+def _certs(args) -> int:
+    from appliance.hospital.certs import make_certificates
+    from appliance.hospital.description import load_hospital
+
+    hospital = load_hospital(args.description)
+    made = make_certificates(hospital)
+    assert hospital.tls is not None
+    print(f"hospital engine {hospital.cluster}: TLS files in {hospital.tls.path}; made: "
+          f"{', '.join(path.name for path in made) or 'none, all were there'}")
+    if hospital.tls.ca_key in made:
+        print(f"  {hospital.tls.ca_file} is the CA that beds, stations and tools trust (their ca_file); keep "
+              f"{hospital.tls.ca_key.name} off the nodes")
     return 0
 
 
@@ -185,7 +206,8 @@ async def _serve_on_engine(hospital, user: str, secrets: Path, make, started: st
     from appliance.hospital.engine import connect
     from appliance.hospital.nodeconfig import read_password
 
-    connection = await connect([node.client_url for node in hospital.nodes], user, read_password(secrets, user))
+    connection = await connect([node.client_url for node in hospital.nodes], user, read_password(secrets, user),
+                               ca_file=hospital.ca_file)
     try:
         service = make(connection)
         loop = asyncio.get_running_loop()
@@ -268,6 +290,8 @@ def _install(args) -> int:
 
 
 async def _ensure_streams(hospital, urls: list[str], secrets: Path) -> list[str]:
+    import ssl
+
     import nats.errors
 
     from appliance.errors import ConfigError
@@ -275,10 +299,13 @@ async def _ensure_streams(hospital, urls: list[str], secrets: Path) -> list[str]
     from appliance.hospital.nodeconfig import ADMIN, read_password
 
     try:
-        connection = await connect(urls, ADMIN, read_password(secrets, ADMIN), attempts=3)
+        connection = await connect(urls, ADMIN, read_password(secrets, ADMIN), ca_file=hospital.ca_file, attempts=3)
     except nats.errors.NoServersError:
         raise ConfigError(f"no node of {', '.join(urls)} let {ADMIN} in: are they running, and is {secrets} the "
                           f"secrets folder of their configuration?") from None
+    except ssl.SSLError as exc:
+        raise ConfigError(f"a node of {', '.join(urls)} failed the TLS handshake ({exc}): is its certificate the "
+                          f"hospital CA's {hospital.ca_file}, naming its host?") from None
     try:
         return await ensure_ward_streams(connection, hospital)
     finally:

@@ -10,6 +10,8 @@
 # services this server runs (default: none). --prefix (default /opt/appliance) is the appliance's
 # environment, made and filled from this checkout with the `hospital` extra if it has no pip yet; --root (default
 # /) is where the files go. It can be run again: passwords are kept, the database and role are made once.
+# With [tls] in the description, its folder must hold the CA's certificate and each named node's certificate and
+# key (appliance hospital certs makes them): they are copied to /etc/appliance/hospital/tls, owned by the account.
 # Then, once every server runs its node: appliance hospital streams --description ... --secrets
 # /etc/appliance/hospital/secrets, which makes the wards' streams.
 set -euo pipefail

@@ -9,26 +9,34 @@ alarm path whose tests silently do not run would hide a broken alarm path.
 import contextlib
 import dataclasses
 
+from appliance.hospital.certs import make_certificates
 from appliance.hospital.cluster import LocalCluster, loopback_hospital
 from appliance.hospital.description import Ward
 from appliance.hospital.engine import connect, ensure_ward_streams
 from appliance.hospital.nodeconfig import ADMIN, read_password
+from appliance.hospital.tls import TlsFolder
 
 WARDS = [Ward("ward1", ("bed1", "bed2"), ("station1",)), Ward("ward2", ("bed3",), ("station2",))]
 
 
 @contextlib.contextmanager
-def running_cluster(folder, notifiers=()):
+def running_cluster(folder, notifiers=(), tls=False):
     """Three nodes on free ports, storing and logging in ``folder``, with ``notifiers`` (notification services)
-    among the users; stopped when the block ends."""
-    hospital = dataclasses.replace(loopback_hospital(folder / "store", WARDS), notifiers=tuple(notifiers))
+    among the users, and with ``tls`` serving TLS only, on certificates made in ``folder/tls``; stopped when the
+    block ends."""
+    hospital = dataclasses.replace(loopback_hospital(folder / "store", WARDS), notifiers=tuple(notifiers),
+                                   tls=TlsFolder(folder / "tls") if tls else None)
+    if tls:
+        make_certificates(hospital)
     with LocalCluster(hospital, folder / "config") as running:
         yield running
 
 
 @contextlib.asynccontextmanager
 async def logged_in(cluster, user, **options):
-    """A connection to any node of ``cluster`` as ``user``, with the password its configuration gave."""
+    """A connection to any node of ``cluster`` as ``user``, with the password its configuration gave, trusting the
+    cluster's CA if it has one (unless ``ca_file`` says otherwise)."""
+    options = {"ca_file": cluster.hospital.ca_file, **options}
     connection = await connect(cluster.urls, user, read_password(cluster.configs.secrets_folder, user), **options)
     try:
         yield connection

@@ -29,6 +29,7 @@ import json
 import logging
 import threading
 from collections.abc import Coroutine, Sequence
+from pathlib import Path
 
 import nats.errors
 import nats.js.errors
@@ -62,16 +63,17 @@ class EngineLoop:
 
 
 class EngineTransport:
-    """Bed ``bed`` of ward ``ward`` on the engine's nodes at ``urls``, logged in as the bed with ``password``; on
-    ``engine_loop`` if given (left running at close, for the other beds on it), else on a loop of its own."""
+    """Bed ``bed`` of ward ``ward`` on the engine's nodes at ``urls``, logged in as the bed with ``password``, over
+    TLS trusting ``ca_file`` if given; on ``engine_loop`` if given (left running at close, for the other beds on
+    it), else on a loop of its own."""
 
     peer = "the hospital engine"
 
-    def __init__(self, urls: Sequence[str], ward: str, bed: str, password: str, *,
+    def __init__(self, urls: Sequence[str], ward: str, bed: str, password: str, *, ca_file: Path | None = None,
                  engine_loop: EngineLoop | None = None):
         if not urls:
             raise ValueError("the hospital engine needs at least one node's address")
-        self.urls, self.ward, self.bed, self._password = list(urls), ward, bed, password
+        self.urls, self.ward, self.bed, self._password, self.ca_file = list(urls), ward, bed, password, ca_file
         self._link: WardLink | None = None
         self._connection: Client | None = None
         self._publisher: BedPublisher | None = None
@@ -147,7 +149,8 @@ class EngineTransport:
     async def _connect(self) -> None:
         while not self._stopping:
             try:
-                connection = await connect(self.urls, self.bed, self._password, on_error=self._on_error,
+                connection = await connect(self.urls, self.bed, self._password, ca_file=self.ca_file,
+                                           on_error=self._on_error,
                                            on_disconnected=self._on_disconnected,
                                            on_reconnected=self._on_reconnected)
                 break
@@ -222,8 +225,9 @@ class EngineTransport:
 
 
 def engine_ward_link(urls: Sequence[str], ward: str, bed: str, password: str, outbox: Outbox, *,
-                     engine_loop: EngineLoop | None = None, **link_options) -> WardLink:
-    """A ward link for ``bed`` of ``ward`` over the hospital engine's nodes at ``urls`` (on ``engine_loop``, shared
-    with other beds, if given); ``link_options`` are :class:`~appliance.alerts.wardlink.WardLink`'s (``confirm``,
-    ``confirm_timeout_s``, ...)."""
-    return WardLink(EngineTransport(urls, ward, bed, password, engine_loop=engine_loop), bed, outbox, **link_options)
+                     ca_file: Path | None = None, engine_loop: EngineLoop | None = None, **link_options) -> WardLink:
+    """A ward link for ``bed`` of ``ward`` over the hospital engine's nodes at ``urls`` (over TLS trusting the
+    hospital CA ``ca_file`` if given; on ``engine_loop``, shared with other beds, if given); ``link_options`` are
+    :class:`~appliance.alerts.wardlink.WardLink`'s (``confirm``, ``confirm_timeout_s``, ...)."""
+    return WardLink(EngineTransport(urls, ward, bed, password, ca_file=ca_file, engine_loop=engine_loop), bed, outbox,
+                    **link_options)

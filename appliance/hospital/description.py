@@ -26,12 +26,16 @@
     url = "https://pager.example/pages"        # the messaging gateway it POSTs each page to
     priorities = ["high", "medium"]            # the alarms it pages (default high and medium)
 
+    [tls]                          # optional: TLS on every node's client and MQTT listeners and between nodes
+    dir = "tls"                    # ca.crt, and <node>.crt and <node>.key for each node (appliance hospital certs)
+
     [history]                      # optional: the history store in PostgreSQL (appliance.hospital.history)
     database = "appliance_history" # the database's name (default appliance_history)
     events_days = 3650             # alarm, turn and episode events are kept this many days, then dropped
     pressure_days = 90             # the per-minute pressure trend likewise
 
-The retention periods are the hospital's policy, so there is no default: without both the history writer does
+A relative ``dir`` of ``[tls]`` is relative to the description's folder, as ``store_dir`` is. The retention
+periods are the hospital's policy, so there is no default: without both the history writer does
 not start. Names become tokens of NATS subjects and user names, so they may not hold '.', '*', '>', spaces or control
 characters; a bed id or station is unique in the hospital, not only in its ward.
 """
@@ -46,6 +50,7 @@ from pathlib import Path
 from appliance.alerts.alarms import PRIORITIES
 from appliance.core.toml_files import check_keys, read_toml_as, toml_value
 from appliance.errors import ConfigError
+from appliance.hospital.tls import TlsFolder
 
 MAX_NAME = 64
 NAME_FORBIDDEN = ".*>/\\\"'#+:$"
@@ -109,6 +114,12 @@ class Hospital:
     replicas: int = 3
     history: HistoryPolicy | None = None
     notifiers: tuple[Notifier, ...] = ()
+    tls: TlsFolder | None = None
+
+    @property
+    def ca_file(self) -> Path | None:
+        """The hospital CA its clients trust, or None when the engine does not speak TLS."""
+        return None if self.tls is None else self.tls.ca_file
 
     def notifier(self, name: str) -> Notifier:
         """The notification service ``name``, or a ConfigError naming the ones there are."""
@@ -125,13 +136,12 @@ def load_hospital(path) -> Hospital:
 
 
 def hospital_from_mapping(data: dict, base: Path | None = None) -> Hospital:
-    check_keys(data, {"hospital", "node", "ward", "history", "notifier"}, "the hospital description", ConfigError)
+    check_keys(data, {"hospital", "node", "ward", "history", "notifier", "tls"}, "the hospital description",
+               ConfigError)
     top = _table(data.get("hospital"), "[hospital]")
     check_keys(top, {"cluster", "store_dir", "replicas"}, "[hospital]", ConfigError)
     cluster = check_name(_string(top, "cluster", "[hospital]"), "[hospital] cluster")
-    store_dir = Path(_string(top, "store_dir", "[hospital]"))
-    if not store_dir.is_absolute():
-        store_dir = (base or Path.cwd()) / store_dir
+    store_dir = _folder(top, "store_dir", "[hospital]", base)
     replicas = top.get("replicas", 3)
     if replicas not in REPLICAS or isinstance(replicas, bool):
         raise ConfigError(f"[hospital] replicas must be 1 or 3, got {replicas!r}")
@@ -150,7 +160,12 @@ def hospital_from_mapping(data: dict, base: Path | None = None) -> Hospital:
         raise ConfigError("notifier must be [[notifier]] tables, one per notification service")
     services = tuple(_notifier(table, number, wards) for number, table in enumerate(notifiers, start=1))
     _unique([service.name for service in services], "notifier name")
-    return Hospital(cluster, store_dir, nodes, wards, replicas, history, services)
+    tls = None
+    if "tls" in data:
+        table = _table(data["tls"], "[tls]")
+        check_keys(table, {"dir"}, "[tls]", ConfigError)
+        tls = TlsFolder(_folder(table, "dir", "[tls]", base))
+    return Hospital(cluster, store_dir, nodes, wards, replicas, history, services, tls)
 
 
 def history_policy(table) -> HistoryPolicy:
@@ -191,6 +206,8 @@ def description_text(hospital: Hospital) -> str:
     for service in hospital.notifiers:
         lines += ["", "[[notifier]]", f"name = {toml_value(service.name)}", f"wards = {toml_value(service.wards)}",
                   f"url = {toml_value(service.url)}", f"priorities = {toml_value(service.priorities)}"]
+    if hospital.tls is not None:
+        lines += ["", "[tls]", f"dir = {toml_value(str(hospital.tls.path))}"]
     if hospital.history is not None:
         lines += ["", "[history]", f"database = {toml_value(hospital.history.database)}",
                   f"events_days = {hospital.history.events_days}", f"pressure_days = {hospital.history.pressure_days}"]
@@ -268,6 +285,12 @@ def _port(table: dict, key: str, default: int, where: str) -> int:
     if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
         raise ConfigError(f"{where} {key} must be a port from 1 to 65535, got {port!r}")
     return port
+
+
+def _folder(table: dict, key: str, where: str, base: Path | None) -> Path:
+    """The folder ``key`` names, a relative one taken from ``base`` (the description's folder)."""
+    folder = Path(_string(table, key, where))
+    return folder if folder.is_absolute() else (base or Path.cwd()) / folder
 
 
 def _table(value, where: str) -> dict:

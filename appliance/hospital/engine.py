@@ -15,9 +15,11 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import ssl
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from pathlib import Path
+from typing import Any, Protocol
 
 import nats
 import nats.errors
@@ -29,6 +31,7 @@ from appliance.hospital.description import Hospital, Ward
 from appliance.hospital.nodeconfig import DUPLICATE_WINDOW_S
 from appliance.hospital.subjects import (CONFIRMED, MSG_ID, bed_subject, confirms_stream_name, inbox_prefix,
                                          notified_subject, parse_message_id, stream_name, stream_subjects)
+from appliance.hospital.tls import client_context, tls_urls
 
 log = logging.getLogger(__name__)
 
@@ -49,21 +52,47 @@ RETRYABLE = (nats.errors.TimeoutError, nats.errors.NoRespondersError, nats.error
 a stream that does not take the subject) is a fault to raise, not to retry."""
 
 
-async def connect(urls: Sequence[str], user: str, password: str, *,
+async def connect(urls: Sequence[str], user: str, password: str, *, ca_file: Path | None = None,
                   on_error: Callable[[Exception], Awaitable[None]] | None = None, attempts: int = -1,
                   on_disconnected: Callable[[], Awaitable[None]] | None = None,
                   on_reconnected: Callable[[], Awaitable[None]] | None = None) -> Client:
     """A connection as ``user`` to whichever node of ``urls`` answers, reconnecting to the others for ever (or
     ``attempts`` times, a refused login included, then NoServersError), with replies on the user's own inbox
-    (the only one its permissions let it read). The server's complaints (a permissions violation, which drops
-    the publish) go to ``on_error``, or to the log; ``on_disconnected`` and ``on_reconnected`` are told when the
-    connection goes and comes back."""
-    callbacks = {name: cb for name, cb in (("disconnected_cb", on_disconnected), ("reconnected_cb", on_reconnected))
-                 if cb is not None}
-    return await nats.connect(servers=list(urls), user=user, password=password, inbox_prefix=inbox_prefix(user),
-                              name=user, allow_reconnect=True, max_reconnect_attempts=attempts,
-                              reconnect_time_wait=RECONNECT_WAIT_S, connect_timeout=2, ping_interval=5,
-                              max_outstanding_pings=2, error_cb=on_error or _log_error, **callbacks)
+    (the only one its permissions let it read). With ``ca_file``, the hospital CA, every node is reached over
+    TLS (``tls://``) and must show a certificate of that CA naming its address. The server's complaints (a
+    permissions violation, which drops the publish) go to ``on_error``, or to the log; ``on_disconnected`` and
+    ``on_reconnected`` are told when the connection goes and comes back.
+
+    A first connection whose TLS handshake fails (a node whose certificate is not the hospital CA's, or does not
+    name its address) raises that ssl.SSLError, an OSError: nats-py 2.16 would otherwise wait for ever on the
+    socket it failed to upgrade (nats-io/nats.py issue 718), trying no other node."""
+    options: dict = {name: cb for name, cb in (("disconnected_cb", on_disconnected),
+                                               ("reconnected_cb", on_reconnected)) if cb is not None}
+    servers = list(urls)
+    if ca_file is not None:
+        servers, options["tls"] = tls_urls(servers), client_context(ca_file)
+    handshake_failed: asyncio.Future[ssl.SSLError] = asyncio.get_running_loop().create_future()
+
+    async def report(error: Exception) -> None:
+        if isinstance(error, ssl.SSLError) and not handshake_failed.done():
+            handshake_failed.set_result(error)
+        await (on_error or _log_error)(error)
+
+    connecting = asyncio.ensure_future(nats.connect(
+        servers=servers, user=user, password=password, inbox_prefix=inbox_prefix(user), name=user,
+        allow_reconnect=True, max_reconnect_attempts=attempts, reconnect_time_wait=RECONNECT_WAIT_S,
+        connect_timeout=2, ping_interval=5, max_outstanding_pings=2, error_cb=report, **options))
+    try:
+        either: list[asyncio.Future[Any]] = [connecting, handshake_failed]
+        await asyncio.wait(either, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        if not connecting.done():
+            connecting.cancel()
+            await asyncio.gather(connecting, return_exceptions=True)
+    if connecting.cancelled():
+        raise handshake_failed.result()
+    handshake_failed.cancel()                       # a later failed handshake, on a reconnection, is only reported
+    return connecting.result()
 
 
 async def cancel_the_rest() -> None:

@@ -1,6 +1,8 @@
-"""What a hospital server needs from the description, written under a root folder: every node's configuration
-and the passwords, the description itself for the history writer, and the SQL that makes the history's role
-and database; and the systemd units to enable there.
+"""What a hospital server needs from the description, written under a root folder: the configuration of each node
+it runs and the passwords, the description itself for the history writer, and the SQL that makes the history's
+role and database; and the systemd units to enable there. With ``[tls]``, the hospital CA's certificate and the
+certificate and key of each node it runs are copied into ``/etc/appliance/hospital/tls`` (the key 0600, no other
+node's key), and the description written there names that folder.
 
 ``systemd/install-hospital-server.sh`` runs it on Debian as root (``appliance hospital install --root /``), then
 runs the SQL as PostgreSQL's superuser and enables the units it printed. The units are templates from
@@ -13,6 +15,7 @@ same name (Debian's peer authentication: no password to keep).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
@@ -20,6 +23,7 @@ from appliance.errors import ConfigError
 from appliance.files import write_atomic
 from appliance.hospital.description import Hospital, HistoryPolicy, description_text
 from appliance.hospital.nodeconfig import write_node_configs
+from appliance.hospital.tls import TlsFolder
 
 CONFIG_DIR = PurePosixPath("/etc/appliance/hospital")
 STATE_DIR = PurePosixPath("/var/lib/appliance-hospital")
@@ -31,6 +35,7 @@ READER = "appliance-history-reader"
 """The PostgreSQL group role that may read the history, nothing else: ward IT makes each ward station's login role
 a member of it (the stations' ``[history]``)."""
 SETUP_SQL = "history-setup.sql"
+TLS_DIR = "tls"
 
 
 @dataclass(frozen=True)
@@ -95,7 +100,9 @@ def install(hospital: Hospital, root: Path, nodes: list[str] | None = None, hist
                           "hospital's retention policy, or install without the history writer")
     folder = Path(root) / CONFIG_DIR.relative_to("/")
     folder.parent.mkdir(parents=True, exist_ok=True)
-    write_node_configs(hospital, folder)
+    if hospital.tls is not None:
+        hospital = dataclasses.replace(hospital, tls=_copy_tls(hospital.tls, folder / TLS_DIR, chosen))
+    write_node_configs(hospital, folder, chosen)
     write_atomic(folder / "hospital.toml", description_text(hospital))
     sql = None
     if history:
@@ -105,3 +112,21 @@ def install(hospital: Hospital, root: Path, nodes: list[str] | None = None, hist
     units = tuple(node_unit(name) for name in chosen) + ((HISTORY_UNIT, OVERVIEW_UNIT) if history else ()) \
         + tuple(notify_unit(name) for name in notifiers or [])
     return Installed(folder, sql, units)
+
+
+def _copy_tls(source: TlsFolder, folder: Path, nodes: list[str]) -> TlsFolder:
+    """The CA's certificate and ``nodes``' certificates and keys copied from ``source`` into ``folder``."""
+    if not source.ca_file.is_file():
+        raise ConfigError(f"[tls] {source.ca_file} does not exist: the hospital CA's certificate, which every client "
+                          f"trusts (`appliance hospital certs` makes it)")
+    installed = TlsFolder(folder)
+    copies = [(source.ca_file, installed.ca_file, 0o644)]
+    for name in nodes:
+        _, cert, key = source.node_files(name)          # a ConfigError naming a missing file
+        copies += [(cert, installed.cert_file(name), 0o644), (key, installed.key_file(name), 0o600)]
+    folder.mkdir(mode=0o755, parents=True, exist_ok=True)
+    for origin, target, mode in copies:
+        if origin.resolve() != target.resolve():
+            write_atomic(target, origin.read_bytes())   # made 0600, so a key is never readable by others
+        target.chmod(mode)
+    return installed

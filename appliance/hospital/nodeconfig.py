@@ -8,7 +8,10 @@
   with the cluster's own password, and tell no client of the other nodes' addresses (a bed or station reaches
   the nodes its own configuration names, through whatever firewall ward IT set for them); an MQTT 3.1.1 listener
   where the node has an ``mqtt_port``; and one account,
-  HOSPITAL, holding every user with their permissions (file 0600: it holds the passwords).
+  HOSPITAL, holding every user with their permissions (file 0600: it holds the passwords). With the description's
+  ``[tls]``, the client and MQTT listeners take TLS alone, with the node's certificate, and the routes are TLS
+  both ways, each node showing its certificate and checking the other's against the hospital CA
+  (``appliance.hospital.tls``); the monitoring port stays plain HTTP on the node's host.
 - ``secrets/<user>.password``: each user's password on its first line, for the bed, the station or the tools
   (folder 0700, files 0600), and ``secrets/routes.password`` for the routes between nodes.
 
@@ -45,6 +48,7 @@ from appliance.hospital.description import Hospital, Node, Notifier, Ward
 from appliance.hospital.subjects import (BED_KINDS, CONFIRM, CONFIRMED, ROOT, SUMMARY, answer_subject, bed_subject,
                                          command_subject, confirms_stream_name, inbox_prefix, notified_subject,
                                          paging_status_subject, stream_name)
+from appliance.hospital.tls import HANDSHAKE_TIMEOUT_S
 
 ADMIN = "hospital-admin"
 HISTORY = "hospital-history"
@@ -73,8 +77,9 @@ class NodeConfigs:
     removed: tuple[str, ...]
 
 
-def write_node_configs(hospital: Hospital, folder: Path) -> NodeConfigs:
-    """Write every node's configuration and the users' passwords into ``folder`` (made if missing)."""
+def write_node_configs(hospital: Hospital, folder: Path, nodes: list[str] | None = None) -> NodeConfigs:
+    """Write the configuration of each of ``nodes`` (every node by default) and the users' passwords into
+    ``folder`` (made if missing)."""
     users = [ADMIN, HISTORY, *(name for ward in hospital.wards for name in (*ward.beds, *ward.stations)),
              *(notifier_user(service.name) for service in hospital.notifiers)]
     if users.count(ADMIN) > 1:
@@ -101,6 +106,8 @@ def write_node_configs(hospital: Hospital, folder: Path) -> NodeConfigs:
         (secrets_folder / f"{user}.password").unlink()
     files = {}
     for node in hospital.nodes:
+        if nodes is not None and node.name not in nodes:
+            continue
         path = folder / f"{node.name}.conf"
         write_atomic(path, node_config_text(hospital, node, passwords))
         path.chmod(0o600)
@@ -130,11 +137,14 @@ def node_config_text(hospital: Hospital, node: Node, passwords: dict[str, str]) 
              f"  routes: [{', '.join(_q(route) for route in routes)}]",
              "  # clients use the addresses they are configured with, never others a node tells them of",
              "  no_advertise: true",
-             "}"]
+             *tls_block(hospital, node, "  ", routes=True),
+             "}",
+             *tls_block(hospital, node, "")]
     if node.mqtt_port is not None:
         lines += ["mqtt {",
                   f"  listen: {_q(f'{node.host}:{node.mqtt_port}')}",
                   f"  stream_replicas: {hospital.replicas}",
+                  *tls_block(hospital, node, "  "),
                   "}"]
     lines += ["accounts {", f"  {ACCOUNT}: {{", "    jetstream: enabled", "    users: [",
               f"      {{user: {_q(ADMIN)}, password: {_q(passwords[ADMIN])}}}",
@@ -148,6 +158,19 @@ def node_config_text(hospital: Hospital, node: Node, passwords: dict[str, str]) 
         lines.append(f"      {_user(user, passwords[user], notifier_permissions(service))}")
     lines += ["    ]", "  }", "}"]
     return "\n".join(lines) + "\n"
+
+
+def tls_block(hospital: Hospital, node: Node, indent: str, routes: bool = False) -> list[str]:
+    """The ``tls`` block of a listener of ``node``: none without ``[tls]``; on the routes, the other node's
+    certificate is asked for and checked against the hospital CA too (clients log in with passwords instead)."""
+    if hospital.tls is None:
+        return []
+    ca_file, cert_file, key_file = hospital.tls.node_files(node.name)
+    lines = ["tls {", f"  cert_file: {_q(str(cert_file))}", f"  key_file: {_q(str(key_file))}",
+             f"  timeout: {HANDSHAKE_TIMEOUT_S}"]
+    if routes:
+        lines += [f"  ca_file: {_q(str(ca_file))}", "  verify: true"]
+    return [indent + line for line in [*lines, "}"]]
 
 
 def bed_permissions(ward: Ward, bed: str) -> dict:

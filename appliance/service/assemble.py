@@ -168,8 +168,8 @@ def _ward_link(config: MonitorConfig, data_dir: Path):
     try:
         if config.engine is not None:
             e = config.engine
-            return engine_ward_link(e.servers, e.ward, config.bed_id, e.password(), outbox, confirm=c.confirm,
-                                    confirm_timeout_s=c.timeout_s)
+            return engine_ward_link(e.servers, e.ward, config.bed_id, e.password(), outbox, ca_file=e.ca_file,
+                                    confirm=c.confirm, confirm_timeout_s=c.timeout_s)
         m = config.mqtt
         assert m is not None
         return mqtt_ward_link(m.host, m.port, config.bed_id, outbox, client_id=f"appliance-{config.bed_id}",

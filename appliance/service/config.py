@@ -54,6 +54,7 @@ runs, not after it silently ignored it::
     servers = ["nats://10.20.0.11:4222", "nats://10.20.0.12:4222", "nats://10.20.0.13:4222"]
     ward = "ward3"                # the bed's ward in the hospital description; the bed logs in as its bed_id
     password_file = "/etc/appliance/engine-password"   # secrets/<bed_id>.password of appliance hospital config
+    ca_file = "/etc/appliance/hospital-ca.crt"   # with the description's [tls]: TLS to every node, checked by this CA
     confirm = true                # and confirm_timeout_s: as for [notify.mqtt]
 
     [notify.webhook]

@@ -31,7 +31,7 @@ SOURCES = ("virtual", "emulated", "hardware")
 FRAME_INTERVAL_RANGE_S = (0.05, 3600.0)
 """Seconds between frames, here and for the command line's --interval, which overrides it."""
 MQTT_KEYS = ("host", "port", "topic_prefix", "keepalive_s", "username", "password_file", "ca_file")
-ENGINE_KEYS = ("servers", "ward", "password_file")
+ENGINE_KEYS = ("servers", "ward", "password_file", "ca_file")
 CONFIRMATION_KEYS = ("confirm", "confirm_timeout_s")
 """The ward link's tables: ``[notify.mqtt]`` or ``[notify.engine]``, each with the confirmation's keys."""
 HL7_KEYS = ("host", "port", "enabled", "sending_facility", "sending_application", "receiving_application",
@@ -77,11 +77,13 @@ class MqttSettings:
 @dataclass(frozen=True)
 class EngineSettings:
     """The hospital engine (``appliance.hospital``): its nodes' client addresses, the bed's ward, and the file
-    holding the bed's password (its user name is its ``bed_id``), as ``appliance hospital config`` wrote them."""
+    holding the bed's password (its user name is its ``bed_id``), as ``appliance hospital config`` wrote them; TLS,
+    each node's certificate checked against the hospital CA ``ca_file``, when it is given."""
 
     servers: tuple[str, ...]
     ward: str
     password_file: Path
+    ca_file: Path | None = None
 
     def password(self) -> str:
         """The password file's first line; a missing or unreadable file is a ConfigError naming it."""
@@ -317,10 +319,17 @@ def engine_settings(table: dict, base: Path | None, where: str = "[notify.engine
     servers = table.get("servers")
     if not isinstance(servers, list) or not servers or not all(isinstance(s, str) and s.strip() for s in servers):
         raise ConfigError(f"{where}: servers must be a non-empty list of the nodes' addresses, got {servers!r}")
+    ca_file = _path(table, "ca_file", base, where)
+    if ca_file is not None and not ca_file.is_file():
+        raise ConfigError(f"{where} ca_file: no file {ca_file}")
     for server in servers:
-        address = server.removeprefix("nats://")
-        if address == server or not address or any(c.isspace() or c in "@/" for c in address):
-            raise ConfigError(f"{where}: server {server!r} must be nats://HOST:PORT, without a login")
+        scheme, _, address = server.partition("://")
+        if scheme not in ("nats", "tls") or not address or any(c.isspace() or c in "@/" for c in address):
+            raise ConfigError(f"{where}: server {server!r} must be nats://HOST:PORT or tls://HOST:PORT, without a "
+                              f"login")
+        if scheme == "tls" and ca_file is None:
+            raise ConfigError(f"{where}: server {server!r} is tls://, but no ca_file names the hospital CA that its "
+                              f"certificate is checked against")
     ward = _text(table, "ward", None, where)
     if any(c in ward for c in ".*> ") or len(ward) > 64:
         raise ConfigError(f"{where}: ward must be the ward's name in the hospital description, without '.', '*', "
@@ -330,7 +339,7 @@ def engine_settings(table: dict, base: Path | None, where: str = "[notify.engine
         raise ConfigError(f"{where} is missing 'password_file' (from appliance hospital config)")
     if not password_file.is_file():
         raise ConfigError(f"{where} password_file: no file {password_file}")
-    return EngineSettings(tuple(servers), ward, password_file)
+    return EngineSettings(tuple(servers), ward, password_file, ca_file)
 
 
 def _confirmation(table: dict, where: str) -> ConfirmSettings:

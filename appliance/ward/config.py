@@ -15,6 +15,7 @@
     servers = ["nats://10.20.0.11:4222", "nats://10.20.0.12:4222", "nats://10.20.0.13:4222"]
     ward = "ward3"                # the ward in the hospital description
     password_file = "/etc/appliance/engine-password"   # secrets/<client_id>.password of appliance hospital config
+    ca_file = "/etc/appliance/hospital-ca.crt"   # with the description's [tls]: TLS to every node, checked by this CA
 
     [station]
     client_id = "ward3-station"   # names the broker session that holds alarms while the station is away; on

@@ -37,6 +37,7 @@ import sqlite3
 import threading
 import time
 from collections.abc import Sequence
+from pathlib import Path
 
 import nats.errors
 import nats.js.errors
@@ -74,17 +75,19 @@ delete consumers)."""
 
 
 class EngineStation:
-    """Station ``station`` of ward ``ward`` on the engine's nodes at ``urls``, logged in with ``password``; what it
+    """Station ``station`` of ward ``ward`` on the engine's nodes at ``urls``, logged in with ``password`` (over TLS
+    trusting the hospital CA ``ca_file`` if given); what it
     applied is kept in ``journal`` (which the caller closes). Counters: ``confirmations_sent``; ``board`` holds
     the beds. ``command_journal`` lets its nurses send commands to beds (``commands``, a :class:`CommandSender`,
     is None without one); ``command_expiry_s`` and ``resend_after_s`` are its timings."""
 
     def __init__(self, urls: Sequence[str], ward: str, station: str, password: str, journal: AppliedJournal, *,
-                 summary_interval_s: float = 1.0, stale_after_s: float | None = None,
+                 ca_file: Path | None = None, summary_interval_s: float = 1.0, stale_after_s: float | None = None,
                  command_journal: CommandJournal | None = None, command_expiry_s: float = DEFAULT_EXPIRY_S,
                  resend_after_s: float = DEFAULT_RESEND_S):
         self.urls, self.ward, self.station, self._password, self.journal = list(urls), ward, station, password, \
             journal
+        self.ca_file = ca_file
         self.board = WardBoard(summary_interval_s, stale_after_s)
         self.stale_after_s = self.board.stale_after_s
         self.confirmations_sent = 0
@@ -108,7 +111,7 @@ class EngineStation:
         engine = config.engine
         if engine is None:
             raise ValueError("the configuration names a broker, not the hospital engine: use WardStation")
-        return cls(engine.servers, engine.ward, config.client_id, engine.password(), journal,
+        return cls(engine.servers, engine.ward, config.client_id, engine.password(), journal, ca_file=engine.ca_file,
                    summary_interval_s=config.summary_interval_s, command_journal=command_journal,
                    command_expiry_s=config.command_expiry_s)
 
@@ -169,7 +172,8 @@ class EngineStation:
         while not self._stopping:
             try:
                 self._connection = connection = await connect(self.urls, self.station, self._password,
-                                                              on_disconnected=self._down, on_reconnected=self._up)
+                                                              ca_file=self.ca_file, on_disconnected=self._down,
+                                                              on_reconnected=self._up)
                 break
             except (nats.errors.Error, OSError) as exc:      # a refused login: ward IT may be adding the station
                 log.error("ward: the hospital engine refused station %s: %r", self.station, exc)
