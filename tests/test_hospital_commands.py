@@ -5,6 +5,7 @@ own ward's beds and a bed command none; a command its bed never answers is shown
 
 import asyncio
 import contextlib
+import json
 
 import pytest
 from engine_relay import CuttableLink
@@ -221,3 +222,55 @@ def test_a_command_its_bed_never_answers_in_time_is_shown_expired_and_not_sent_a
             fresh = station.commands.send("bed2", "record-turn", {}, "nurse.smith")["id"]
             assert wait_until(lambda: link.commands_received >= 1, WAIT_S)
             assert {c.id for c in link.take_commands()} == {fresh}       # the expired one never came
+
+
+def test_a_consumer_pouring_a_wards_stream_onto_another_wards_bed_confirms_and_commands_nothing(cluster, tmp_path):
+    """A station may make consumers on its own ward's stream, and the engine delivers a push consumer's messages
+    wherever its maker says, checked against nobody's permissions. So a bed of ward1 writes a confirmation and a
+    command into its ward's stream, and station1 pours that stream onto ward2's bed3: bed3 must take neither, as
+    what arrives comes from a stream, not from its station."""
+    from nats.js import api
+
+    from appliance.hospital.subjects import CONFIRM, bed_subject, stream_name
+    from test_hospital_wardlink import alarm
+
+    forged_command = new_command("bed3", "record-turn", {}, "nurse.smith", "station2", 0.0, 3600.0)
+    with bed_link(cluster.urls, cluster, tmp_path, bed="bed3", ward_name="ward2") as link:
+        link.notify(alarm(1))                                   # seq 1: no station of ward2 runs to confirm it
+        assert wait_until(lambda: link.status()["connected"], WAIT_S)
+
+        async def pour() -> dict[str, list]:
+            arrived: dict[str, list] = {"confirm": [], "command": []}
+            async with logged_in(cluster, "hospital-admin") as spy, logged_in(cluster, "bed1") as bed1, \
+                    logged_in(cluster, "station1") as station1:
+                def note(kind):
+                    async def on_message(message):
+                        arrived[kind].append(message.reply)
+                    return on_message
+
+                for kind, subject in (("confirm", bed_subject("ward2", "bed3", CONFIRM)),
+                                      ("command", command_subject("ward2", "bed3"))):
+                    await spy.subscribe(subject, cb=note(kind))
+                await spy.flush()
+                writes = bed1.jetstream()
+                await writes.publish("hospital.ward1.bed1.alarm", json.dumps(
+                    {"seq": 1, "station": "station2", "confirmed_at": 1.0}).encode(), headers={"Nats-Msg-Id": "f1"})
+                await writes.publish("hospital.ward1.bed1.turn", forged_command.to_payload().encode(),
+                                     headers={"Nats-Msg-Id": "f2"})
+                js = station1.jetstream()
+                for name, kind, subject in (("pour-confirm", "alarm", bed_subject("ward2", "bed3", CONFIRM)),
+                                            ("pour-command", "turn", command_subject("ward2", "bed3"))):
+                    await js.add_consumer(stream_name("ward1"), api.ConsumerConfig(
+                        name=name, deliver_subject=subject, filter_subject=f"hospital.ward1.bed1.{kind}",
+                        ack_policy=api.AckPolicy.NONE, deliver_policy=api.DeliverPolicy.ALL))
+                give_up = asyncio.get_running_loop().time() + WAIT_S
+                while not (arrived["confirm"] and arrived["command"]) and asyncio.get_running_loop().time() < give_up:
+                    await asyncio.sleep(0.1)
+                await asyncio.sleep(1.0)                         # what bed3 heard alongside the spy, it has handled
+            return arrived
+
+        arrived = asyncio.run(pour())
+        assert arrived["confirm"] and arrived["command"], "the engine did not deliver what the consumers poured"
+        assert all(reply.startswith("$JS.ACK.") for reply in arrived["confirm"] + arrived["command"])
+        assert link.outbox.entry(1).confirmed_at is None           # not confirmed by the forgery
+        assert link.take_commands() == [] and link.bad_commands == 0

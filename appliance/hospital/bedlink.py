@@ -36,7 +36,7 @@ import nats.js.errors
 from nats.aio.client import Client
 
 from appliance.alerts.wardlink import WardLink
-from appliance.hospital.engine import RETRYABLE, BedPublisher, cancel_the_rest, connect
+from appliance.hospital.engine import RETRYABLE, BedPublisher, cancel_the_rest, connect, redirected_from_a_stream
 from appliance.hospital.subjects import (CONFIRM, answer_subject, bed_subject, command_subject, confirmation_subject,
                                          confirms_stream_name)
 from appliance.store.outbox import Outbox
@@ -209,10 +209,12 @@ class EngineTransport:
         await self._take_confirmation(found.data or b"")
 
     async def _on_confirm(self, message) -> None:
-        await self._take_confirmation(message.data)
+        if not _redirected(message):
+            await self._take_confirmation(message.data)
 
     async def _on_command(self, message) -> None:
-        self._bed().transport_command(message.data)
+        if not _redirected(message):
+            self._bed().transport_command(message.data)
 
     async def _take_confirmation(self, data: bytes) -> None:
         try:
@@ -222,6 +224,15 @@ class EngineTransport:
             log.warning("ward link: bad confirmation ignored: %s", exc)
             return
         await asyncio.to_thread(self._bed().transport_confirmed, seq, station)
+
+
+def _redirected(message) -> bool:
+    """A confirmation or command a stream's consumer poured onto the bed's subject, refused with a warning."""
+    if redirected_from_a_stream(message):
+        log.warning("ward link: refused a message on %s delivered from a stream (%s), not published by a station",
+                    message.subject, message.reply)
+        return True
+    return False
 
 
 def engine_ward_link(urls: Sequence[str], ward: str, bed: str, password: str, outbox: Outbox, *,

@@ -52,6 +52,16 @@ RETRYABLE = (nats.errors.TimeoutError, nats.errors.NoRespondersError, nats.error
 a stream that does not take the subject) is a fault to raise, not to retry."""
 
 
+def redirected_from_a_stream(message) -> bool:
+    """Whether ``message`` came from a stream's consumer (its reply subject is an acknowledgement's) rather than
+    from a client publishing to its subject. Whoever makes a push consumer chooses where it delivers, and the
+    server checks that subject against nobody's permissions: a station allowed consumers on its own ward's stream
+    could pour what a bed of its ward wrote there onto another ward's bed's confirmation or command subject. So
+    confirmations, commands and what a station hears live are taken only as published; streams are read through
+    the reader's own consumers."""
+    return (getattr(message, "reply", None) or "").startswith("$JS.ACK.")
+
+
 async def connect(urls: Sequence[str], user: str, password: str, *, ca_file: Path | None = None,
                   on_error: Callable[[Exception], Awaitable[None]] | None = None, attempts: int = -1,
                   on_disconnected: Callable[[], Awaitable[None]] | None = None,

@@ -44,7 +44,8 @@ import nats.js.errors
 from nats.aio.client import Client
 from nats.js import api
 
-from appliance.hospital.engine import RETRYABLE, Delivery, WardReader, cancel_the_rest, connect
+from appliance.hospital.engine import (RETRYABLE, Delivery, WardReader, cancel_the_rest, connect,
+                                      redirected_from_a_stream)
 from appliance.hospital.subjects import (CONFIRM, answer_subject, bed_subject, command_subject, confirmation_subject,
                                          confirms_stream_name, notified_subject, paging_status_subject)
 from appliance.ward.applied import AppliedJournal
@@ -214,17 +215,29 @@ class EngineStation:
         if self.commands is not None:
             self.commands.connected(True)
 
+    def _published(self, message) -> bool:
+        """False, counted as refused, for a message a stream's consumer poured onto a subject the station hears
+        (:func:`~appliance.hospital.engine.redirected_from_a_stream`)."""
+        if redirected_from_a_stream(message):
+            self.board.refused(message.subject, ValueError(f"delivered from a stream ({message.reply}), not published"))
+            return False
+        return True
+
     async def _on_bed_message(self, message) -> None:
+        if not self._published(message):
+            return
         _, _, bed, kind = message.subject.split(".", 3)
         body = self.board.take(bed, kind, message.data)
         if kind == "status" and body == "online" and self.commands is not None:
             await asyncio.to_thread(self.commands.bed_online, bed)
 
     async def _on_page(self, message) -> None:
-        self.board.take_page(message.subject.split(".")[2], message.data)
+        if self._published(message):
+            self.board.take_page(message.subject.split(".")[2], message.data)
 
     async def _on_paging(self, message) -> None:
-        self.board.take_paging(message.subject.rpartition(".")[2], message.data)
+        if self._published(message):
+            self.board.take_paging(message.subject.rpartition(".")[2], message.data)
 
     def _read_pages_back(self) -> None:
         """Start reading the page records of the look-back, again from its start if a read was under way."""
@@ -274,6 +287,8 @@ class EngineStation:
     async def _on_answer(self, message) -> None:
         """A bed's answer to a command, into the command journal off the engine's thread; a bad one is counted."""
         assert self.commands is not None
+        if not self._published(message):
+            return
         bed = message.subject.split(".")[2]
         try:
             await asyncio.to_thread(self.commands.take_answer, bed, message.data)
