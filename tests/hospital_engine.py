@@ -44,6 +44,19 @@ async def logged_in(cluster, user, **options):
         await connection.close()
 
 
+class Refusals(dict):
+    """What the engine refused each of ``users``' connections, as its error texts: pass ``note(user)`` as the
+    connection's ``on_error``."""
+
+    def __init__(self, *users: str):
+        super().__init__({user: [] for user in users})
+
+    def note(self, user: str):
+        async def on_error(error):
+            self[user].append(str(error))
+        return on_error
+
+
 async def make_streams(cluster):
     async with logged_in(cluster, ADMIN) as admin:
         return await ensure_ward_streams(admin, cluster.hospital)

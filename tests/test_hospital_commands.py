@@ -9,7 +9,7 @@ import json
 
 import pytest
 from engine_relay import CuttableLink
-from hospital_engine import logged_in, make_streams, running_cluster
+from hospital_engine import Refusals, logged_in, make_streams, running_cluster
 from mqtt_broker import wait_until
 from test_hospital_wardlink import Station
 from test_ward import ward_daemon
@@ -153,19 +153,14 @@ def test_commands_sent_before_the_bed_connects_and_while_it_is_cut_off_go_when_i
 
 
 def test_a_station_commands_only_its_own_wards_beds_and_a_bed_commands_no_bed(cluster):
-    refused: dict[str, list[str]] = {"station1": [], "bed1": []}
-
-    def note(user):
-        async def on_error(error):
-            refused[user].append(str(error))
-        return on_error
+    refused = Refusals("station1", "bed1")
 
     own = new_command("bed1", "record-turn", {}, "nurse.smith", "station1", 0.0, 3600.0)
     own_payload, answer_payload = own.to_payload().encode(), result_payload(own.id, "done", "", 1.0).encode()
 
     async def run():
-        async with logged_in(cluster, "station1", on_error=note("station1")) as station1, \
-                logged_in(cluster, "bed1", on_error=note("bed1")) as bed1, \
+        async with logged_in(cluster, "station1", on_error=refused.note("station1")) as station1, \
+                logged_in(cluster, "bed1", on_error=refused.note("bed1")) as bed1, \
                 logged_in(cluster, "bed2") as bed2, logged_in(cluster, "bed3") as bed3:
             heard: dict[str, list[bytes]] = {"bed1": [], "bed2": [], "bed3": [], "station1": []}
 

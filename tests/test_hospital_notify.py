@@ -24,7 +24,7 @@ from collections import Counter
 
 import nats.js.errors
 import pytest
-from hospital_engine import WARDS, logged_in, make_streams, running_cluster
+from hospital_engine import Refusals, WARDS, logged_in, make_streams, running_cluster
 from mqtt_broker import wait_until
 from test_ward_screen import ward, ward_app
 from webui_client import client_as
@@ -364,17 +364,12 @@ def test_a_service_killed_mid_stream_pages_nothing_twice_but_the_one_in_flight(c
 
 
 def test_the_services_user_records_only_its_own_and_no_one_else_records_for_it(cluster):
-    refused: dict[str, list[str]] = {USER: [], "station1": [], "bed1": []}
-
-    def note(user):
-        async def on_error(error):
-            refused[user].append(str(error))
-        return on_error
+    refused = Refusals(USER, "station1", "bed1")
 
     async def run():
-        async with logged_in(cluster, USER, on_error=note(USER)) as service, \
-                logged_in(cluster, "station1", on_error=note("station1")) as station, \
-                logged_in(cluster, "bed1", on_error=note("bed1")) as bed:
+        async with logged_in(cluster, USER, on_error=refused.note(USER)) as service, \
+                logged_in(cluster, "station1", on_error=refused.note("station1")) as station, \
+                logged_in(cluster, "bed1", on_error=refused.note("bed1")) as bed:
             await service.publish(bed_subject("ward1", "bed1", "alarm"), b"{}")
             await service.publish(confirmation_subject("ward1", "bed1", 1), b"{}")
             await service.publish(notified_subject("ward2", "bed3", 1, "phones"), b"{}")    # not its ward
@@ -512,17 +507,12 @@ def test_the_board_shows_a_service_silent_for_a_few_periods_or_never_heard_as_un
 
 
 def test_a_station_reads_back_and_hears_only_its_own_wards_pages_and_only_the_service_says_its_status(cluster):
-    refused: dict[str, list[str]] = {USER: [], "station1": [], "bed1": []}
-
-    def note(user):
-        async def on_error(error):
-            refused[user].append(str(error))
-        return on_error
+    refused = Refusals(USER, "station1", "bed1")
 
     async def run():
-        async with logged_in(cluster, USER, on_error=note(USER)) as service, \
-                logged_in(cluster, "station1", on_error=note("station1")) as station, \
-                logged_in(cluster, "bed1", on_error=note("bed1")) as bed:
+        async with logged_in(cluster, USER, on_error=refused.note(USER)) as service, \
+                logged_in(cluster, "station1", on_error=refused.note("station1")) as station, \
+                logged_in(cluster, "bed1", on_error=refused.note("bed1")) as bed:
             js = station.jetstream()
             for stream, subject in ((confirms_stream_name("ward2"), notified_subject("ward2", "*", "*", "*")),
                                     (confirms_stream_name("ward1"), f"{bed_subject('ward1', '*', 'confirmed')}.*")):
