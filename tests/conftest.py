@@ -72,6 +72,13 @@ def models():
 
 
 @pytest.fixture
+def ca_certificate() -> Path:
+    """A CA certificate TLS can load, for configurations that name one (its key was thrown away: nothing is signed
+    by it)."""
+    return Path(__file__).resolve().parent / "data" / "throwaway-ca.crt"
+
+
+@pytest.fixture
 def rng():
     return np.random.default_rng(20001)
 

@@ -2,6 +2,7 @@
 tables it documents in full is in its tables, so the reference cannot drift from the code."""
 
 import re
+import shutil
 import tomllib
 from pathlib import Path
 
@@ -11,12 +12,15 @@ from appliance.service.config_sections import CONFIRMATION_KEYS, ENGINE_KEYS, HL
 REFERENCE = Path(__file__).resolve().parents[1] / "docs" / "configuration.md"
 
 
-def test_every_example_is_accepted_as_written(tmp_path):
+def test_every_example_is_accepted_as_written(tmp_path, ca_certificate):
     text = REFERENCE.read_text(encoding="utf-8")
     examples = re.findall(r"```toml\n(.*?)```", text, re.S)
     assert len(examples) == 4
     for name in set(re.findall(r'"/etc/appliance/([^"]+)"', text)):    # the files the examples name, made here
-        (tmp_path / name).write_text("a-password-or-certificate\n")
+        if name.endswith(".crt"):
+            shutil.copy(ca_certificate, tmp_path / name)
+        else:
+            (tmp_path / name).write_text("a-password\n")
     for example in examples:
         config = config_from_mapping(tomllib.loads(example.replace("/etc/appliance/", f"{tmp_path}/")))
         assert (config.time_zone == "Europe/London" or config.hl7 is not None or config.mqtt is not None

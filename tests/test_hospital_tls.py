@@ -5,6 +5,7 @@ refused."""
 
 import asyncio
 import json
+import shutil
 import socket
 import ssl
 import stat
@@ -158,15 +159,18 @@ def test_a_server_installs_the_ca_and_only_its_own_nodes_certificate_and_key(tmp
     assert load_hospital(installed.folder / "hospital.toml").tls == TlsFolder(folder)
 
 
-def test_a_beds_engine_table_takes_tls_only_with_the_hospital_ca(tmp_path):
+def test_a_beds_engine_table_takes_tls_only_with_the_hospital_ca(tmp_path, ca_certificate):
     (tmp_path / "password").write_text("secret\n")
-    (tmp_path / "ca.crt").write_text("a certificate\n")
+    shutil.copy(ca_certificate, tmp_path / "ca.crt")
+    (tmp_path / "not-a-ca.crt").write_text("a certificate\n")
     table = {"servers": ["tls://10.20.0.11:4222"], "ward": "ward3", "password_file": "password"}
     with pytest.raises(ConfigError, match="is tls://, but no ca_file names the hospital CA"):
         engine_settings(table, tmp_path)
     assert engine_settings({**table, "ca_file": "ca.crt"}, tmp_path).ca_file == tmp_path / "ca.crt"
     with pytest.raises(ConfigError, match=f"ca_file: no file {tmp_path / 'nothing.crt'}"):
         engine_settings({**table, "ca_file": "nothing.crt"}, tmp_path)
+    with pytest.raises(ConfigError, match="not-a-ca.crt holds no certificate TLS can load"):
+        engine_settings({**table, "ca_file": "not-a-ca.crt"}, tmp_path)
 
 
 def load_hospital_text(folder, text):

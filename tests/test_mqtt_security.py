@@ -1,6 +1,7 @@
 """The ward's broker with passwords and TLS: a real Mosquitto that refuses anonymous and plain connections, a bed
 that logs in over TLS, and the configuration that names the password file and the CA."""
 
+import shutil
 import subprocess
 
 import pytest
@@ -100,9 +101,10 @@ def test_a_station_with_a_wrong_password_never_subscribes(secure_broker):
         ward.close()
 
 
-def test_the_configuration_names_the_password_file_and_ca_and_checks_them(tmp_path):
+def test_the_configuration_names_the_password_file_and_ca_and_checks_them(tmp_path, ca_certificate):
     (tmp_path / "password").write_text(BED_PASSWORD + "\n")
-    (tmp_path / "ca.crt").write_text("a CA")
+    shutil.copy(ca_certificate, tmp_path / "ca.crt")
+    (tmp_path / "not-a-ca.crt").write_text("a CA")
     config = config_from_mapping({"notify": {"mqtt": {"host": "broker.ward", "port": 8883, "username": "ward3-bed12",
                                                       "password_file": "password", "ca_file": "ca.crt"}}},
                                  base=tmp_path)
@@ -110,6 +112,7 @@ def test_the_configuration_names_the_password_file_and_ca_and_checks_them(tmp_pa
     for table, message in (({"password_file": "password"}, "password_file needs a username"),
                            ({"username": "bed", "password_file": "nope"}, f"password_file: no file {tmp_path}/nope"),
                            ({"ca_file": "missing.crt"}, "ca_file: no file"),
+                           ({"ca_file": "not-a-ca.crt"}, "not-a-ca.crt holds no certificate TLS can load"),
                            ({"user": "bed"}, "user")):
         with pytest.raises(ConfigError, match=message):
             config_from_mapping({"notify": {"mqtt": {"host": "broker.ward", **table}}}, base=tmp_path)

@@ -5,6 +5,7 @@ The hostname step is a recorded callable here, so the tests never rename this ma
 
 import os
 import pwd
+import shutil
 import stat
 import subprocess
 from types import SimpleNamespace
@@ -36,11 +37,11 @@ ME = pwd.getpwuid(os.getuid()).pw_name          # a real account to give files t
 
 
 @pytest.fixture
-def card(tmp_path):
+def card(tmp_path, ca_certificate):
     """The setup file on a "boot partition", the configuration and data folders, and the hostnames set."""
     boot = tmp_path / "boot"
     boot.mkdir()
-    (boot / "ward-ca.crt").write_text("-----BEGIN CERTIFICATE-----\n")
+    shutil.copy(ca_certificate, boot / "ward-ca.crt")
     return SimpleNamespace(setup=boot / "appliance-setup.toml", config_dir=tmp_path / "etc",
                            data_dir=tmp_path / "data", hostnames=[])
 

@@ -2,6 +2,7 @@
 its JSON and its event stream; the ``appliance ward`` process."""
 
 import json
+import shutil
 import signal
 import subprocess
 import sys
@@ -105,14 +106,14 @@ def test_a_bad_station_configuration_names_the_key(table, message):
     assert message in str(caught.value)
 
 
-def test_the_configuration_file_and_screen_links(tmp_path):
+def test_the_configuration_file_and_screen_links(tmp_path, ca_certificate):
     path = tmp_path / "ward.toml"
     path.write_text('[broker]\nhost = "broker.ward3"\nport = 8883\nusername = "station"\npassword_file = "pw"\n'
                     'ca_file = "ca.crt"\n[station]\nscreen_url = "https://{bed_id}.ward3.example:8443/"\n')
     with pytest.raises(ConfigError, match=r"ward.toml: \[broker\] password_file: no file"):
         load_ward_config(path)
     (tmp_path / "pw").write_text("secret\n")
-    (tmp_path / "ca.crt").write_text("-")
+    shutil.copy(ca_certificate, tmp_path / "ca.crt")
     config = load_ward_config(path)
     assert (config.broker.host, config.broker.port, config.broker.password()) == ("broker.ward3", 8883, "secret")
     assert config.broker.ca_file == tmp_path / "ca.crt"
@@ -155,7 +156,7 @@ def _answers(url):
         return False
 
 
-def test_the_example_configuration_in_docs_is_valid(tmp_path):
+def test_the_example_configuration_in_docs_is_valid(tmp_path, ca_certificate):
     """docs/ward.example.toml as the README's server installation uses it, with its secrets' paths made here."""
     from pathlib import Path
 
@@ -163,8 +164,9 @@ def test_the_example_configuration_in_docs_is_valid(tmp_path):
     for server_path, name in (("/run/credentials/appliance-ward.service/mqtt-password", "password"),
                               ("/etc/appliance/ward-ca.crt", "ca.crt")):
         assert server_path in text
-        (tmp_path / name).write_text("secret\n")
         text = text.replace(server_path, str(tmp_path / name))
+    (tmp_path / "password").write_text("secret\n")
+    shutil.copy(ca_certificate, tmp_path / "ca.crt")
     (tmp_path / "ward.toml").write_text(text)
     config = load_ward_config(tmp_path / "ward.toml")
     assert (config.broker.port, config.broker.username, config.client_id) == (8883, "ward3-station", "ward3-station")

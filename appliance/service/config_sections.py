@@ -13,6 +13,7 @@ import math
 import os
 import re
 import socket
+import ssl
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -301,10 +302,10 @@ def mqtt_settings(table: dict, base: Path | None, where: str = "[notify.mqtt]") 
         raise ConfigError(f"{where}: topic_prefix must not hold wildcards or start or end with '/', got {prefix!r}")
     if "password_file" in table and "username" not in table:
         raise ConfigError(f"{where}: password_file needs a username")
-    files = {key: _path(table, key, base, where) for key in ("password_file", "ca_file")}
-    for key, path in files.items():
-        if path is not None and not path.is_file():
-            raise ConfigError(f"{where} {key}: no file {path}")
+    password_file = _path(table, "password_file", base, where)
+    if password_file is not None and not password_file.is_file():
+        raise ConfigError(f"{where} password_file: no file {password_file}")
+    files = {"password_file": password_file, "ca_file": _ca_file(table, base, where)}
     return MqttSettings(_text(table, "host", None, where),
                         int(_number(table, "port", 1883, where, low=1, high=65535, integer=True)), prefix,
                         int(_number(table, "keepalive_s", 30, where, low=5, high=3600, integer=True)),
@@ -319,9 +320,7 @@ def engine_settings(table: dict, base: Path | None, where: str = "[notify.engine
     servers = table.get("servers")
     if not isinstance(servers, list) or not servers or not all(isinstance(s, str) and s.strip() for s in servers):
         raise ConfigError(f"{where}: servers must be a non-empty list of the nodes' addresses, got {servers!r}")
-    ca_file = _path(table, "ca_file", base, where)
-    if ca_file is not None and not ca_file.is_file():
-        raise ConfigError(f"{where} ca_file: no file {ca_file}")
+    ca_file = _ca_file(table, base, where)
     for server in servers:
         scheme, _, address = server.partition("://")
         if scheme not in ("nats", "tls") or not address or any(c.isspace() or c in "@/" for c in address):
@@ -477,6 +476,22 @@ def _number(table: dict, key: str, default: float, where: str, low: float, high:
     if not low <= value <= high:
         raise ConfigError(f"{where}: {key} must be from {low:g} to {high:g}, got {value:g}")
     return float(value)
+
+
+def _ca_file(table: dict, base: Path | None, where: str) -> Path | None:
+    """The table's ``ca_file``, checked now to be a CA certificate TLS can load: found wrong only when a link first
+    connects, a typo would leave a bed or a station retrying in the background instead of refusing to start."""
+    path = _path(table, "ca_file", base, where)
+    if path is None:
+        return None
+    if not path.is_file():
+        raise ConfigError(f"{where} ca_file: no file {path}")
+    try:
+        ssl.create_default_context(cafile=str(path))
+    except (OSError, ssl.SSLError) as exc:
+        raise ConfigError(f"{where} ca_file: {path} holds no certificate TLS can load (a PEM CA certificate is "
+                          f"needed): {exc}") from None
+    return path
 
 
 def _path(table: dict, key: str, base: Path | None, where: str = "[monitor]") -> Path | None:
