@@ -7,7 +7,7 @@ import nats.errors
 import pytest
 from hospital_engine import logged_in, make_streams, running_cluster
 
-from appliance.hospital.engine import BedPublisher, WardReader
+from appliance.hospital.engine import KEPT_PER_BED, BedPublisher, Delivery, MemoryLedger, WardReader
 from appliance.hospital.nodeconfig import ADMIN
 from appliance.hospital.subjects import stream_name
 
@@ -94,8 +94,20 @@ def test_killing_the_stream_leader_under_load_loses_no_acknowledged_alarm(cluste
     assert acknowledged == list(range(1, total + 1))
     assert info.state.messages == total                        # resends across the kill were not stored twice
     assert [d.seq for d in seen] == acknowledged               # every acknowledged alarm, once, in order
-    assert reader.applied == {"bed1": acknowledged}
+    assert reader.duplicates == reader.delivered - total and {d.bed for d in seen} == {"bed1"}
     assert all(d.event["n"] == d.seq for d in seen)
+
+
+def test_a_memory_ledger_takes_each_number_once_and_stays_bounded_however_long_it_runs():
+    ledger = MemoryLedger()
+    numbers = list(range(1, 3 * KEPT_PER_BED + 1))
+    numbers[10:12] = [12, 11]                                       # a resend stored after the next number
+    assert all(ledger.take(Delivery("bed1", n, "alarm", {})) for n in numbers)
+    assert ledger.take(Delivery("bed2", 5, "alarm", {}))            # each bed its own numbers
+    assert not ledger.take(Delivery("bed1", 3 * KEPT_PER_BED, "alarm", {}))         # taken before
+    assert not ledger.take(Delivery("bed1", KEPT_PER_BED, "alarm", {}))             # too far behind: taken
+    assert ledger.take(Delivery("bed1", 3 * KEPT_PER_BED + 1, "alarm", {}))
+    assert len(ledger) <= 2 * KEPT_PER_BED + 2                      # not the 30,000 numbers taken
 
 
 def test_a_bed_cannot_publish_on_another_beds_subject(cluster):

@@ -198,18 +198,36 @@ class Ledger(Protocol):
         """Record ``delivery``; True if its bed's number had not been taken before."""
 
 
+KEPT_PER_BED = 10_000
+"""Numbers a :class:`MemoryLedger` remembers of each bed: one further below the bed's highest than this counts as
+taken. A bed numbers its events in order and resends only what its outbox still holds unconfirmed, never
+thousands behind, so the ledger of a service that runs for months stays this size instead of growing."""
+
+
 class MemoryLedger:
-    """The bed numbers taken, in memory: for tools and trials, forgotten at a restart."""
+    """The bed numbers taken, in memory, the last KEPT_PER_BED of each bed: for services whose own journal is the
+    record (a notification service) and for tools; forgotten at a restart."""
 
     def __init__(self) -> None:
         self._seen: dict[str, set[int]] = {}
+        self._highest: dict[str, int] = {}
 
     def take(self, delivery: Delivery) -> bool:
-        seen = self._seen.setdefault(delivery.bed, set())
-        if delivery.seq in seen:
+        bed, seq = delivery.bed, delivery.seq
+        highest = self._highest.get(bed, 0)
+        seen = self._seen.setdefault(bed, set())
+        if seq <= highest - KEPT_PER_BED or seq in seen:
             return False
-        seen.add(delivery.seq)
+        seen.add(seq)
+        if seq > highest:
+            self._highest[bed] = seq
+            if len(seen) > 2 * KEPT_PER_BED:                     # forget in one sweep, not at every number
+                self._seen[bed] = {n for n in seen if n > seq - KEPT_PER_BED}
         return True
+
+    def __len__(self) -> int:
+        """Numbers remembered, all beds together."""
+        return sum(len(numbers) for numbers in self._seen.values())
 
 
 class WardReader:
@@ -218,15 +236,13 @@ class WardReader:
     Each message is acknowledged to the stream only after ``ledger`` has taken it and ``handle`` (if given) has
     dealt with it, so a station that dies in between is given it again and its ledger says it was applied.
     ``delivered`` counts messages received (redeliveries included), ``duplicates`` those whose bed's number had
-    been taken, ``bad`` those that are not a bed's event (dropped); ``applied`` maps each bed to its numbers in the
-    order taken by this reader."""
+    been taken, ``bad`` those that are not a bed's event (dropped)."""
 
     def __init__(self, connection: Client, ward: str, station: str, ledger: Ledger | None = None):
         self.connection, self.ward, self.station = connection, ward, station
         self.ledger: Ledger = ledger or MemoryLedger()
         self.js = connection.jetstream()
         self.subscription: JetStreamContext.PullSubscription | None = None
-        self.applied: dict[str, list[int]] = {}
         self.delivered = self.duplicates = self.bad = 0
 
     async def open(self) -> None:
@@ -259,7 +275,6 @@ class WardReader:
                 continue
             new = self.ledger.take(delivery)
             if new:
-                self.applied.setdefault(delivery.bed, []).append(delivery.seq)
                 fresh.append(delivery)
             else:
                 self.duplicates += 1
