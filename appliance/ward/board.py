@@ -35,6 +35,7 @@ import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from appliance.alerts.alarms import AWAITING_ACK, PRIORITIES
@@ -166,9 +167,12 @@ class PagingState:
 class WardBoard:
     """Every bed's state as its messages come, from any thread. ``stale_after_s`` defaults to three summary
     intervals plus ``STALE_MARGIN_S``. Counters: ``messages``, ``bad_payloads``; ``version`` grows with every
-    message taken, so a screen can tell that something changed without comparing the beds."""
+    message taken, so a screen can tell that something changed without comparing the beds. ``steady_clock``
+    (``time.monotonic``) judges silences; a test gives its own."""
 
-    def __init__(self, summary_interval_s: float = 1.0, stale_after_s: float | None = None):
+    def __init__(self, summary_interval_s: float = 1.0, stale_after_s: float | None = None, *,
+                 steady_clock: Callable[[], float] = time.monotonic):
+        self.steady_clock = steady_clock
         self.stale_after_s = 3 * summary_interval_s + STALE_MARGIN_S if stale_after_s is None else stale_after_s
         self.messages = self.bad_payloads = self.version = 0
         self._beds: dict[str, BedState] = {}
@@ -198,7 +202,7 @@ class WardBoard:
             self.messages += 1
             self.version += 1
             bed = self._beds.setdefault(bed_id, BedState(bed_id))
-            bed.last_heard_at, bed.last_heard_steady = now, time.monotonic()
+            bed.last_heard_at, bed.last_heard_steady = now, self.steady_clock()
             if isinstance(body, str):
                 bed.status = body
             elif kind == "summary":
@@ -229,7 +233,7 @@ class WardBoard:
             self.refused(f"a page record of {bed_id}", exc)
             return None
         with self._lock:
-            self._paging.setdefault(record["notifier"], PagingState(time.monotonic()))
+            self._paging.setdefault(record["notifier"], PagingState(self.steady_clock()))
             if record["alarm_id"] is None:
                 return record
             pages = self._pages.setdefault(bed_id, {})
@@ -250,18 +254,18 @@ class WardBoard:
             self.refused(f"the paging status of {notifier}", exc)
             return None
         with self._lock:
-            state = self._paging.setdefault(notifier, PagingState(time.monotonic()))
+            state = self._paging.setdefault(notifier, PagingState(self.steady_clock()))
             if state.status is None or any(state.status[k] != status[k] for k in ("delivering", "since", "reason")):
                 self.version += 1
-            state.status, state.heard_steady = status, time.monotonic()
+            state.status, state.heard_steady = status, self.steady_clock()
             state.heard_at = time.time() if now is None else now
         return status
 
     def paging(self, steady_now: float | None = None) -> list[dict]:
         """Each notification service known, by name: its ``state`` (delivering, not delivering, or unknown when
         it has not said anything for too long), ``since`` when (for unknown: when last heard, or None), its
-        ``reason`` and when it was last heard (``heard_at``, or None). ``steady_now`` is ``time.monotonic()``."""
-        steady_now = time.monotonic() if steady_now is None else steady_now
+        ``reason`` and when it was last heard (``heard_at``, or None). ``steady_now`` is on ``steady_clock``."""
+        steady_now = self.steady_clock() if steady_now is None else steady_now
         with self._lock:
             views = [state.view(name, steady_now) for name, state in sorted(self._paging.items())]
         return [view for view in views if view["state"] is not None]
@@ -275,14 +279,14 @@ class WardBoard:
         rest, each group by bed id. ``events=False`` leaves out each bed's latest events, the costly part to
         copy, for a screen that polls."""
         with self._lock:
-            beds = [self._view(bed, self._pages.get(bed.bed_id, {}), time.monotonic(), events)
+            beds = [self._view(bed, self._pages.get(bed.bed_id, {}), self.steady_clock(), events)
                     for bed in self._beds.values()]
         return sorted(beds, key=lambda b: (_rank(b), b["bed_id"]))
 
     def online_flags(self) -> tuple[bool, ...]:
         """Each bed's ``online``, in no particular order but stable: cheap enough to poll."""
         with self._lock:
-            return tuple(bed.online(time.monotonic(), self.stale_after_s) for bed in self._beds.values())
+            return tuple(bed.online(self.steady_clock(), self.stale_after_s) for bed in self._beds.values())
 
     def _view(self, bed: BedState, pages: dict[int, dict[str, dict]], steady_now: float, events: bool) -> dict:
         alarms = sorted(({**alarm, "pages": [{k: page[k] for k in ("notifier", "outcome", "status", "notified_at")}
