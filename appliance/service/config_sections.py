@@ -13,7 +13,6 @@ import math
 import os
 import re
 import socket
-import ssl
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from appliance.alerts.pipeline import AlertSettings
 from appliance.core.pressure import KPA_PER_MMHG
 from appliance.core.toml_files import check_keys, read_toml_as
 from appliance.errors import ConfigError, CurveInvalid
+from appliance.hospital.tls import client_context
 from appliance.time_zones import system_zone, time_zone
 
 SOURCES = ("virtual", "emulated", "hardware")
@@ -487,10 +487,10 @@ def _ca_file(table: dict, base: Path | None, where: str) -> Path | None:
     if not path.is_file():
         raise ConfigError(f"{where} ca_file: no file {path}")
     try:
-        ssl.create_default_context(cafile=str(path))
-    except (OSError, ssl.SSLError) as exc:
+        client_context(path)
+    except ConfigError:
         raise ConfigError(f"{where} ca_file: {path} holds no certificate TLS can load (a PEM CA certificate is "
-                          f"needed): {exc}") from None
+                          f"needed)") from None
     return path
 
 

@@ -223,14 +223,20 @@ class WardBoard:
             self.bad_payloads += 1
         log.warning("ward: bad payload (%s) ignored: %s", what, problem)
 
+    def _parsed(self, what: str, parse: Callable[[object, str], dict], payload: bytes, name: str) -> dict | None:
+        """``parse`` of the JSON ``payload`` (a record of ``name``), or None, counted and logged, when it is bad."""
+        try:
+            return parse(json.loads(payload), name)
+        except (ValueError, TypeError, UnicodeDecodeError) as exc:     # json's errors are ValueErrors
+            self.refused(what, exc)
+            return None
+
     def take_page(self, bed_id: str, payload: bytes) -> dict | None:
         """Take a notification service's record of bed ``bed_id``'s alarm change: the record, or None when it is
         bad (counted and logged, never raised). A record older than the one kept for its alarm and service, or
         of an event of no one alarm, changes nothing; the service becomes known to the board."""
-        try:
-            record = _page(json.loads(payload), bed_id)
-        except (ValueError, TypeError, UnicodeDecodeError) as exc:     # json's errors are ValueErrors
-            self.refused(f"a page record of {bed_id}", exc)
+        record = self._parsed(f"a page record of {bed_id}", _page, payload, bed_id)
+        if record is None:
             return None
         with self._lock:
             self._paging.setdefault(record["notifier"], PagingState(self.steady_clock()))
@@ -248,10 +254,8 @@ class WardBoard:
     def take_paging(self, notifier: str, payload: bytes, now: float | None = None) -> dict | None:
         """Take notification service ``notifier``'s word on whether its pages go out: the status, or None when it
         is bad (counted and logged, never raised)."""
-        try:
-            status = _paging(json.loads(payload), notifier)
-        except (ValueError, TypeError, UnicodeDecodeError) as exc:     # json's errors are ValueErrors
-            self.refused(f"the paging status of {notifier}", exc)
+        status = self._parsed(f"the paging status of {notifier}", _paging, payload, notifier)
+        if status is None:
             return None
         with self._lock:
             state = self._paging.setdefault(notifier, PagingState(self.steady_clock()))
