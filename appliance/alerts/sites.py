@@ -9,7 +9,11 @@ Lying postures with hand labels (supine, inclined, the 30/60/90-degree sides, fe
 learned from the labelled PmatData training maps (:mod:`appliance.alerts.site_table`), with two corrections the
 table cannot learn from where a place lies alone: a side-lying trochanter is its hip's hot spot and what lies
 within ``TROCHANTER_REACH_MM`` of it (:func:`_gather_trochanters`), and a heel lying on the back takes its side from
-the trunk's midline (:func:`_heels_by_the_pelvis`). Two postures have no labels and keep rules:
+the trunk's midline (:func:`_heels_by_the_pelvis`). On the back (flat, head up, or tilted 30 degrees) the sacrum,
+ischia and scapulae are then named as the labelling convention names them, by distances from the landmarks a
+reader finds first (:mod:`appliance.alerts.landmarks`; :func:`_name_the_back`): a table voting by where a place
+lies in the body as a whole cannot learn "within 55 mm of the midline", and misplaced the sacrum's extent against
+the buttocks more than anything else. Two postures have no labels and keep rules:
 
 - prone: hand-set landmarks (``_PRONE``: face, chest, iliac crests, knees, toes; fractions of the body length
   from Drillis & Contini's segment lengths), a cell taking the nearest landmark's site within ``GATE`` of its
@@ -29,6 +33,7 @@ from scipy.ndimage import distance_transform_edt, gaussian_filter, label, maximu
 
 from appliance.alerts.anatomy import BodyView, check_posture
 from appliance.alerts.body_frame import BodyFrame, body_contact, body_coordinates, posture_frame
+from appliance.alerts.landmarks import back_landmarks
 from appliance.alerts.site_table import LABELLED_POSTURES, SiteTable, load_table, relative_load
 from appliance.calibration import BED_MIN_LENGTH_MM
 from appliance.core.pressure import KPA_PER_MMHG
@@ -57,6 +62,18 @@ trochanter in the right hip but not always on its hot spot. Chosen by the leave-
 weight of 0.05, site_table.py; the table's highest trochanter cell: 0.824 of the loaded spots right; smoothing by
 12-25 mm and searching 30-150 mm: 0.826-0.839; without smoothing: 0.819-0.824; with this peak, a reach of 60 and
 90 mm: 0.826 and 0.822)."""
+
+BACK_POSTURES = ("supine", "inclined", "left-30", "right-30")
+SACRUM_HALF_MM, SACRUM_ABOVE_MM, SACRUM_BELOW_MM = 55.0, 60.0, 90.0
+ISCHIUM_OUT_MM, ISCHIUM_BELOW_MM = 130.0, 150.0
+SCAPULA_FROM_MM, SCAPULA_TO_MM, SCAPULA_DEPTH_MM = 50.0, 160.0, 220.0
+"""The convention's distances on the back (tests/data/site_labels/CONVENTION.md, "Lying on the back"): the sacrum
+within ``SACRUM_HALF_MM`` of the midline from ``SACRUM_ABOVE_MM`` above to ``SACRUM_BELOW_MM`` below the sacral
+peak; head up, the ischia out to ``ISCHIUM_OUT_MM`` from the peak's level to ``ISCHIUM_BELOW_MM`` below it; the
+scapulae ``SCAPULA_FROM_MM`` to ``SCAPULA_TO_MM`` from the midline, from the shoulder level to ``SCAPULA_DEPTH_MM``
+below it, the spine between them no site. Taken as written, not fitted. Against the site table alone, in the
+leave-one-subject-out study over the training subjects (benchmarks/site_labels.py --loso): sacrum and ischia
+0.800 -> 0.801 of the loaded spots right, with the scapulae 0.813."""
 
 PELVIS_BAND = (0.40, 0.60)
 """Stretch of the body (fractions of its length from the head) whose load gives the trunk's midline for the heels."""
@@ -125,6 +142,8 @@ def label_cells(view: BodyView, posture: str, *, floor_kpa: float = FLOOR_KPA,
         _gather_trochanters(view, names, kpa >= floor_kpa)
         if posture in ("supine", "inclined"):
             _heels_by_the_pelvis(view, frame, names)
+        if posture in BACK_POSTURES:
+            _name_the_back(view, posture, names, kpa >= floor_kpa, floor_kpa)
     else:
         names[rows, cols] = _prone_sites(s, u)
     return names
@@ -233,6 +252,42 @@ def _heels_by_the_pelvis(view: BodyView, frame: BodyFrame, names: np.ndarray) ->
         return
     middle = float(np.average(u[pelvis], weights=kpa[r[pelvis], c[pelvis]]))
     names[hr, hc] = np.where(blob_u[blob] > middle, "heel-left", "heel-right")
+
+
+def _name_the_back(view: BodyView, posture: str, names: np.ndarray, loaded: np.ndarray, floor_kpa: float) -> None:
+    """The sacrum, ischia and scapulae of a patient on the back, by the convention's distances from the landmarks
+    (``SACRUM_HALF_MM`` and the others): the table's cells for a site outside its place become unnamed, loaded cells
+    inside take it. Ischia are named head up only (lying flat they bear no weight)."""
+    marks = back_landmarks(view, floor_kpa)
+    u = marks.from_midline(view)
+    along = np.broadcast_to(((np.arange(view.shape[0]) + 0.5) * view.pitch_mm[0])[:, None], u.shape)
+    seat = np.zeros_like(loaded)
+    if marks.sacral_peak_mm is not None:
+        below_peak = along - marks.sacral_peak_mm
+        sacrum = (loaded & (np.abs(u) <= SACRUM_HALF_MM) & (below_peak >= -SACRUM_ABOVE_MM)
+                  & (below_peak <= SACRUM_BELOW_MM))
+        _rename(names, sacrum, ("sacrum",), np.full(u.shape, "sacrum", dtype=object))
+        if posture == "inclined":
+            seat = (loaded & (np.abs(u) > SACRUM_HALF_MM) & (np.abs(u) <= ISCHIUM_OUT_MM) & (below_peak >= 0)
+                    & (below_peak <= ISCHIUM_BELOW_MM))
+    _rename(names, seat, ("ischium-left", "ischium-right"), _by_side(u, "ischium"))
+    if marks.shoulder_mm is not None:
+        below_shoulder = along - marks.shoulder_mm
+        band = loaded & (below_shoulder >= 0) & (below_shoulder <= SCAPULA_DEPTH_MM)
+        blades = band & (np.abs(u) >= SCAPULA_FROM_MM) & (np.abs(u) <= SCAPULA_TO_MM)
+        _rename(names, blades, ("scapula-left", "scapula-right"), _by_side(u, "scapula"))
+        names[band & (np.abs(u) < SCAPULA_FROM_MM) & (names != "occiput")] = None
+
+
+def _rename(names: np.ndarray, place: np.ndarray, sites: tuple[str, ...], site_at: np.ndarray) -> None:
+    """The cells of ``place`` take their ``site_at``; cells named one of ``sites`` outside it become unnamed."""
+    names[np.isin(names, sites) & ~place] = None
+    names[place] = site_at[place]
+
+
+def _by_side(u: np.ndarray, site: str) -> np.ndarray:
+    """``site`` on the side of the midline each cell lies (the patient's left at +u)."""
+    return np.where(u > 0, f"{site}-left", f"{site}-right").astype(object)
 
 
 def _prone_sites(s: np.ndarray, u: np.ndarray) -> list[str | None]:

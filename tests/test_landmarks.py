@@ -1,0 +1,95 @@
+"""The back's landmarks are found where a reader finds them, and the back's sites are named by the convention's
+distances from them."""
+
+import re
+
+import numpy as np
+import pytest
+from test_sites import LABELS, LOCATOR_POSTURE, MONITOR_CELLS, PITCH, PMAT, monitor_view, needs_pmat, true_sites_mm
+
+from appliance.alerts.anatomy import BodyView
+from appliance.alerts.landmarks import back_landmarks
+from appliance.alerts.sites import FLOOR_KPA, SACRUM_HALF_MM, label_cells
+from appliance.sim.body import Placement, Subject, body_field
+
+TRAINING = (1, 2, 3, 5, 7, 8, 9, 10)
+
+
+def virtual_back(posture: str, across_mm: float, slid_mm: float, turn_deg: float):
+    subject = Subject(75.0, 170.0)
+    placement = Placement(posture, across_mm, (1900 - 1700) / 2 - 50 + slid_mm, turn_deg)
+    view = monitor_view(body_field(subject, placement).pressure_kpa, blurred=True)
+    return view, true_sites_mm(subject, placement, LOCATOR_POSTURE[posture])
+
+
+@pytest.mark.parametrize("posture", ["supine", "head-raised-30", "head-raised-45"])
+@pytest.mark.parametrize("across_mm, slid_mm, turn_deg", [(450, 0, 0), (350, 150, 5), (550, 100, -5)])
+def test_a_virtual_body_has_its_midline_through_the_sacrum_and_the_sacral_peak_on_it(posture, across_mm, slid_mm,
+                                                                                     turn_deg):
+    view, truth = virtual_back(posture, across_mm, slid_mm, turn_deg)
+    marks = back_landmarks(view, FLOOR_KPA)
+    along, across = truth["sacrum"]
+    assert abs(marks.midline_mm[int(along // PITCH[0])] - across) < 30.0
+    assert marks.sacral_peak_mm is not None and abs(marks.sacral_peak_mm - along) < 45.0
+    assert marks.shoulder_mm is not None
+    for side in ("left", "right"):
+        blade_along = truth[f"scapula-{side}"][0]
+        assert marks.shoulder_mm - 30.0 <= blade_along <= marks.shoulder_mm + 220.0
+
+
+@pytest.mark.parametrize("posture", ["supine", "head-raised-30"])
+def test_the_sacrum_lies_on_the_midline_and_ischia_beside_it_only_head_up(posture):
+    view, _ = virtual_back(posture, 480, 50, 3)
+    names = label_cells(view, LOCATOR_POSTURE[posture])
+    u = back_landmarks(view, FLOOR_KPA).from_midline(view)
+    assert (names == "sacrum").any()
+    assert np.all(np.abs(u[names == "sacrum"]) <= SACRUM_HALF_MM)
+    ischia = {side: names == f"ischium-{side}" for side in ("left", "right")}
+    if LOCATOR_POSTURE[posture] == "inclined":
+        assert ischia["left"].any() and ischia["right"].any()
+        assert np.all(u[ischia["left"]] > SACRUM_HALF_MM) and np.all(u[ischia["right"]] < -SACRUM_HALF_MM)
+    else:
+        assert not ischia["left"].any() and not ischia["right"].any()
+
+
+def test_a_map_with_no_contact_has_no_levels():
+    marks = back_landmarks(BodyView(np.zeros((64, 30)), PITCH, True), FLOOR_KPA)
+    assert marks.shoulder_mm is None and marks.sacral_peak_mm is None
+    assert np.allclose(marks.midline_mm, MONITOR_CELLS.width_mm / 2)
+
+
+def readers_landmarks(spots: list[dict]) -> dict[str, float]:
+    """The landmarks a reader wrote in the notes of a map's spots (mm; cells of 10 mm): the midline's column at the
+    sacral peak, the shoulder level's row, the sacral peak's row."""
+    notes = [spot.get("note", "") for spot in spots]
+    found = {}
+    for name, pattern in (("midline", r"midline (?:~|about |taken )?c(\d+(?:\.\d+)?)"),
+                          ("shoulder", r"shoulder level r(\d+)"),
+                          ("peak", r"sacral peak (?:spot \d+ )?r(\d+) c\d+")):
+        match = next((m for m in (re.search(pattern, n) for n in notes) if m), None)
+        if match:
+            found[name] = float(match[1]) * 10 + 5
+    return found
+
+
+@needs_pmat
+def test_the_landmarks_agree_with_the_readers_notes_on_the_training_subjects():
+    """Measured when the landmarks were chosen (appliance/alerts/landmarks.py): 71 % of 52 midlines within 15 mm,
+    81 % of 70 shoulder levels within 60 mm, 88 % of 64 sacral peaks within 45 mm of the reader's."""
+    from appliance.alerts.site_table_fit import label_maps
+    midline, shoulder, peak = [], [], []
+    for _, posture, view, spots in label_maps(LABELS, PMAT, TRAINING):
+        if posture not in ("supine", "inclined"):
+            continue
+        marks, reader = back_landmarks(view, FLOOR_KPA), readers_landmarks(spots)
+        if "peak" in reader:
+            peak.append(marks.sacral_peak_mm is not None and abs(marks.sacral_peak_mm - reader["peak"]) <= 45.0)
+            if "midline" in reader:
+                at = int(reader["peak"] // view.pitch_mm[0])
+                midline.append(abs(marks.midline_mm[at] - reader["midline"]) <= 15.0)
+        if "shoulder" in reader:
+            shoulder.append(marks.shoulder_mm is not None and abs(marks.shoulder_mm - reader["shoulder"]) <= 60.0)
+    assert min(len(midline), len(shoulder), len(peak)) >= 50
+    assert np.mean(midline) >= 0.68
+    assert np.mean(shoulder) >= 0.76
+    assert np.mean(peak) >= 0.83
