@@ -4,8 +4,9 @@ a gateway down held as a technical alarm and every page delivered once it is bac
 recorded not posted again after a restart; a service killed mid-stream posting nothing twice but the page in
 flight; a page refused for good recorded and not tried again; each outcome shown with its alarm at the ward
 station, again after the station's restart and once however often it comes; the ward screen told when pages do
-not go out and when the service went quiet; the service's and the station's users held to their own ward's
-records and status; the description's [[notifier]] tables checked."""
+not go out and when the service went quiet; a gateway that dies while no page is due found by a probe; the
+service's and the station's users held to their own ward's records and status; the description's [[notifier]]
+tables checked."""
 
 import asyncio
 import contextlib
@@ -34,7 +35,7 @@ from appliance.errors import ConfigError
 from appliance.hospital.description import Notifier, description_text, hospital_from_mapping
 from appliance.hospital.engine import BedPublisher, confirms_stream_config
 from appliance.hospital.nodeconfig import ADMIN, notifier_permissions, read_password, write_node_configs
-from appliance.hospital.notify import IDEMPOTENCY_KEY, NotificationService
+from appliance.hospital.notify import IDEMPOTENCY_KEY, GatewayUnavailable, NotificationService, probe_gateway
 from appliance.hospital.subjects import (bed_subject, confirmation_subject, confirms_stream_name, notified_subject,
                                          paging_status_subject, stream_name)
 from appliance.ward.applied import AppliedJournal
@@ -48,11 +49,14 @@ STREAM_ATTEMPTS = 3
 
 class Gateway:
     """A messaging gateway on loopback: each POST is kept (its idempotency key, the status answered, its body)
-    before it is answered with ``answer(body)``, after ``delay_s``."""
+    before it is answered with ``answer(body)``, after ``delay_s``; a HEAD or GET (a probe) is kept as (method, path)
+    and answered ``probe_answer(method, path)``."""
 
     def __init__(self):
         self.pages: list[tuple[str, int, dict]] = []
+        self.probes: list[tuple[str, str]] = []
         self.answer = lambda body: 200
+        self.probe_answer = lambda method, path: 405 if method == "HEAD" else 200
         self.delay_s = 0.0
         self._lock = threading.Lock()
         gateway = self
@@ -65,6 +69,19 @@ class Gateway:
                     gateway.pages.append((self.headers[IDEMPOTENCY_KEY], status, body))
                 time.sleep(gateway.delay_s)
                 self.send_response(status)
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+
+            def do_HEAD(self):
+                self._probed()
+
+            def do_GET(self):
+                self._probed()
+
+            def _probed(self):
+                with gateway._lock:
+                    gateway.probes.append((self.command, self.path))
+                self.send_response(gateway.probe_answer(self.command, self.path))
                 self.send_header("Content-Length", "0")
                 self.end_headers()
 
@@ -478,6 +495,64 @@ def test_the_ward_screen_says_while_pages_do_not_go_out_and_when_the_service_wen
     assert quiet[0]["since"] == quiet[0]["heard_at"]          # when it was last heard
 
 
+def test_a_probe_passes_a_gateway_that_answers_and_names_why_one_fails(gateway):
+    page_address, health = gateway.url, gateway.url.replace("/pages", "/health")
+    probe_gateway(page_address, False, 5.0)                    # HEAD answered 405: a server is there
+    probe_gateway(health, True, 5.0)                           # the health address answered 200
+    gateway.probe_answer = lambda method, path: 503 if method == "HEAD" else 404
+    for url, asks_health, why in ((page_address, False, "HTTP 503 to a probe"), (health, True, "HTTP 404 to a probe")):
+        with pytest.raises(GatewayUnavailable, match=why):
+            probe_gateway(url, asks_health, 5.0)
+    assert gateway.probes == [("HEAD", "/pages"), ("GET", "/health"), ("HEAD", "/pages"), ("GET", "/health")]
+    gateway.close()
+    with pytest.raises(GatewayUnavailable, match="no answer to a probe"):
+        probe_gateway(page_address, False, 5.0)
+
+
+def test_a_gateway_that_dies_while_no_page_is_due_is_shown_before_the_next_alarm(cluster, gateway, tmp_path):
+    """No alarm comes; the gateway's probes fail: the service earns its technical alarm and the station shows pages
+    not going out, with no page tried; the probes pass again: delivering. An outage a page found is not ended by a
+    probe: only a page taken ends it."""
+    every_s = 0.2
+
+    def paging(station):
+        return {s["notifier"]: (s["state"], s["reason"]) for s in station.paging()}
+
+    async def run():
+        station = ward1_station(cluster, tmp_path / "station.db")
+        try:
+            async with running_service(cluster, tmp_path, status_every_s=every_s, probe_every_s=every_s) as service:
+                await until(lambda: gateway.probes and paging(station) == {"phones": ("delivering", "")},
+                            "probed, and delivering")
+                gateway.probe_answer = lambda method, path: 503
+                await until(lambda: paging(station) == {"phones": ("not delivering", "HTTP 503 to a probe")},
+                            "the dead gateway shown")
+                condition = dict(service.conditions())
+                gateway.probe_answer = lambda method, path: 405
+                await until(lambda: paging(station) == {"phones": ("delivering", "")}, "delivering again")
+                gateway.answer = lambda body: 503
+                await send(cluster, "bed1", [("alarm", alarm("raised"))])
+                await until(lambda: paging(station) == {"phones": ("not delivering", "HTTP 503")}, "the page refused")
+                probes = len(gateway.probes)
+                await until(lambda: len(gateway.keys(503)) >= 3, "the page tried again")
+                held = (paging(station), dict(service.conditions()), len(gateway.probes) - probes)
+                gateway.answer = lambda body: 200
+                await until(lambda: service.paged == 1 and paging(station) == {"phones": ("delivering", "")},
+                            "the page taken")
+                return condition, held
+        finally:
+            close(station)
+
+    condition, (held_paging, held_condition, probes_while_paging) = asyncio.run(run())
+    assert list(condition) == ["technical:notify-phones"]
+    assert "answered no probe" in condition["technical:notify-phones"]
+    assert "HTTP 503 to a probe" in condition["technical:notify-phones"]
+    assert held_paging == {"phones": ("not delivering", "HTTP 503")}        # passing probes did not end it
+    assert "taken no page" in held_condition["technical:notify-phones"]
+    assert probes_while_paging <= 1                 # pages tried: the gateway is not probed besides (one in flight)
+    assert gateway.keys(200) == ["bed1:1"]
+
+
 def test_the_board_shows_a_service_silent_for_a_few_periods_or_never_heard_as_unknown():
     steady = 1000.0
     board = WardBoard(steady_clock=lambda: steady)                  # the board's clock stands still: no timing
@@ -561,6 +636,9 @@ def test_a_notifier_is_described_with_its_defaults_and_written_back_the_same(tmp
     assert hospital.notifiers == (Notifier("phones", ("ward1",), "https://pager.example/pages", ("high", "medium")),)
     assert hospital_from_mapping(tomllib.loads(description_text(hospital))) == hospital
     assert hospital_from_mapping(described(priorities=["low"])).notifier("phones").priorities == ("low",)
+    probed = hospital_from_mapping(described(probe_url="https://pager.example/health"))
+    assert probed.notifier("phones").probe_url == "https://pager.example/health"
+    assert hospital_from_mapping(tomllib.loads(description_text(probed))) == probed
     written = write_node_configs(hospital, tmp_path / "out")
     assert USER in written.added
     assert notifier_permissions(hospital.notifier("phones"))["publish"]["allow"][-2:] == \
@@ -577,6 +655,8 @@ def test_a_notifier_is_described_with_its_defaults_and_written_back_the_same(tmp
     ({"url": "ftp://pager.example/"}, "[[notifier]] phones url 'ftp://pager.example/': must be an http:// or "
                                       "https:// address with a host"),
     ({"url": "https:///pages"}, "must be an http:// or https:// address with a host"),
+    ({"probe_url": "pager.example/health"}, "[[notifier]] phones probe_url 'pager.example/health': must be an "
+                                            "http:// or https:// address with a host"),
     ({"priorities": ["urgent"]}, "[[notifier]] phones priorities must be a non-empty list of low, medium, high, got "
                                  "['urgent']"),
     ({"priorities": ["high", "high"]}, "[[notifier]] phones priority 'high' is given twice"),

@@ -24,6 +24,8 @@
     name = "phones"                # its engine user is notify-phones
     wards = ["ward3"]              # whose alarm changes it pages
     url = "https://pager.example/pages"        # the messaging gateway it POSTs each page to
+    probe_url = "https://pager.example/health" # optional: answers 2xx while the gateway can page (default: any
+                                               # answer below 500 to a HEAD of url shows the gateway is there)
     priorities = ["high", "medium"]            # the alarms it pages (default high and medium)
 
     [tls]                          # optional: TLS on every node's client and MQTT listeners and between nodes
@@ -97,12 +99,15 @@ class HistoryPolicy:
 
 @dataclass(frozen=True)
 class Notifier:
-    """A service paging its wards' alarm changes of ``priorities`` to the messaging gateway at ``url``."""
+    """A service paging its wards' alarm changes of ``priorities`` to the messaging gateway at ``url``; the gateway's
+    health address ``probe_url`` (None: the service asks ``url`` itself) tells while no page is due whether it is
+    there."""
 
     name: str
     wards: tuple[str, ...]
     url: str
     priorities: tuple[str, ...] = PAGED_PRIORITIES
+    probe_url: str | None = None
 
 
 @dataclass(frozen=True)
@@ -206,6 +211,8 @@ def description_text(hospital: Hospital) -> str:
     for service in hospital.notifiers:
         lines += ["", "[[notifier]]", f"name = {toml_value(service.name)}", f"wards = {toml_value(service.wards)}",
                   f"url = {toml_value(service.url)}", f"priorities = {toml_value(service.priorities)}"]
+        if service.probe_url is not None:
+            lines.append(f"probe_url = {toml_value(service.probe_url)}")
     if hospital.tls is not None:
         lines += ["", "[tls]", f"dir = {toml_value(str(hospital.tls.path))}"]
     if hospital.history is not None:
@@ -253,7 +260,7 @@ def _ward(table, number: int) -> Ward:
 def _notifier(table, number: int, wards: tuple[Ward, ...]) -> Notifier:
     where = f"[[notifier]] number {number}"
     table = _table(table, where)
-    check_keys(table, {"name", "wards", "url", "priorities"}, where, ConfigError)
+    check_keys(table, {"name", "wards", "url", "priorities", "probe_url"}, where, ConfigError)
     name = check_name(_string(table, "name", where), f"{where} name")
     where = f"[[notifier]] {name}"
     known = [ward.name for ward in wards]
@@ -263,16 +270,22 @@ def _notifier(table, number: int, wards: tuple[Ward, ...]) -> Notifier:
             raise ConfigError(f"{where} wards: {ward!r} is not a [[ward]] of the hospital; its wards: "
                               f"{', '.join(known)}")
     _unique(served, f"{where} ward")
-    url = _string(table, "url", where)
-    parts = urllib.parse.urlsplit(url)
-    if parts.scheme not in ("http", "https") or not parts.hostname or any(c.isspace() for c in url):
-        raise ConfigError(f"{where} url {url!r}: must be an http:// or https:// address with a host")
+    url = _web_address(_string(table, "url", where), f"{where} url")
+    probe_url = None if "probe_url" not in table else _web_address(_string(table, "probe_url", where),
+                                                                    f"{where} probe_url")
     priorities = table.get("priorities", list(PAGED_PRIORITIES))
     if not isinstance(priorities, list) or not priorities or any(p not in PRIORITIES for p in priorities):
         raise ConfigError(f"{where} priorities must be a non-empty list of {', '.join(PRIORITIES)}, got "
                           f"{priorities!r}")
     _unique(priorities, f"{where} priority")
-    return Notifier(name, tuple(served), url, tuple(priorities))
+    return Notifier(name, tuple(served), url, tuple(priorities), probe_url)
+
+
+def _web_address(url: str, where: str) -> str:
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme not in ("http", "https") or not parts.hostname or any(c.isspace() for c in url):
+        raise ConfigError(f"{where} {url!r}: must be an http:// or https:// address with a host")
+    return url
 
 
 def _ports(node: Node) -> list[int]:

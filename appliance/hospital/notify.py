@@ -21,6 +21,11 @@ up to ``RETRY_MAX_S``. While the gateway takes no pages, :meth:`NotificationServ
 alarm, as the ward link's), and the log says it once when the outage begins and once when it ends. After an
 outage pages may reach the gateway out of order: each carries its bed's ``seq`` and ``time_s``.
 
+A gateway that died at night must not wait for the next alarm to be found out: while no page has been tried for
+``PROBE_EVERY_S`` the service asks the gateway whether it is there (:func:`probe_gateway`: its ``probe_url``, which
+must answer 2xx, or else a HEAD of the page address, which any answer below 500 passes) and counts a probe that
+fails as a page that failed, until a probe or a page goes through.
+
 The nurses see it too: the service tells each of its wards' stations whether pages go out (:func:`paging_status`
 on ``hospital.<ward>.paging.status.<name>``), at once when that changes and again every ``STATUS_EVERY_S``. A
 plain message, repeated, rather than a last value kept in a stream: a station must notice a service that stopped
@@ -71,6 +76,8 @@ FETCH_BATCH = 20
 """Events fetched at once: few, because they are paged one after the other and each must be acknowledged
 within the consumer's acknowledgement wait or it is given again (and then found in the journal)."""
 STREAM_WAIT_S = 10.0
+PROBE_EVERY_S = 60.0
+"""While no page is tried, how often the gateway is probed: an outage shows within a minute or two of its start."""
 STATUS_EVERY_S = 5.0
 """How often the service says whether pages go out, when nothing changed: a station that hears nothing for a few
 of these shows the service's state as unknown."""
@@ -116,6 +123,23 @@ def post_page(url: str, key: str, body: bytes, timeout_s: float) -> int:
         raise GatewayUnavailable(str(getattr(exc, "reason", exc)) or type(exc).__name__) from exc
 
 
+def probe_gateway(url: str, health: bool, timeout_s: float) -> None:
+    """Ask the gateway at ``url`` whether it is there: GET its health address (``health``), which must answer 2xx, or
+    HEAD its page address, which must answer below 500 (a 405 still shows a server that answers); raises
+    GatewayUnavailable naming what it answered, or that it did not."""
+    request = urllib.request.Request(url, method="GET" if health else "HEAD")
+    try:
+        with _OPENER.open(request, timeout=timeout_s) as reply:
+            status = reply.status
+    except urllib.error.HTTPError as exc:
+        exc.close()
+        status = exc.code
+    except (OSError, http.client.HTTPException) as exc:
+        raise GatewayUnavailable(f"no answer to a probe: {getattr(exc, 'reason', exc) or type(exc).__name__}") from exc
+    if status >= 500 or (health and not 200 <= status < 300):
+        raise GatewayUnavailable(f"HTTP {status} to a probe")
+
+
 def paging_status(notifier: str, delivering: bool, since: float, reason: str, every_s: float) -> bytes:
     """What a station hears of notification service ``notifier``: whether its gateway takes pages, since when
     (``time.time()``), why not (``reason``, empty while it does), and the pace it says this at."""
@@ -125,20 +149,25 @@ def paging_status(notifier: str, delivering: bool, since: float, reason: str, ev
 
 class NotificationService:
     """``notifier``'s service on ``connection`` (logged in as its user), keeping what it did in ``journal``;
-    ``post`` sends one page (:func:`post_page`); its wards' stations hear whether pages go out every
-    ``status_every_s``. Counters: ``paged`` and ``refused`` (each event once), ``repeats`` (events given again that
-    had been dealt with), ``failures`` (tries the gateway did not take)."""
+    ``post`` sends one page (:func:`post_page`), ``probe`` asks whether the gateway is there (:func:`probe_gateway`)
+    after ``probe_every_s`` without a page; its wards' stations hear whether pages go out every ``status_every_s``.
+    Counters: ``paged`` and ``refused`` (each event once), ``repeats`` (events given again that had been dealt with),
+    ``failures`` (tries the gateway did not take), ``probes``."""
 
     def __init__(self, connection: Client, notifier: Notifier, journal: PageJournal, *,
                  post: Callable[[str, str, bytes, float], int] = post_page, timeout_s: float = POST_TIMEOUT_S,
+                 probe: Callable[[str, bool, float], None] = probe_gateway, probe_every_s: float = PROBE_EVERY_S,
                  status_every_s: float = STATUS_EVERY_S):
         self.connection, self.notifier, self.journal = connection, notifier, journal
         self.user = notifier_user(notifier.name)
         self.js = connection.jetstream()
         self.post, self.timeout_s, self.status_every_s = post, timeout_s, status_every_s
-        self.paged = self.refused = self.repeats = self.failures = 0
+        self.probe, self.probe_every_s = probe, probe_every_s
+        self.paged = self.refused = self.repeats = self.failures = self.probes = 0
         self._down_since: float | None = None         # time.monotonic() of the first try the gateway did not take
         self._down_reason = ""
+        self._down_by_probe = False                   # no page failed: only a probe says the gateway is not there
+        self._last_try = time.monotonic()             # of a page; the gateway is probed after probe_every_s without
         self._state_since = time.time()               # when pages last began or stopped going out, for the nurses
         self._state_changed = asyncio.Event()
         self._retry_s = RETRY_FIRST_S
@@ -149,7 +178,8 @@ class NotificationService:
         if self._down_since is None:
             return {}
         down_s = time.monotonic() - self._down_since
-        return {f"technical:{self.user}": f"the {self.notifier.name} gateway has taken no page for {down_s:.0f} s "
+        what = "answered no probe" if self._down_by_probe else "taken no page"
+        return {f"technical:{self.user}": f"the {self.notifier.name} gateway has {what} for {down_s:.0f} s "
                                           f"({self._down_reason}): alarm changes are not reaching "
                                           f"{self.notifier.name}"}
 
@@ -157,6 +187,7 @@ class NotificationService:
         """Page every ward's alarm changes until :meth:`stop`; a ward's reader that fails raises its error here."""
         readers = [asyncio.create_task(self._serve(ward), name=f"{self.user} {ward}") for ward in self.notifier.wards]
         readers.append(asyncio.create_task(self._tell_stations(), name=f"{self.user} status"))
+        readers.append(asyncio.create_task(self._watch_gateway(), name=f"{self.user} probe"))
         stopping = asyncio.create_task(self._stopping.wait())
         try:
             done, _ = await asyncio.wait([stopping, *readers], return_when=asyncio.FIRST_COMPLETED)
@@ -215,6 +246,25 @@ class NotificationService:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._state_changed.wait(), self.status_every_s)
 
+    async def _watch_gateway(self) -> None:
+        """Probe the gateway whenever no page was tried for ``probe_every_s``; a failed probe is an outage until a
+        probe or a page goes through (an outage a page found ends only with a page taken)."""
+        url, health = (self.notifier.probe_url, True) if self.notifier.probe_url else (self.notifier.url, False)
+        while True:
+            idle_s = time.monotonic() - self._last_try
+            if idle_s < self.probe_every_s:
+                await asyncio.sleep(self.probe_every_s - idle_s)
+                continue
+            if self._down_since is None or self._down_by_probe:
+                self.probes += 1
+                try:
+                    await asyncio.to_thread(self.probe, url, health, self.timeout_s)
+                except GatewayUnavailable as exc:
+                    self._gateway_down(str(exc), by_probe=True)
+                else:
+                    self._gateway_up()
+            await asyncio.sleep(self.probe_every_s)
+
     async def _handle(self, ward: str, delivery: Delivery) -> None:
         """Page ``delivery`` unless the journal has it, journal the outcome, record it on a quorum; raises when
         the gateway did not take it or the engine could not keep the record, so the event is given again."""
@@ -241,6 +291,7 @@ class NotificationService:
         """POST the event: the gateway's status when it took the page or refused it for good, else
         GatewayUnavailable."""
         body = json.dumps({**delivery.event, "ward": ward}, separators=(",", ":")).encode()
+        self._last_try = time.monotonic()
         try:
             status = await asyncio.to_thread(self.post, self.notifier.url, message_id(delivery.bed, delivery.seq),
                                              body, self.timeout_s)
@@ -256,18 +307,22 @@ class NotificationService:
                       self.user, delivery.bed, delivery.seq, status)
         return status
 
-    def _gateway_down(self, reason: str) -> None:
-        self._down_reason = reason
+    def _gateway_down(self, reason: str, by_probe: bool = False) -> None:
+        changed = reason != self._down_reason
+        self._down_reason, self._down_by_probe = reason, by_probe
         if self._down_since is None:
             self._down_since, self._state_since = time.monotonic(), time.time()
-            self._state_changed.set()
             log.error("%s: the gateway %s takes no pages (%s): alarm changes are held and tried again until it "
                       "does", self.user, self.notifier.url, reason)
+            changed = True
+        if changed:
+            self._state_changed.set()
 
     def _gateway_up(self) -> None:
         self._retry_s = RETRY_FIRST_S
         if self._down_since is not None:
             log.warning("%s: the gateway takes pages again after %.0f s", self.user,
                         time.monotonic() - self._down_since)
-            self._down_since, self._state_since = None, time.time()
+            self._down_since, self._down_reason, self._down_by_probe = None, "", False
+            self._state_since = time.time()
             self._state_changed.set()
