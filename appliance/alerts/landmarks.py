@@ -27,7 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import binary_opening, label, median_filter
+from scipy.ndimage import binary_opening, label, maximum_filter1d, median_filter, minimum_filter1d
 
 from appliance.alerts.anatomy import BodyView
 from appliance.alerts.body_frame import body_contact
@@ -124,24 +124,26 @@ def _outline_middle(contact: np.ndarray, view: BodyView) -> np.ndarray:
     """Per row, the middle of the contact's outline (opened by 2 x 2 cells) within ``OUTLINE_HALF_MM``; NaN where
     nothing touches."""
     opened = binary_opening(contact, np.ones((2, 2), dtype=bool))
-    reach = round(OUTLINE_HALF_MM / view.pitch_mm[0])
-    middle = np.full(view.shape[0], np.nan)
-    for row in range(view.shape[0]):
-        cols = np.flatnonzero(opened[max(row - reach, 0):row + reach + 1].any(axis=0))
-        if len(cols):
-            middle[row] = (0.5 * (cols[0] + cols[-1]) + 0.5) * view.pitch_mm[1]
-    return middle
+    size = 2 * round(OUTLINE_HALF_MM / view.pitch_mm[0]) + 1
+    first, last = _row_extents(opened)
+    first = minimum_filter1d(first, size, mode="constant", cval=np.inf)
+    last = maximum_filter1d(last, size, mode="constant", cval=-np.inf)
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(first), (0.5 * (first + last) + 0.5) * view.pitch_mm[1], np.nan)
+
+
+def _row_extents(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row, the first and last column of ``cells`` that is set (inf and -inf for an empty row)."""
+    cols = np.arange(cells.shape[1], dtype=float)
+    return (np.where(cells, cols, np.inf).min(axis=1), np.where(cells, cols, -np.inf).max(axis=1))
 
 
 def _shoulder_level(contact: np.ndarray, view: BodyView, u: np.ndarray, head_along: float) -> float | None:
     """Along (mm) of the top edge of the first row below the head wide enough to be the trunk."""
-    near = contact & (np.abs(u) <= SHOULDER_REACH_MM)
+    first, last = _row_extents(contact & (np.abs(u) <= SHOULDER_REACH_MM))
     along = (np.arange(view.shape[0]) + 0.5) * view.pitch_mm[0]
-    for row in np.flatnonzero(along >= head_along + SHOULDER_GAP_MM):
-        cols = np.flatnonzero(near[row])
-        if len(cols) and (cols[-1] - cols[0] + 1) * view.pitch_mm[1] >= SHOULDER_WIDTH_MM:
-            return float(row * view.pitch_mm[0])
-    return None
+    wide = (along >= head_along + SHOULDER_GAP_MM) & ((last - first + 1) * view.pitch_mm[1] >= SHOULDER_WIDTH_MM)
+    return float(np.argmax(wide) * view.pitch_mm[0]) if wide.any() else None
 
 
 def _sacral_peak(kpa: np.ndarray, contact: np.ndarray, view: BodyView, u: np.ndarray, top: float, bottom: float,
@@ -152,7 +154,11 @@ def _sacral_peak(kpa: np.ndarray, contact: np.ndarray, view: BodyView, u: np.nda
     centres = np.arange(top + PELVIS_SEARCH[0] * length, top + PELVIS_SEARCH[1] * length, 10.0)
     if len(centres) == 0:
         return None
-    pelvis = centres[int(np.argmax([kpa[contact & (np.abs(along - c) <= PELVIS_SPAN_MM)].sum() for c in centres]))]
+    row_along = along[:, 0]
+    row_load = np.concatenate([[0.0], np.cumsum(np.where(contact, kpa, 0.0).sum(axis=1))])
+    low = np.searchsorted(row_along, centres - PELVIS_SPAN_MM, side="left")
+    high = np.searchsorted(row_along, centres + PELVIS_SPAN_MM, side="right")
+    pelvis = centres[int(np.argmax(row_load[high] - row_load[low]))]
     near = ((np.abs(u) <= SACRAL_SEARCH_MM) & (np.abs(along - pelvis) <= PELVIS_REACH * length)
             & (kpa >= floor_kpa))
     if not near.any():
