@@ -162,6 +162,40 @@ def test_out_of_bed_an_empty_map_and_bad_input():
     assert SiteReading("sacrum", 1.0, 2.0, 3.0) == SiteReading("sacrum", 1.0, 2.0, 3.0)
 
 
+def little_contact(shape: str) -> np.ndarray:
+    """A bed map holding no whole body: what the mat reads while a patient gets in or out, or a foot alone."""
+    kpa = np.zeros((64, 30))
+    if shape == "one row":
+        kpa[30, 10:14] = 8.0
+    elif shape == "one blob":
+        kpa[30:33, 10:13] = 8.0
+    elif shape == "the feet only":
+        kpa[60:64, 5:25] = 8.0
+    elif shape == "two specks":
+        kpa[10:12, 3] = kpa[50:52, 25] = 9.0
+    elif shape == "a stripe":
+        kpa[:, 14:16] = 8.0
+    elif shape == "all loaded":
+        kpa[:] = 8.0
+    else:
+        kpa[:] = np.random.default_rng(0).uniform(0.0, 10.0, kpa.shape)
+    return kpa
+
+
+@pytest.mark.parametrize("shape", ["one row", "one blob", "the feet only", "two specks", "a stripe", "all loaded",
+                                   "noise"])
+@pytest.mark.parametrize("posture", ["supine", "inclined", "left-30", "right-60", "left-90", "fetal-right", "prone",
+                                     "sitting-edge"])
+def test_a_map_holding_no_whole_body_is_labelled_without_error(shape, posture):
+    """The monitor keeps the last sure lying posture through unsure maps, so the locator meets such maps in any
+    posture; it names some of their loaded cells or none, and never fails."""
+    view = BodyView(little_contact(shape), PITCH, True)
+    names = label_cells(view, posture)
+    assert names.shape == view.shape
+    assert all(name is None for name in names[view.kpa < FLOOR_KPA])
+    assert {r.site for r in locate_sites(view, posture)} <= set(names.ravel())
+
+
 needs_pmat = pytest.mark.skipif(not PMAT.is_dir(), reason="PmatData is not on this machine")
 
 

@@ -98,6 +98,8 @@ def fit_body_frame(view: BodyView, *, side_lying: bool = False) -> BodyFrame:
     pitch_along, pitch_across = view.pitch_mm
     straight = binary_opening(contact, np.ones((2, 2), dtype=bool))
     straight[rows[0] + int(TRUNK_END * (rows[-1] - rows[0])) + 1:] = False
+    if not straight.any():                  # no stretch two cells wide (a foot, a hand): the contact itself
+        straight = contact
     along_cells, across_cells = np.nonzero(straight)
     angle, level = _principal_axis(along_cells, across_cells, view.pitch_mm)
     r, c = np.nonzero(contact)

@@ -94,11 +94,11 @@ def _cells_mm(view: BodyView) -> tuple[np.ndarray, np.ndarray]:
 
 def _head(contact: np.ndarray, view: BodyView, band_end_mm: float) -> tuple[float, float]:
     """(along, across) of the centre of the head: the blob of the top band holding the top-most touched row (the
-    larger, if two touch it)."""
+    larger, if two touch it); the band holds that row however short the contact."""
     along, across = _cells_mm(view)
-    band = contact & (along <= band_end_mm)
+    first = np.flatnonzero(contact.any(axis=1))[0]
+    band = contact & (along <= max(band_end_mm, along[first, 0]))
     blobs, n = label(band, structure=np.ones((3, 3)))
-    first = np.flatnonzero(band.any(axis=1))[0]
     sizes = np.bincount(blobs.ravel(), minlength=n + 1)
     head = blobs == max((k for k in np.unique(blobs[first]) if k), key=lambda k: sizes[k])
     return float(along[head].mean()), float(across[head].mean())
