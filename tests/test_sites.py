@@ -173,6 +173,8 @@ def little_contact(shape: str) -> np.ndarray:
         kpa[60:64, 5:25] = 8.0
     elif shape == "two specks":
         kpa[10:12, 3] = kpa[50:52, 25] = 9.0
+    elif shape == "a lone hot cell":
+        kpa[40, 12] = 12.0
     elif shape == "a stripe":
         kpa[:, 14:16] = 8.0
     elif shape == "all loaded":
@@ -182,8 +184,8 @@ def little_contact(shape: str) -> np.ndarray:
     return kpa
 
 
-@pytest.mark.parametrize("shape", ["one row", "one blob", "the feet only", "two specks", "a stripe", "all loaded",
-                                   "noise"])
+@pytest.mark.parametrize("shape", ["one row", "one blob", "the feet only", "two specks", "a lone hot cell",
+                                   "a stripe", "all loaded", "noise"])
 @pytest.mark.parametrize("posture", ["supine", "inclined", "left-30", "right-60", "left-90", "fetal-right", "prone",
                                      "sitting-edge"])
 def test_a_map_holding_no_whole_body_is_labelled_without_error(shape, posture):

@@ -33,7 +33,7 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt, gaussian_filter, label, maximum_filter
 
 from appliance.alerts.anatomy import BodyView, check_posture
-from appliance.alerts.body_frame import body_coordinates, posture_frame
+from appliance.alerts.body_frame import body_contact, body_coordinates, posture_frame
 from appliance.alerts.landmarks import back_landmarks
 from appliance.alerts.site_table import LABELLED_POSTURES, SiteTable, load_table, relative_load
 from appliance.calibration import BED_MIN_LENGTH_MM
@@ -129,8 +129,8 @@ _PRONE = (_Landmark("face", 0.07, 0.0, 0.05, 0.06), _Landmark("chest", 0.25, 0.0
 def label_cells(view: BodyView, posture: str, *, floor_kpa: float = FLOOR_KPA,
                 table: SiteTable | None = None) -> np.ndarray:
     """The site (or None) of every cell of ``view`` at or above ``floor_kpa``, as an object array of the
-    view's shape; cells below the floor, and every cell out of bed, are None. ``table``: the learned table
-    (default: the shipped one; cross-validation passes its own).
+    view's shape; cells below the floor, every cell out of bed and, lying, lone touched cells (no body) are None.
+    ``table``: the learned table (default: the shipped one; cross-validation passes its own).
 
     Raises ConfigError for an unknown posture, ModelInputInvalid for a map that is no whole bed.
     """
@@ -146,6 +146,8 @@ def label_cells(view: BodyView, posture: str, *, floor_kpa: float = FLOOR_KPA,
         along, across, peaks = (np.array(v) for v in zip(*spots))
         for a, c, site in zip(along, across, _ischia(view, along, across, peaks)):
             names[int(a // view.pitch_mm[0]), int(c // view.pitch_mm[1])] = site
+        return names
+    if not body_contact(kpa).any():                   # lone touched cells: no body to fit a frame to
         return names
     frame = posture_frame(view, posture)
     s, u = body_coordinates(view, posture, (rows + 0.5) * view.pitch_mm[0], (cols + 0.5) * view.pitch_mm[1], frame)
