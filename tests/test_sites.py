@@ -198,6 +198,24 @@ def test_a_map_holding_no_whole_body_is_labelled_without_error(shape, posture):
     assert {r.site for r in locate_sites(view, posture)} <= set(names.ravel())
 
 
+def test_random_maps_are_labelled_in_every_posture_without_error():
+    """Blocks of load of any size anywhere, on a quiet or a noisy mat: whatever the posture, the locator names
+    loaded cells or none, and never fails."""
+    from appliance.alerts.anatomy import POSTURES
+    rng = np.random.default_rng(1)
+    for _ in range(150):
+        kpa = np.zeros((64, 30))
+        for _ in range(rng.integers(1, 6)):
+            r, c, h, w = rng.integers(0, 64), rng.integers(0, 30), rng.integers(1, 20), rng.integers(1, 12)
+            kpa[r:r + h, c:c + w] = rng.uniform(0.5, 20.0)
+        if rng.random() < 0.3:
+            kpa += rng.uniform(0.0, 3.0, kpa.shape)
+        view = BodyView(kpa, PITCH, True)
+        for posture in POSTURES:
+            names = label_cells(view, posture)
+            assert all(name is None for name in names[kpa < FLOOR_KPA])
+
+
 needs_pmat = pytest.mark.skipif(not PMAT.is_dir(), reason="PmatData is not on this machine")
 
 
