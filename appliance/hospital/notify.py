@@ -257,12 +257,15 @@ class NotificationService:
                 continue
             if self._down_since is None or self._down_by_probe:
                 self.probes += 1
+                started = time.monotonic()
                 try:
                     await asyncio.to_thread(self.probe, url, health, self.timeout_s)
                 except GatewayUnavailable as exc:
-                    self._gateway_down(str(exc), by_probe=True)
+                    if self._last_try < started:        # a page tried meanwhile tells more than the probe
+                        self._gateway_down(str(exc), by_probe=True)
                 else:
-                    self._gateway_up()
+                    if self._last_try < started:
+                        self._gateway_up()
             await asyncio.sleep(self.probe_every_s)
 
     async def _handle(self, ward: str, delivery: Delivery) -> None:
