@@ -58,7 +58,7 @@ class BackLandmarks:
 
     def from_midline(self, view: BodyView) -> np.ndarray:
         """Each cell's distance (mm) from the midline, towards the patient's left positive."""
-        return (np.arange(view.shape[1]) + 0.5)[None, :] * view.pitch_mm[1] - self.midline_mm[:, None]
+        return _from_midline(self.midline_mm, view)
 
 
 def back_landmarks(view: BodyView, floor_kpa: float) -> BackLandmarks:
@@ -81,10 +81,13 @@ def back_landmarks(view: BodyView, floor_kpa: float) -> BackLandmarks:
     midline = np.nanmedian(np.stack([line, np.full_like(along, head_across), _outline_middle(contact, view)]),
                            axis=0)
     midline = median_filter(midline, size=2 * round(MIDLINE_SMOOTH_MM / (2 * pitch_along)) + 1, mode="nearest")
-    marks = BackLandmarks(midline, None, None)
-    u = marks.from_midline(view)
+    u = _from_midline(midline, view)
     return BackLandmarks(midline, _shoulder_level(contact, view, u, head_along),
                          _sacral_peak(kpa, contact, view, u, top, bottom, floor_kpa))
+
+
+def _from_midline(midline_mm: np.ndarray, view: BodyView) -> np.ndarray:
+    return (np.arange(view.shape[1]) + 0.5)[None, :] * view.pitch_mm[1] - midline_mm[:, None]
 
 
 def _cells_mm(view: BodyView) -> tuple[np.ndarray, np.ndarray]:

@@ -152,7 +152,7 @@ class NotificationService:
     ``post`` sends one page (:func:`post_page`), ``probe`` asks whether the gateway is there (:func:`probe_gateway`)
     after ``probe_every_s`` without a page; its wards' stations hear whether pages go out every ``status_every_s``.
     Counters: ``paged`` and ``refused`` (each event once), ``repeats`` (events given again that had been dealt with),
-    ``failures`` (tries the gateway did not take), ``probes``."""
+    ``failures`` (tries the gateway did not take)."""
 
     def __init__(self, connection: Client, notifier: Notifier, journal: PageJournal, *,
                  post: Callable[[str, str, bytes, float], int] = post_page, timeout_s: float = POST_TIMEOUT_S,
@@ -163,7 +163,7 @@ class NotificationService:
         self.js = connection.jetstream()
         self.post, self.timeout_s, self.status_every_s = post, timeout_s, status_every_s
         self.probe, self.probe_every_s = probe, probe_every_s
-        self.paged = self.refused = self.repeats = self.failures = self.probes = 0
+        self.paged = self.refused = self.repeats = self.failures = 0
         self._down_since: float | None = None         # time.monotonic() of the first try the gateway did not take
         self._down_reason = ""
         self._down_by_probe = False                   # no page failed: only a probe says the gateway is not there
@@ -256,7 +256,6 @@ class NotificationService:
                 await asyncio.sleep(self.probe_every_s - idle_s)
                 continue
             if self._down_since is None or self._down_by_probe:
-                self.probes += 1
                 started = time.monotonic()
                 try:
                     await asyncio.to_thread(self.probe, url, health, self.timeout_s)
