@@ -7,9 +7,13 @@ import nats.errors
 import pytest
 from hospital_engine import logged_in, make_streams, running_cluster
 
-from appliance.hospital.engine import KEPT_PER_BED, BedPublisher, Delivery, MemoryLedger, WardReader
+import nats.js.errors
+
+from appliance.hospital.description import hospital_from_mapping
+from appliance.hospital.engine import (KEPT_PER_BED, BedPublisher, Delivery, MemoryLedger, WardReader,
+                                      ensure_ward_streams)
 from appliance.hospital.nodeconfig import ADMIN
-from appliance.hospital.subjects import stream_name
+from appliance.hospital.subjects import confirms_stream_name, stream_name
 
 
 @pytest.fixture
@@ -108,6 +112,58 @@ def test_a_memory_ledger_takes_each_number_once_and_stays_bounded_however_long_i
     assert not ledger.take(Delivery("bed1", KEPT_PER_BED, "alarm", {}))             # too far behind: taken
     assert ledger.take(Delivery("bed1", 3 * KEPT_PER_BED + 1, "alarm", {}))
     assert len(ledger) <= 2 * KEPT_PER_BED + 2                      # not the 30,000 numbers taken
+
+
+class ElectingJetStream:
+    """A JetStream API that leaves its first ``unanswered`` calls (of kind ``only``, if given) unanswered: they time
+    out, then it answers. A stream creation that times out was made all the same, as a lost answer leaves it."""
+
+    def __init__(self, unanswered: int, only: str | None = None):
+        self.unanswered, self.only, self.streams, self.calls = unanswered, only, set(), []
+
+    async def _call(self, what: str, name: str):
+        self.calls.append((what, name))
+        if self.unanswered and self.only in (None, what):
+            self.unanswered -= 1
+            if what == "add":
+                self.streams.add(name)
+            raise nats.errors.TimeoutError
+
+    async def stream_info(self, name):
+        await self._call("info", name)
+        if name not in self.streams:
+            raise nats.js.errors.NotFoundError
+
+    async def add_stream(self, config):
+        await self._call("add", config.name)
+        self.streams.add(config.name)
+
+    async def update_stream(self, config):
+        await self._call("update", config.name)
+
+
+class StubConnection:
+    def __init__(self, js):
+        self.js = js
+
+    def jetstream(self):
+        return self.js
+
+
+def test_making_the_streams_waits_out_a_cluster_electing_its_leaders_and_gives_up_after_its_time():
+    hospital = hospital_from_mapping({"hospital": {"cluster": "c", "store_dir": "/var/lib/h", "replicas": 1},
+                                      "node": [{"name": "n1", "host": "127.0.0.1"}],
+                                      "ward": [{"name": "ward1", "beds": ["bed1"], "stations": ["station1"]}]})
+    electing = ElectingJetStream(unanswered=3)
+    names = asyncio.run(ensure_ward_streams(StubConnection(electing), hospital))
+    assert names == [stream_name("ward1"), confirms_stream_name("ward1")] and electing.streams == set(names)
+    assert electing.calls[:5] == [("info", names[0]), ("info", names[0]), ("info", names[0]), ("info", names[0]),
+                                  ("add", names[0])]
+    lost = ElectingJetStream(unanswered=1, only="add")                # made, but its answer lost
+    asyncio.run(ensure_ward_streams(StubConnection(lost), hospital))
+    assert lost.calls[:4] == [("info", names[0]), ("add", names[0]), ("info", names[0]), ("update", names[0])]
+    with pytest.raises(nats.errors.TimeoutError):
+        asyncio.run(ensure_ward_streams(StubConnection(ElectingJetStream(unanswered=10**6)), hospital, wait_s=0.5))
 
 
 def test_a_bed_cannot_publish_on_another_beds_subject(cluster):

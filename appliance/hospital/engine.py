@@ -136,22 +136,42 @@ def confirms_stream_config(ward: Ward, replicas: int) -> api.StreamConfig:
                             max_msgs_per_subject=1, max_age=CONFIRMS_KEPT_S, allow_direct=True)
 
 
-async def ensure_ward_streams(connection: Client, hospital: Hospital) -> list[str]:
+STREAMS_WAIT_S = 60.0
+"""How long making the streams waits out a cluster still electing its leaders (just started, or a node restarting on
+a busy machine): a stream call that times out or finds no leader is made again until then."""
+
+
+async def ensure_ward_streams(connection: Client, hospital: Hospital, wait_s: float = STREAMS_WAIT_S) -> list[str]:
     """Create every ward's event and confirmation streams, or bring existing ones to the description; needs the
-    administrator's connection. The names of the streams, each ward's two in the order of the wards."""
+    administrator's connection. The names of the streams, each ward's two in the order of the wards. A call the
+    cluster cannot answer yet is made again for ``wait_s`` (a stream made by a call whose answer was lost is then
+    found and brought to the description)."""
     js = connection.jetstream()
+    loop = asyncio.get_running_loop()
+    give_up = loop.time() + wait_s
     names = []
     for ward in hospital.wards:
         for name, config in ((stream_name(ward.name), ward_stream_config(ward, hospital.replicas)),
                              (confirms_stream_name(ward.name), confirms_stream_config(ward, hospital.replicas))):
-            try:
-                await js.stream_info(name)
-            except nats.js.errors.NotFoundError:
-                await js.add_stream(config)
-            else:
-                await js.update_stream(config)
+            while True:
+                try:
+                    await _ensure_stream(js, name, config)
+                    break
+                except RETRYABLE:
+                    if loop.time() >= give_up:
+                        raise
+                    await asyncio.sleep(RECONNECT_WAIT_S)
             names.append(name)
     return names
+
+
+async def _ensure_stream(js: JetStreamContext, name: str, config: api.StreamConfig) -> None:
+    try:
+        await js.stream_info(name)
+    except nats.js.errors.NotFoundError:
+        await js.add_stream(config)
+    else:
+        await js.update_stream(config)
 
 
 @dataclass(frozen=True)
