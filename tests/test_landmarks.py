@@ -52,6 +52,23 @@ def test_the_sacrum_lies_on_the_midline_and_ischia_beside_it_only_head_up(postur
         assert not ischia["left"].any() and not ischia["right"].any()
 
 
+@pytest.mark.parametrize("side", [-1, 1])
+def test_an_arm_raised_beside_the_head_does_not_take_the_head_or_bend_the_midline(side):
+    """An arm lying up beside the head, larger than the head's imprint and reaching as high, is no head: the midline
+    stays through the head and the sacrum (it went 300 mm aside when the larger top blob was taken)."""
+    view, truth = virtual_back("supine", 450, 100, 0)
+    kpa = np.array(view.kpa, dtype=float)
+    head_rows = np.flatnonzero((kpa > 0.3).any(axis=1))[:6]
+    head_cols = np.flatnonzero((kpa[head_rows] > 0.3).any(axis=0))
+    arm_cols = (head_cols.max() + 4 + np.arange(3)) if side > 0 else (head_cols.min() - 6 + np.arange(3))
+    kpa[head_rows[0]:head_rows[0] + 10, arm_cols.min():arm_cols.max() + 1] = 3.0
+    arm_view = BodyView(kpa, view.pitch_mm, view.transposed)
+    along, across = truth["sacrum"]
+    marks = back_landmarks(arm_view, FLOOR_KPA)
+    assert abs(marks.midline_mm[int(along // PITCH[0])] - across) < 30.0
+    assert abs(marks.midline_mm[head_rows[2]] - back_landmarks(view, FLOOR_KPA).midline_mm[head_rows[2]]) < 30.0
+
+
 def test_a_map_with_no_contact_has_no_levels():
     marks = back_landmarks(BodyView(np.zeros((64, 30)), PITCH, True), FLOOR_KPA)
     assert marks.shoulder_mm is None and marks.sacral_peak_mm is None
@@ -74,8 +91,8 @@ def readers_landmarks(spots: list[dict]) -> dict[str, float]:
 
 @needs_pmat
 def test_the_landmarks_agree_with_the_readers_notes_on_the_training_subjects():
-    """Measured when the landmarks were chosen (appliance/alerts/landmarks.py): 71 % of 52 midlines within 15 mm,
-    81 % of 70 shoulder levels within 60 mm, 88 % of 64 sacral peaks within 45 mm of the reader's."""
+    """Measured when the landmarks were chosen (appliance/alerts/landmarks.py): 75 % of 52 midlines within 15 mm,
+    81 % of 70 shoulder levels within 60 mm, 91 % of 64 sacral peaks within 45 mm of the reader's."""
     from appliance.alerts.site_table_fit import label_maps
     midline, shoulder, peak = [], [], []
     for _, posture, view, spots in label_maps(LABELS, PMAT, TRAINING):
@@ -90,6 +107,6 @@ def test_the_landmarks_agree_with_the_readers_notes_on_the_training_subjects():
         if "shoulder" in reader:
             shoulder.append(marks.shoulder_mm is not None and abs(marks.shoulder_mm - reader["shoulder"]) <= 60.0)
     assert min(len(midline), len(shoulder), len(peak)) >= 50
-    assert np.mean(midline) >= 0.68
+    assert np.mean(midline) >= 0.72
     assert np.mean(shoulder) >= 0.76
-    assert np.mean(peak) >= 0.83
+    assert np.mean(peak) >= 0.86

@@ -283,12 +283,13 @@ def test_a_side_lying_trochanter_is_its_hot_spot_and_the_hip_within_reach_of_it(
 # The learned table, on the training subjects' labels (S4, S6 and S11 are held out and never read here)
 
 LABELS = Path(__file__).resolve().parent / "data" / "site_labels"
-LOSO_ALL, LOSO_NAMED, LOSO_MARGIN = 0.824, 0.793, 0.02
+LOSO_ALL, LOSO_NAMED, LOSO_MARGIN = 0.831, 0.799, 0.02
 """Leave-one-subject-out accuracy measured on the loaded labelled spots (all, and those the hand named) when the
 locator's constants were chosen (``python benchmarks/site_labels.py --loso``). The margin allows for small changes
 to the frame fit; the locator with the earlier trochanter reach of 75 mm gave 0.790 (0.805 of the named), and before
 it named the back by the convention's landmarks and gathered shoulders (sites.py ``_name_the_back``,
-``_gather_at_hot_spots``) 0.800 (0.797)."""
+``_gather_at_hot_spots``) 0.800 (0.797), before the head was told from a raised arm (landmarks.py) and a hot iliac
+crest from the trochanter (sites.py ``_below_the_iliac_crest``) 0.824 (0.793)."""
 
 
 @pytest.fixture(scope="module")
@@ -296,6 +297,22 @@ def training_maps():
     """(subject, posture, view, spots) of every labelled training map, loaded once."""
     from appliance.alerts.site_table_fit import TRAINING_SUBJECTS, label_maps
     return list(label_maps(LABELS, PMAT, TRAINING_SUBJECTS))
+
+
+@needs_pmat
+@pytest.mark.parametrize("posture, crest_mm, root_mm", [("left-90", (745, 405), (875, 385)),
+                                                       ("fetal-left", (845, 375), (975, 405))])
+def test_a_hip_hot_on_its_iliac_crest_has_the_trochanter_at_the_thigh_root(posture, crest_mm, root_mm):
+    """Subject 8's hip is hottest 130 mm above the thigh root (the readers' notes: 'by rule the iliac crest'); the
+    trochanter is the spot at the thigh root, as the convention says, and the crest no site."""
+    from appliance.alerts.site_table_fit import label_maps
+    view = next(v for _, p, v, _ in label_maps(LABELS, PMAT, [8]) if p == posture)
+    names = label_cells(view, posture)
+
+    def name_at(along, across):
+        return names[int(along // view.pitch_mm[0]), int(across // view.pitch_mm[1])]
+    assert name_at(*root_mm) == "trochanter-left"
+    assert name_at(*crest_mm) is None
 
 
 @needs_pmat
@@ -344,7 +361,7 @@ def test_labels_follow_a_real_body_slid_along_and_across(posture_file, posture):
 # ---------------------------------------------------------------------------
 # The shipped locator on the held-out subjects' labels (S4, S6, S11): read to judge it, never to fit it
 
-HELD_OUT_RIGHT = {False: (0.836, 0.809), True: (0.809, 0.769)}
+HELD_OUT_RIGHT = {False: (0.838, 0.814), True: (0.811, 0.774)}
 """Share of the loaded held-out spots labelled right (all, and those the hand named) against the consensus labels,
 the locator told the posture recorded (False) or the posture model's estimate (True), as measured by
 ``python benchmarks/site_labels.py``."""
