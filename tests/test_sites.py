@@ -316,6 +316,25 @@ def test_a_hip_hot_on_its_iliac_crest_has_the_trochanter_at_the_thigh_root(postu
 
 
 @needs_pmat
+def test_a_side_lying_shoulder_blade_lies_apart_from_the_shoulder(training_maps):
+    """The convention names the shoulder first (all within 85 mm of its hottest cell) and a blade only 90 mm or more
+    below that peak, so no cell of the down side's blade touches the shoulder's (37 did when the table's blade was
+    kept within the shoulder's reach)."""
+    touching, blades = 0, 0
+    for _, posture, view, _ in training_maps:
+        if posture_side(posture) is None or posture.endswith("30"):
+            continue
+        names = label_cells(view, posture)
+        down = posture_side(posture)
+        shoulder = np.argwhere(names == f"shoulder-{down}")
+        for r, c in np.argwhere(names == f"scapula-{down}"):
+            blades += 1
+            touching += any(abs(r - a) <= 1 and abs(c - b) <= 1 for a, b in shoulder)
+    assert blades > 0
+    assert touching == 0
+
+
+@needs_pmat
 def test_the_fit_script_rebuilds_the_shipped_table(tmp_path):
     from appliance.alerts.site_table import TABLE_PATH
     from appliance.alerts.site_table_fit import main
