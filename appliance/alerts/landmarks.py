@@ -88,8 +88,7 @@ def back_landmarks(view: BodyView, floor_kpa: float) -> BackLandmarks:
         line = np.full_like(along, head_across)
     else:
         line = head_across + (legs[1] - head_across) * (along - head_along) / (legs[0] - head_along)
-    midline = np.nanmedian(np.stack([line, np.full_like(along, head_across), outline]),
-                           axis=0)
+    midline = np.nanmedian(np.stack([line, np.full_like(along, head_across), outline]), axis=0)
     midline = median_filter(midline, size=2 * round(MIDLINE_SMOOTH_MM / (2 * pitch_along)) + 1, mode="nearest")
     u = _from_midline(midline, view)
     return BackLandmarks(midline, _shoulder_level(contact, view, u, head_along),
