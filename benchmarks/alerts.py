@@ -31,7 +31,6 @@ import tempfile
 import time
 from collections import Counter
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -41,66 +40,21 @@ from appliance.alerts.dose import SiteDose, tolerance_curve
 from appliance.alerts.pipeline import AlertPipeline, AlertSettings
 from appliance.alerts.posture import SURE_GROUP_PROBABILITY, default_posture_model
 from appliance.alerts.sites import label_cells, locate_sites
-from appliance.core.model_cache import cached_model, default_setup
-from appliance.core.named_layouts import get_layout
-from appliance.core.pressure import KPA_PER_MMHG
 from appliance.core.pressure_map import PressureMap, loaded_regions
-from appliance.service.assemble import virtual_calibration_path
-from appliance.service.config_sections import MonitorConfig
-from appliance.service.monitor import Monitor
-from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.body import BED_GRID
-from appliance.sim.recordings import RecordedScene, pmat_scene
-from appliance.sim.scenes import PMAT_POSTURE_FILES, load_scene
+from appliance.sim.recordings import RecordedScene
+from appliance.sim.scenes import PMAT_POSTURE_FILES
 from appliance.sim.true_maps import on_pixels
 
 sys.path.insert(0, str(Path(__file__).parent))
+from held_out_chain import MINUTE, POSTURE_OF_FILE, Chain, still_scene, true_frame  # noqa: E402
 from report import machine, pyplot, table  # noqa: E402
 from site_labels import HELD_OUT, MATCH_MM, labelled_spots, labels_at_spots, site_positions  # noqa: E402
 
 HERE = Path(__file__).parent
-PMAT = HERE.parent.parent / "shared" / "data" / "pmatdata"
-LAYOUT = get_layout(MonitorConfig().layout)
-MINUTE = 60.0
 HOUR = 3600.0
 DAY_S = 86400.0
-POSTURE_OF_FILE = {1: "supine", 2: "right-90", 3: "left-90", 4: "right-30", 5: "right-60", 6: "left-30",
-                   7: "left-60", 8: "supine", 9: "supine", 10: "supine", 11: "supine", 12: "supine",
-                   13: "fetal-right", 14: "fetal-left", 15: "inclined", 16: "inclined", 17: "inclined"}
 LOADED_MMHG = 32.0
-
-
-# ---------------------------------------------------------------------------
-# The held-out maps: the true one (on the monitor's pixels) and the one the chain reads
-
-@lru_cache(maxsize=None)
-def true_frame(subject: int, posture_file: int, shift: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
-    """The middle frame of a recording (the one the labels were given on), 10 mm, scene frame, kPa."""
-    scene = pmat_scene(PMAT, subject, posture_file, BED_GRID, shift_mm=shift)
-    return scene.frames[len(scene.frames) // 2].copy()      # not a view: the recording is let go
-
-
-class Chain:
-    """The default bed read through the whole chain, as ``appliance run`` builds it."""
-
-    def __init__(self, cache: Path):
-        self.model, _ = cached_model(default_setup(LAYOUT), cache)
-        source = VirtualBedSource(LAYOUT, load_scene("supine-still"), self.model.setup.protocol)
-        self.calibration, _ = source.calibration(self.model, virtual_calibration_path(cache, self.model))
-        self.grid = self.model.reconstructor.grid
-
-    def maps(self, scene, times_s, seed: int = 0):
-        """The monitor's map at each of ``times_s`` (one frame interval apart) of ``scene``."""
-        step = float(times_s[1] - times_s[0]) if len(times_s) > 1 else MINUTE
-        source = VirtualBedSource(LAYOUT, scene, self.model.setup.protocol, seed=seed, frame_interval_s=step)
-        monitor = Monitor(source.acquire, self.model, self.calibration)
-        monitor.take_reference(source.empty_reference())
-        for _ in times_s:
-            yield monitor.next_map()
-
-
-def still_scene(frame: np.ndarray, seconds: float) -> RecordedScene:
-    return RecordedScene(frame[None], np.zeros(1), BED_GRID, {"source": "held frame"}, duration_s=seconds)
 
 
 # ---------------------------------------------------------------------------

@@ -29,7 +29,7 @@ from appliance.alerts.posture_training import (FLOOR_KPA, L2, SHIPPED_PMAT_SUBJE
                                                 fit_logistic, recording_fields, training_features)
 
 sys.path.insert(0, str(Path(__file__).parent))
-from alerts import MINUTE, POSTURE_OF_FILE, Chain, still_scene, true_frame
+from held_out_chain import MINUTE, POSTURE_OF_FILE, Chain, still_scene, true_frame
 from posture import blurred
 from report import machine, table
 

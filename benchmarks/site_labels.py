@@ -176,7 +176,7 @@ def read_through_chain(cache: Path, subjects=HELD_OUT):
     """(true view, view read, labelled spots) of every labelled map of ``subjects``: the map read through the whole
     chain (virtual bed, board, reconstruction, calibration; the model cached in ``cache``) as benchmarks/alerts.py
     reads it, and the true map on the monitor's pixels, which says which spots are loaded."""
-    from alerts import MINUTE, Chain, still_scene, true_frame
+    from held_out_chain import MINUTE, Chain, still_scene, true_frame
 
     from appliance.alerts.anatomy import body_view
     from appliance.sim.body import BED_GRID
