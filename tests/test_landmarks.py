@@ -69,6 +69,20 @@ def test_an_arm_raised_beside_the_head_does_not_take_the_head_or_bend_the_midlin
     assert abs(marks.midline_mm[head_rows[2]] - back_landmarks(view, FLOOR_KPA).midline_mm[head_rows[2]]) < 30.0
 
 
+@pytest.mark.parametrize("side", [-1, 1])
+def test_a_hand_beside_the_head_is_no_occiput(side):
+    """The convention's occiput is every spot within 80 mm of the head's hottest cell; a hand lying beside the head
+    is no site, though it lies where the site table has seen heads."""
+    view, truth = virtual_back("supine", 450, 0, 0)
+    kpa = np.array(view.kpa, dtype=float)
+    head_r, head_c = np.unravel_index(np.argmax(np.where(np.arange(kpa.shape[0])[:, None] < 10, kpa, 0)), kpa.shape)
+    hand_c = head_c + side * 5                              # 150 mm aside, clear of the head's outline
+    kpa[head_r:head_r + 3, hand_c:hand_c + 2] = 6.0
+    names = label_cells(BodyView(kpa, view.pitch_mm, view.transposed), "supine")
+    assert names[head_r, head_c] == "occiput"
+    assert all(names[head_r + k, hand_c + j] is None for k in range(3) for j in range(2))
+
+
 def test_a_map_with_no_contact_has_no_levels():
     marks = back_landmarks(BodyView(np.zeros((64, 30)), PITCH, True), FLOOR_KPA)
     assert marks.shoulder_mm is None and marks.sacral_peak_mm is None
