@@ -251,7 +251,7 @@ def _gather_at_hot_spots(view: BodyView, names: np.ndarray, loaded: np.ndarray, 
     (:func:`_below_the_iliac_crest`; ``s_at``: each loaded cell's fraction of the body length from the head)."""
     kpa = np.asarray(view.kpa, dtype=float)
     smoothed = gaussian_filter(kpa, [TROCHANTER_SMOOTH_MM / p for p in view.pitch_mm], mode="constant")
-    along, across = ((np.arange(n) + 0.5) * p for n, p in zip(kpa.shape, view.pitch_mm))
+    along = (np.arange(kpa.shape[0]) + 0.5) * view.pitch_mm[0]
     for name, reach in (("trochanter", TROCHANTER_REACH_MM), ("shoulder", SHOULDER_REACH_MM)):
         for site in (f"{name}-left", f"{name}-right"):
             mine = names == site
@@ -262,7 +262,7 @@ def _gather_at_hot_spots(view: BodyView, names: np.ndarray, loaded: np.ndarray, 
             r, c = (int(k) for k in np.unravel_index(np.argmax(np.where(candidates, smoothed, -np.inf)), kpa.shape))
             if name == "trochanter":
                 r, c = _below_the_iliac_crest(smoothed, candidates, s_at, r, c)
-            near = np.hypot(along[:, None] - along[r], across[None, :] - across[c]) <= reach
+            near = _near_cell(view, r, c, reach)
             names[mine & ~near] = None
             names[loaded & near & (names == None)] = site  # noqa: E711
             if name == "shoulder":
@@ -349,9 +349,14 @@ def _occiput_around_its_peak(view: BodyView, names: np.ndarray, loaded: np.ndarr
         return
     kpa = np.asarray(view.kpa, dtype=float)
     r, c = np.unravel_index(np.argmax(np.where(head, kpa, -np.inf)), kpa.shape)
-    rows, cols = np.indices(kpa.shape)
-    near = np.hypot((rows - r) * view.pitch_mm[0], (cols - c) * view.pitch_mm[1]) <= OCCIPUT_REACH_MM
+    near = _near_cell(view, int(r), int(c), OCCIPUT_REACH_MM)
     _rename(names, loaded & near, ("occiput",), np.full(kpa.shape, "occiput", dtype=object))
+
+
+def _near_cell(view: BodyView, r: int, c: int, reach_mm: float) -> np.ndarray:
+    """Which cells' centres lie within ``reach_mm`` of cell (``r``, ``c``)'s."""
+    rows, cols = np.indices(view.shape)
+    return np.hypot((rows - r) * view.pitch_mm[0], (cols - c) * view.pitch_mm[1]) <= reach_mm
 
 
 def _rename(names: np.ndarray, place: np.ndarray, sites: tuple[str, ...], site_at: np.ndarray) -> None:

@@ -256,15 +256,16 @@ class NotificationService:
                 await asyncio.sleep(self.probe_every_s - idle_s)
                 continue
             if self._down_since is None or self._down_by_probe:
-                started = time.monotonic()
+                started, failure = time.monotonic(), None
                 try:
                     await asyncio.to_thread(self.probe, url, health, self.timeout_s)
                 except GatewayUnavailable as exc:
-                    if self._last_try < started:        # a page tried meanwhile tells more than the probe
-                        self._gateway_down(str(exc), by_probe=True)
-                else:
-                    if self._last_try < started:
+                    failure = str(exc)
+                if self._last_try < started:            # a page tried meanwhile tells more than the probe
+                    if failure is None:
                         self._gateway_up()
+                    else:
+                        self._gateway_down(failure, by_probe=True)
             await asyncio.sleep(self.probe_every_s)
 
     async def _handle(self, ward: str, delivery: Delivery) -> None:
