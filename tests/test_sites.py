@@ -115,12 +115,14 @@ def test_left_and_right_follow_the_patient_not_the_mat():
 
 def one_lower_leg(view: BodyView, kept: str) -> BodyView:
     """``view`` with the other leg lifted off the mat from the knee down (as with the legs crossed or one knee up):
-    the cells below 60 % of the contact's length on the patient's other side of the hips' centre of load."""
+    the cells below 60 % of the contact's length on the patient's other side of the gap between the lower legs."""
     kpa = view.kpa.copy()
     rows = np.flatnonzero((kpa >= 5 * KPA_PER_MMHG).any(axis=1))
     knee = rows[0] + int(0.6 * (rows[-1] - rows[0]))
-    hips = kpa[rows[0] + int(0.45 * (rows[-1] - rows[0])):rows[0] + int(0.55 * (rows[-1] - rows[0]))]
-    middle = round(float(np.average(np.arange(kpa.shape[1]), weights=hips.sum(axis=0))))
+    legs = (kpa[knee:] > 0.3).any(axis=0)
+    first, last = np.flatnonzero(legs)[[0, -1]]
+    gap = np.flatnonzero(~legs[first:last + 1]) + first
+    middle = int(gap[len(gap) // 2])
     if kept == "right":
         kpa[knee:, middle:] = 0.0
     else:
@@ -128,13 +130,14 @@ def one_lower_leg(view: BodyView, kept: str) -> BodyView:
     return BodyView(kpa, view.pitch_mm, view.transposed)
 
 
-@pytest.mark.parametrize("subject, placement", [(Subject(75.0, 175.0), Placement("supine")),
-                                                (Subject(60.0, 160.0), Placement("supine", 400))])
+@pytest.mark.parametrize("subject, across_mm", [(Subject(75.0, 175.0), 450.0), (Subject(60.0, 160.0), 400.0)])
+@pytest.mark.parametrize("posture", ["supine", "left-30", "right-30"])
 @pytest.mark.parametrize("kept", ["left", "right"])
-def test_a_heel_alone_on_the_mat_is_named_by_the_side_of_the_trunk_it_lies_on(subject, placement, kept):
-    """The legs' own midline runs through a lone heel; the trunk's does not."""
-    view = one_lower_leg(monitor_view(body_field(subject, placement).pressure_kpa), kept)
-    names = label_cells(view, "supine", floor_kpa=12 * KPA_PER_MMHG)
+def test_a_heel_alone_on_the_mat_is_named_by_the_side_of_the_trunk_it_lies_on(subject, across_mm, posture, kept):
+    """The legs' own midline runs through a lone heel; the trunk's does not. Tilted 30 degrees the heels are named
+    as lying on the back (the convention says so)."""
+    view = one_lower_leg(monitor_view(body_field(subject, Placement(posture, across_mm)).pressure_kpa), kept)
+    names = label_cells(view, posture, floor_kpa=12 * KPA_PER_MMHG)
     assert {n for n in names.ravel() if n and n.startswith("heel")} == {f"heel-{kept}"}
 
 
