@@ -56,12 +56,13 @@ PELVIS_SEARCH, PELVIS_SPAN_MM, PELVIS_REACH = (0.35, 0.65), 75.0, 0.10
 
 @dataclass(frozen=True)
 class BackLandmarks:
-    """A back-lying map's landmarks: the midline's across (mm) at each row of the view, and the along (mm) of the
-    shoulder level and of the sacral peak (None where the map shows none)."""
+    """A back-lying map's landmarks: the midline's across (mm) at each row of the view, the along (mm) of the
+    shoulder level and of the sacral peak, and the sacral peak's across (None where the map shows none)."""
 
     midline_mm: np.ndarray
     shoulder_mm: float | None
     sacral_peak_mm: float | None
+    sacral_peak_across_mm: float | None = None
 
     def from_midline(self, view: BodyView) -> np.ndarray:
         """Each cell's distance (mm) from the midline, towards the patient's left positive."""
@@ -91,8 +92,8 @@ def back_landmarks(view: BodyView, floor_kpa: float) -> BackLandmarks:
     midline = np.nanmedian(np.stack([line, np.full_like(along, head_across), outline]), axis=0)
     midline = median_filter(midline, size=2 * round(MIDLINE_SMOOTH_MM / (2 * pitch_along)) + 1, mode="nearest")
     u = _from_midline(midline, view)
-    return BackLandmarks(midline, _shoulder_level(contact, view, u, head_along),
-                         _sacral_peak(kpa, contact, view, u, top, bottom, floor_kpa))
+    peak = _sacral_peak(kpa, contact, view, u, top, bottom, floor_kpa)
+    return BackLandmarks(midline, _shoulder_level(contact, view, u, head_along), *(peak or (None, None)))
 
 
 def _from_midline(midline_mm: np.ndarray, view: BodyView) -> np.ndarray:
@@ -162,8 +163,8 @@ def _shoulder_level(contact: np.ndarray, view: BodyView, u: np.ndarray, head_alo
 
 
 def _sacral_peak(kpa: np.ndarray, contact: np.ndarray, view: BodyView, u: np.ndarray, top: float, bottom: float,
-                 floor_kpa: float) -> float | None:
-    """Along (mm) of the centre of the hottest cell near the midline in the pelvis."""
+                 floor_kpa: float) -> tuple[float, float] | None:
+    """(along, across) mm of the centre of the hottest cell near the midline in the pelvis."""
     along, _ = _cells_mm(view)
     length = bottom - top
     centres = np.arange(top + PELVIS_SEARCH[0] * length, top + PELVIS_SEARCH[1] * length, 10.0)
@@ -179,4 +180,4 @@ def _sacral_peak(kpa: np.ndarray, contact: np.ndarray, view: BodyView, u: np.nda
     if not near.any():
         return None
     row, col = np.unravel_index(np.argmax(np.where(near, kpa, -np.inf)), kpa.shape)
-    return float(along[row, col])
+    return float(along[row, col]), float((col + 0.5) * view.pitch_mm[1])
