@@ -306,12 +306,13 @@ def _below_the_iliac_crest(smoothed: np.ndarray, candidates: np.ndarray, s_at: n
 
 def _heels_by_the_trunk(view: BodyView, names: np.ndarray, trunk_mm: float) -> None:
     """On the back (flat, head up or tilted 30 degrees), each heel (a connected stretch of heel cells) is on the side
-    of the trunk's midline (its across ``trunk_mm`` at the pelvis) its load lies on: the legs' own midline would run
-    through a heel alone on the mat (legs crossed, one knee up), and the hand labels name such a heel by the side of
-    the body it lies on. Chosen by the leave-one-subject-out study: 0.830 of the loaded spots right, against 0.824
-    with the pelvis's mean load as the midline and 0.828 with the landmarks' midline at the heel's own row. The
-    convention names a 30-degree tilt's heels as lying on the back's, and so does this: the site table's side for
-    them took 0.833 of the training subjects' spots right, this 0.836 (three heels more, none fewer held out)."""
+    of the trunk's centre line (:func:`across_the_back`; its across ``trunk_mm`` at the pelvis) its load lies on:
+    the legs' own midline would run through a heel alone on the mat (legs crossed, one knee up), and the hand labels
+    name such a heel by the side of the body it lies on. Chosen by the leave-one-subject-out study: 0.830 of the
+    loaded spots right, against 0.824 with the pelvis's mean load as the midline and 0.828 with the landmarks'
+    midline at the heel's own row. The convention names a 30-degree tilt's heels as lying on the back's, and so does
+    this: the site table's side for them took 0.833 of the training subjects' spots right, this 0.836 (three heels
+    more, none fewer held out)."""
     heels, n = label((names == "heel-left") | (names == "heel-right"), structure=np.ones((3, 3)))
     if n == 0:
         return
