@@ -333,7 +333,7 @@ def _name_the_back(view: BodyView, posture: str, names: np.ndarray, loaded: np.n
     u = across_the_back(view, marks)
     along = np.broadcast_to(((np.arange(view.shape[0]) + 0.5) * view.pitch_mm[0])[:, None], u.shape)
     pelvis = int(marks.sacral_peak_mm // view.pitch_mm[0]) if marks.sacral_peak_mm is not None else view.shape[0] // 2
-    _heels_by_the_trunk(view, names, float(0.5 * view.pitch_mm[1] - u[pelvis, 0]))   # the line's across there
+    _heels_by_the_trunk(view, names, float(marks.midline_mm[pelvis] + _sacral_pull_mm(view, marks)))
     seat = np.zeros_like(loaded)
     if marks.sacral_peak_mm is not None:
         below_peak = along - marks.sacral_peak_mm
@@ -355,11 +355,15 @@ def _name_the_back(view: BodyView, posture: str, names: np.ndarray, loaded: np.n
 def across_the_back(view: BodyView, marks: BackLandmarks) -> np.ndarray:
     """Each cell's distance (mm) across from the line the back's sites are measured from, towards the patient's left
     positive: the landmarks' midline moved ``SACRAL_PULL`` of the way to the sacral peak."""
-    u = marks.from_midline(view)
+    return marks.from_midline(view) - _sacral_pull_mm(view, marks)
+
+
+def _sacral_pull_mm(view: BodyView, marks: BackLandmarks) -> float:
+    """How far (mm, towards the patient's left) that line lies from the midline; 0 where no sacral peak was found."""
     if marks.sacral_peak_mm is None or marks.sacral_peak_across_mm is None:
-        return u
+        return 0.0
     row = int(marks.sacral_peak_mm // view.pitch_mm[0])
-    return u - SACRAL_PULL * (marks.sacral_peak_across_mm - marks.midline_mm[row])
+    return float(SACRAL_PULL * (marks.sacral_peak_across_mm - marks.midline_mm[row]))
 
 
 def _occiput_around_its_peak(view: BodyView, names: np.ndarray, loaded: np.ndarray) -> None:
