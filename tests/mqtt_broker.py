@@ -24,6 +24,14 @@ def wait_until(condition, timeout_s=10.0):
     return False
 
 
+def accepting(port: int) -> bool:
+    try:
+        socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
+        return True
+    except OSError:
+        return False
+
+
 class Broker:
     """A Mosquitto process on a fixed port that a test can stop and start again; ``settings`` (mosquitto.conf
     lines, written to ``folder``) for a listener with TLS and passwords."""
@@ -39,16 +47,12 @@ class Broker:
             conf.write_text(f"user {getpass.getuser()}\nlistener {self.port} 127.0.0.1\n{settings}")
             self.command = [self.binary, "-c", str(conf)]
 
-    def start(self):
+    def start(self, *more_ports: int):
+        """Start it and return once it accepts on its own port and on ``more_ports`` (listeners its settings
+        add, which Mosquitto may open after the first)."""
         self.process = subprocess.Popen(self.command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-
-        def accepting():
-            try:
-                socket.create_connection(("127.0.0.1", self.port), timeout=0.2).close()
-                return True
-            except OSError:
-                return False
-        assert wait_until(accepting), "mosquitto did not start"
+        for port in (self.port, *more_ports):
+            assert wait_until(lambda port=port: accepting(port)), f"mosquitto did not listen on port {port}"
 
     def stop(self):
         self.process.terminate()

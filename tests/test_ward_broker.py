@@ -276,7 +276,7 @@ def test_the_snippets_tls_listener_and_persistence_folder_work_on_their_own(tmp_
                               listener=Listener(port, tmp_path / "server.crt", tmp_path / "server.key"))
     assert f"persistence_location {tmp_path / 'db'}/\n" in files.config_file.read_text()
     broker = Broker(f"include_dir {tmp_path / 'ward'}\n", folder=tmp_path)
-    broker.start()
+    broker.start(port)
     try:
         assert connects(port, BED1, secret(files, BED1), ca=tmp_path / "ca.crt")
         assert not connects(port, BED1, "guess", ca=tmp_path / "ca.crt")
