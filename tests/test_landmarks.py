@@ -1,6 +1,7 @@
 """The back's landmarks are found where a reader finds them, and the back's sites are named by the convention's
 distances from them."""
 
+import dataclasses
 import re
 
 import numpy as np
@@ -51,6 +52,18 @@ def test_the_sacrum_lies_on_the_midline_and_ischia_beside_it_only_head_up(postur
         assert np.all(u[ischia["left"]] > SACRUM_HALF_MM) and np.all(u[ischia["right"]] < -SACRUM_HALF_MM)
     else:
         assert not ischia["left"].any() and not ischia["right"].any()
+
+
+def test_a_sensor_streak_up_the_spine_is_no_pelvis():
+    """A hot line one cell wide up the spine from 100 to 300 mm above the sacrum (PmatData has such streaks; one
+    took a training subject's sacral peak up the spine) leaves the sacral peak on the sacrum: 300 mm above it
+    when the pelvis was weighed on the raw map."""
+    view, truth = virtual_back("supine", 450, 0, 0)
+    along, across = truth["sacrum"]
+    kpa = np.array(view.kpa, dtype=float)
+    kpa[int((along - 300) // PITCH[0]):int((along - 100) // PITCH[0]), int(across // PITCH[1])] = 300 * KPA_PER_MMHG
+    marks = back_landmarks(dataclasses.replace(view, kpa=kpa), FLOOR_KPA)
+    assert marks.sacral_peak_mm is not None and abs(marks.sacral_peak_mm - along) < 45.0
 
 
 @pytest.mark.parametrize("side", [-1, 1])

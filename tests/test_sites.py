@@ -286,14 +286,15 @@ def test_a_side_lying_trochanter_is_its_hot_spot_and_the_hip_within_reach_of_it(
 # The learned table, on the training subjects' labels (S4, S6 and S11 are held out and never read here)
 
 LABELS = Path(__file__).resolve().parent / "data" / "site_labels"
-LOSO_ALL, LOSO_NAMED, LOSO_MARGIN = 0.850, 0.819, 0.02
+LOSO_ALL, LOSO_NAMED, LOSO_MARGIN = 0.854, 0.817, 0.02
 """Leave-one-subject-out accuracy measured on the loaded labelled spots (all, and those the hand named) when the
 locator's constants were chosen (``python benchmarks/site_labels.py --loso``). The margin allows for small changes
 to the frame fit; the locator with the earlier trochanter reach of 75 mm gave 0.790 (0.805 of the named), and before
 it named the back by the convention's landmarks and gathered shoulders (sites.py ``_name_the_back``,
 ``_gather_at_hot_spots``) 0.800 (0.797), before the head was told from a raised arm (landmarks.py) and a hot iliac
 crest from the trochanter (sites.py ``_below_the_iliac_crest``) 0.824 (0.793), and before the occiput was what
-lies within reach of the head's peak 0.831 (0.797)."""
+lies within reach of the head's peak 0.831 (0.797), and before a streak was kept from weighing the pelvis
+(landmarks.py ``STREAK_CELLS``) 0.850 (0.819)."""
 
 
 @pytest.fixture(scope="module")
