@@ -136,11 +136,12 @@ class Night:
         return RecordedScene(frames, starts, BED_GRID, {"source": self.name}, duration_s=self.duration_s)
 
 
-def nights() -> list[Night]:
-    """Four nights for each held-out subject."""
+def nights(subjects=HELD_OUT, on_the_right=(6,)) -> list[Night]:
+    """Four nights for each of ``subjects`` (the held-out ones by default), side-lying on the left but for
+    those ``on_the_right``."""
     out = []
-    for subject in HELD_OUT:
-        side = PMAT_POSTURE_FILES["left-90" if subject != 6 else "right-90"]
+    for subject in subjects:
+        side = PMAT_POSTURE_FILES["right-90" if subject in on_the_right else "left-90"]
         turned = tuple((PMAT_POSTURE_FILES[p], 2 * HOUR, (0.0, 0.0))
                        for p in ("supine", "left-30", "supine", "right-30", "supine", "left-30"))
         rng = np.random.default_rng(subject)
@@ -188,9 +189,10 @@ def truth_alarms(night: Night, times, true_maps, grid, spots, settings=AlertSett
     return crossed
 
 
-def layer_alarms(pressure_maps, grid) -> tuple[dict[str, float], list, list]:
-    """The alert layer on a sequence of maps: first raise time per site, reminder raises, turn events."""
-    pipeline = AlertPipeline(grid)
+def layer_alarms(pressure_maps, grid, **layer) -> tuple[dict[str, float], list, list]:
+    """The alert layer on a sequence of maps: first raise time per site, reminder raises, turn events.
+    ``layer``: the pipeline's own options (another posture model or site table, for a study of training subjects)."""
+    pipeline = AlertPipeline(grid, **layer)
     raised, reminders, turns = {}, [], []
     for m in pressure_maps:
         frame = pipeline.update(m)
@@ -203,7 +205,7 @@ def layer_alarms(pressure_maps, grid) -> tuple[dict[str, float], list, list]:
     return raised, reminders, turns
 
 
-def run_night(night: Night, chain: Chain, spots) -> dict:
+def run_night(night: Night, chain: Chain, spots, **layer) -> dict:
     times = np.arange(0.0, night.duration_s, MINUTE)
     scene = night.scene()
     grid = chain.grid
@@ -213,9 +215,9 @@ def run_night(night: Night, chain: Chain, spots) -> dict:
         true_maps.append(on_pixels(field.pressure_kpa, field.pitch_mm, grid))
     truth = truth_alarms(night, times, true_maps, grid, spots)
     on_truth = layer_alarms((PressureMap(float(t), k, loaded_regions(k, grid), None, 0)
-                             for t, k in zip(times, true_maps)), grid)
+                             for t, k in zip(times, true_maps)), grid, **layer)
     read = list(chain.maps(scene, times, seed=night.subject))
-    on_chain = layer_alarms(read, grid)
+    on_chain = layer_alarms(read, grid, **layer)
     return {"truth": truth, "true": on_truth, "chain": on_chain, "hours": night.duration_s / HOUR}
 
 
@@ -243,6 +245,24 @@ def night_rows(results: list[tuple[Night, dict]]) -> tuple[list[list], dict]:
             cells += [", ".join(c["missed"]) or "-", late, ", ".join(c["false"]) or "-"]
         rows.append(cells)
     return rows, totals
+
+
+def summary_rows(totals: dict) -> list[list]:
+    """One row for the true maps and one for the chain: alarms, missed, lateness and false alarms."""
+    rows = []
+    for which, label in (("true", "the true maps"), ("chain", "the whole chain")):
+        t = totals[which]
+        late = np.median(t["late_s"]) / 60 if t["late_s"] else float("nan")
+        rows.append([label, t["truth"], t["missed"], f"{late:+.0f}",
+                     f"{max((abs(x) for x in t['late_s']), default=0) / 60:.0f}",
+                     t["false"], f"{t['false'] / (t['hours'] / 24):.2f}"])
+    return rows
+
+
+NIGHT_SUMMARY = ["feeding", "true site alarms", "missed", "median late (min)", "worst late (min)", "false alarms",
+                 "false per patient-day"]
+NIGHT_COLUMNS = ["night", "subject", "true site alarms (h)", "true maps: missed", "late (min)", "false",
+                 "chain: missed", "late (min)", "false"]
 
 
 def reminder_rows(results: list[tuple[Night, dict]]) -> list[list]:
@@ -337,13 +357,6 @@ def main() -> None:
     usage = {name: cpu_and_memory(name) for name in ("supine-still", "restless")}
     _plot(results)
     s_rows, wrong = site_rows(sites)
-    summary = []
-    for which, label in (("true", "the true maps"), ("chain", "the whole chain")):
-        t = totals[which]
-        late = np.median(t["late_s"]) / 60 if t["late_s"] else float("nan")
-        summary.append([label, t["truth"], t["missed"], f"{late:+.0f}",
-                        f"{max((abs(x) for x in t['late_s']), default=0) / 60:.0f}",
-                        t["false"], f"{t['false'] / (t['hours'] / 24):.2f}"])
     wrong_text = "; ".join(f"{n} x {b or 'unnamed'} where the labels say {a or 'unnamed'}"
                            for (a, b), n in wrong["read"].most_common(8))
     report = f"""# Alerts: posture, tissue sites and site alarms on held-out bodies; reminders; cost
@@ -395,11 +408,9 @@ its peak within {MATCH_MM:g} mm on the true map averaged over the monitor's pixe
 alert layer fed the maps read through the virtual bed, as `appliance sim run` does. Late in minutes (+ =
 after the truth); a false alarm is a site alarm where the truth has none.
 
-{table(["feeding", "true site alarms", "missed", "median late (min)", "worst late (min)", "false alarms",
-        "false per patient-day"], summary)}
+{table(NIGHT_SUMMARY, summary_rows(totals))}
 
-{table(["night", "subject", "true site alarms (h)", "true maps: missed", "late (min)", "false",
-        "chain: missed", "late (min)", "false"], rows)}
+{table(NIGHT_COLUMNS, rows)}
 
 ![site doses of the unturned nights](alerts.png)
 

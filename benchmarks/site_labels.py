@@ -152,14 +152,11 @@ def leave_one_subject_out_pairs(pmat: Path,
     """As :func:`held_out_pairs` (posture recorded) for the training subjects, each map labelled by a table
     fitted on the other training subjects only; with ``chain_cache``, the maps read through the chain are
     labelled (:func:`read_through_chain`), the table still fitted on the true maps as shipped."""
-    from appliance.alerts.site_table import SiteTable
-    from appliance.alerts.site_table_fit import TRAINING_SUBJECTS, label_maps, labelled_points
+    from appliance.alerts.site_table_fit import TRAINING_SUBJECTS, label_maps
     from appliance.alerts.sites import label_cells
 
     maps = list(label_maps(LABELS, pmat, TRAINING_SUBJECTS))
-    points = [(m[0], labelled_points(*m)) for m in maps]
-    tables = {left_out: SiteTable.from_points([p for subject, ps in points if subject != left_out for p in ps])
-              for left_out in TRAINING_SUBJECTS}
+    tables = leave_one_out_tables(maps)
     pairs = []
     if chain_cache is None:
         for subject, posture, view, spots in maps:
@@ -170,6 +167,17 @@ def leave_one_subject_out_pairs(pmat: Path,
         subject, posture = labelled[0].subject, labelled[0].posture
         pairs += labels_at_spots(true_view, label_cells(read, posture, table=tables[subject]), labelled)
     return pairs
+
+
+def leave_one_out_tables(maps) -> dict:
+    """For each training subject, the site table fitted on the labelled ``maps`` (subject, posture, view, spots) of
+    the other training subjects."""
+    from appliance.alerts.site_table import SiteTable
+    from appliance.alerts.site_table_fit import TRAINING_SUBJECTS, labelled_points
+
+    points = [(m[0], labelled_points(*m)) for m in maps]
+    return {left_out: SiteTable.from_points([p for subject, ps in points if subject != left_out for p in ps])
+            for left_out in TRAINING_SUBJECTS}
 
 
 def read_through_chain(cache: Path, subjects=HELD_OUT):

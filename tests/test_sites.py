@@ -9,6 +9,7 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 from appliance.alerts.anatomy import BodyView, posture_side
+from appliance.alerts.site_table import LabelledPoint, SiteTable
 from appliance.alerts.sites import FLOOR_KPA, TROCHANTER_REACH_MM, SiteReading, label_cells, locate_sites
 from appliance.errors import ConfigError, ModelInputInvalid
 from appliance.sim.body import MatGrid, Placement, Subject, body_field, body_patches
@@ -261,6 +262,16 @@ def test_training_subjects_side_lying_rest_on_the_down_side(subject, posture_fil
     assert not any(s in sites for s in (f"trochanter-{up}", f"shoulder-{up}", f"ear-{up}"))
     if f"shoulder-{down}" in sites:
         assert sites[f"shoulder-{down}"].along_mm < sites[f"trochanter-{down}"].along_mm
+
+
+@needs_pmat
+def test_the_sites_come_from_the_table_given():
+    """A study of the training subjects locates each one's sites with a table fitted without them: the table
+    passed is the one voting (one that names nothing leaves a side-lying body with no site)."""
+    view = pmat_view(1, 3)
+    nameless = SiteTable.from_points([LabelledPoint(0, "left-90", 0.5, 0.0, 1.0, None)])
+    assert "trochanter-left" in named(locate_sites(view, "left-90"))
+    assert named(locate_sites(view, "left-90", table=nameless)) == {}
 
 
 @needs_pmat

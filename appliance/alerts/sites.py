@@ -192,13 +192,14 @@ def label_cells(view: BodyView, posture: str, *, floor_kpa: float = FLOOR_KPA,
     return names
 
 
-def locate_sites(view: BodyView, posture: str, *, floor_kpa: float = FLOOR_KPA) -> list[SiteReading]:
-    """Each site's reading at its highest labelled cell (:func:`label_cells`), and the loaded spots over no
-    site (unnamed), highest first. Each site names one reading at most; out of bed there is none.
+def locate_sites(view: BodyView, posture: str, *, floor_kpa: float = FLOOR_KPA,
+                 table: SiteTable | None = None) -> list[SiteReading]:
+    """Each site's reading at its highest labelled cell (:func:`label_cells`, with ``table``), and the loaded
+    spots over no site (unnamed), highest first. Each site names one reading at most; out of bed there is none.
 
     Raises ConfigError for an unknown posture, ModelInputInvalid for a map that is no whole bed.
     """
-    names = label_cells(view, posture, floor_kpa=floor_kpa)
+    names = label_cells(view, posture, floor_kpa=floor_kpa, table=table)
     if posture == "out-of-bed":
         return []
     kpa = np.asarray(view.kpa, dtype=float)
