@@ -176,6 +176,19 @@ def test_alerts_benchmark_nights_and_scoring():
     assert got == {"truth": 2, "missed": ["heel-left"], "late_s": [60.0], "false": ["occiput"]}
 
 
+def test_training_nights_benchmark_holds_the_training_subjects_nights_and_scores_them_as_alerts_does():
+    training = load("training_nights")
+    nights = training.nights(training.TRAINING_SUBJECTS, training.ON_THE_RIGHT)
+    assert {n.subject for n in nights} == {1, 2, 3, 5, 7, 8, 9, 10}       # never a held-out subject
+    sides = {n.subject: n.segments[0][0] for n in nights if n.name.startswith("side")}
+    right, left = training.PMAT_POSTURE_FILES["right-90"], training.PMAT_POSTURE_FILES["left-90"]
+    assert sides == {k: right if k in (2, 8, 10) else left for k in sides}
+    totals = {"true": {"truth": 4, "missed": 1, "late_s": [0.0, 60.0, 600.0], "false": 1, "hours": 48.0},
+              "chain": {"truth": 4, "missed": 0, "late_s": [-120.0, 300.0, 300.0, 900.0], "false": 3, "hours": 48.0}}
+    assert training.summary_rows(totals) == [["the true maps", 4, 1, "+1", "10", 1, "0.50"],
+                                             ["the whole chain", 4, 0, "+5", "15", 3, "1.50"]]
+
+
 def test_contact_capacitance_benchmark_compares_the_detectors(monkeypatch):
     bench = load("contact_capacitance")
     monkeypatch.setattr(bench, "CAPACITANCES_F", (0.0, 1e-8))
