@@ -69,8 +69,7 @@ def posture_and_sites(chain: Chain) -> dict:
     for subject in HELD_OUT:
         for posture_file in range(1, 18):
             frame = true_frame(subject, posture_file)
-            true_view = body_view(on_pixels(frame, BED_GRID.pitch_mm, chain.grid), chain.grid)
-            read = list(chain.maps(still_scene(frame, 5 * MINUTE), [0.0, MINUTE]))[-1].pressure_kpa
+            true_view, read = chain.true_view(frame), chain.read_still(frame)
             labelled = [s for s in spots if s.subject == subject and s.posture_file == posture_file]
             for which, view in (("true", true_view), ("read", body_view(read, chain.grid))):
                 found = model.classify(view)

@@ -1,6 +1,6 @@
 """The held-out maps as the benchmarks read them: the true frame of a PmatData recording, and the default bed reading
 it through the whole chain (virtual bed, parallel board, reconstruction, calibration) as ``appliance run`` does.
-Shared by benchmarks/alerts.py, site_labels.py and posture_choices.py."""
+Shared by benchmarks/alerts.py, site_labels.py, training_nights.py and posture_choices.py."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from appliance.alerts.anatomy import BodyView, body_view
 from appliance.core.model_cache import cached_model, default_setup
 from appliance.core.named_layouts import get_layout
 from appliance.service.assemble import virtual_calibration_path
@@ -20,6 +21,7 @@ from appliance.service.virtual_bed import VirtualBedSource
 from appliance.sim.body import BED_GRID
 from appliance.sim.recordings import RecordedScene, pmat_scene
 from appliance.sim.scenes import load_scene
+from appliance.sim.true_maps import on_pixels
 
 PMAT = Path(__file__).resolve().parents[2] / "shared" / "data" / "pmatdata"
 LAYOUT = get_layout(MonitorConfig().layout)
@@ -44,6 +46,16 @@ class Chain:
         source = VirtualBedSource(LAYOUT, load_scene("supine-still"), self.model.setup.protocol)
         self.calibration, _ = source.calibration(self.model, virtual_calibration_path(cache, self.model))
         self.grid = self.model.reconstructor.grid
+
+    def true_view(self, frame: np.ndarray) -> BodyView:
+        """A true frame (:func:`true_frame`) averaged over the monitor's pixels, as the body view the alert layer
+        sees."""
+        return body_view(on_pixels(frame, BED_GRID.pitch_mm, self.grid), self.grid)
+
+    def read_still(self, frame: np.ndarray) -> np.ndarray:
+        """The monitor's map (kPa) of ``frame`` held still, settled: the second of two a minute apart (the first
+        one's fine readings are where the previous posture lay)."""
+        return list(self.maps(still_scene(frame, 5 * MINUTE), [0.0, MINUTE]))[-1].pressure_kpa
 
     def maps(self, scene, times_s, seed: int = 0):
         """The monitor's map at each of ``times_s`` (one frame interval apart) of ``scene``."""

@@ -184,20 +184,15 @@ def read_through_chain(cache: Path, subjects=HELD_OUT):
     """(true view, view read, labelled spots) of every labelled map of ``subjects``: the map read through the whole
     chain (virtual bed, board, reconstruction, calibration; the model cached in ``cache``) as benchmarks/alerts.py
     reads it, and the true map on the monitor's pixels, which says which spots are loaded."""
-    from held_out_chain import MINUTE, Chain, still_scene, true_frame
+    from held_out_chain import Chain, true_frame
 
     from appliance.alerts.anatomy import body_view
-    from appliance.sim.body import BED_GRID
-    from appliance.sim.true_maps import on_pixels
 
     chain, spots = Chain(cache), labelled_spots(subjects)
     for subject in subjects:
         for posture_file in sorted({s.posture_file for s in spots if s.subject == subject}):
             frame = true_frame(subject, posture_file)
-            true_view = body_view(on_pixels(frame, BED_GRID.pitch_mm, chain.grid), chain.grid)
-            read = body_view(list(chain.maps(still_scene(frame, 5 * MINUTE), [0.0, MINUTE]))[-1].pressure_kpa,
-                             chain.grid)
-            yield true_view, read, [s for s in spots if s.subject == subject and s.posture_file == posture_file]
+            yield chain.true_view(frame), body_view(chain.read_still(frame), chain.grid), [s for s in spots if s.subject == subject and s.posture_file == posture_file]
 
 
 def chain_pairs(cache: Path) -> list[tuple[str | None, str | None, str]]:

@@ -21,16 +21,12 @@ import time
 from functools import partial
 from pathlib import Path
 
-from appliance.alerts.anatomy import body_view
 from appliance.alerts.posture_training import SHIPPED_POPU_VARIATIONS, fit_sources, training_features
 from appliance.alerts.site_table_fit import TRAINING_SUBJECTS, label_maps
 from appliance.alerts.sites import locate_sites
-from appliance.sim.body import BED_GRID
-from appliance.sim.true_maps import on_pixels
 
 sys.path.insert(0, str(Path(__file__).parent))
-from alerts import (NIGHT_COLUMNS, NIGHT_SUMMARY, PMAT_POSTURE_FILES, night_rows, nights, run_night,  # noqa: E402
-                    summary_rows)
+from alerts import NIGHT_COLUMNS, NIGHT_SUMMARY, night_rows, nights, run_night, summary_rows  # noqa: E402
 from held_out_chain import PMAT, POSTURE_OF_FILE, Chain, true_frame  # noqa: E402
 from report import machine, table  # noqa: E402
 from site_labels import LABELS, labelled_spots, leave_one_out_tables  # noqa: E402
@@ -46,8 +42,7 @@ def postures_read(model, subject: int, chain: Chain, posture_files) -> list[str]
     with its probability, where it is not the posture recorded."""
     out = []
     for posture_file in posture_files:
-        estimate = model.classify(body_view(on_pixels(true_frame(subject, posture_file), BED_GRID.pitch_mm,
-                                                      chain.grid), chain.grid))
+        estimate = model.classify(chain.true_view(true_frame(subject, posture_file)))
         if estimate.posture != POSTURE_OF_FILE[posture_file]:
             out.append(f"{POSTURE_OF_FILE[posture_file]} read as {estimate.posture} ({estimate.confidence:.2f})")
     return out

@@ -28,7 +28,7 @@ import urllib.parse
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
-from report import machine, table  # noqa: E402
+from report import machine  # noqa: E402
 
 HERE = Path(__file__).parent
 THREADS = 48

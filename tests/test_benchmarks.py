@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from appliance.sim.scenes import PMAT_POSTURE_FILES
+
 BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
 
 
@@ -181,7 +183,7 @@ def test_training_nights_benchmark_holds_the_training_subjects_nights_and_scores
     nights = training.nights(training.TRAINING_SUBJECTS, training.ON_THE_RIGHT)
     assert {n.subject for n in nights} == {1, 2, 3, 5, 7, 8, 9, 10}       # never a held-out subject
     sides = {n.subject: n.segments[0][0] for n in nights if n.name.startswith("side")}
-    right, left = training.PMAT_POSTURE_FILES["right-90"], training.PMAT_POSTURE_FILES["left-90"]
+    right, left = PMAT_POSTURE_FILES["right-90"], PMAT_POSTURE_FILES["left-90"]
     assert sides == {k: right if k in (2, 8, 10) else left for k in sides}
     totals = {"true": {"truth": 4, "missed": 1, "late_s": [0.0, 60.0, 600.0], "false": 1, "hours": 48.0},
               "chain": {"truth": 4, "missed": 0, "late_s": [-120.0, 300.0, 300.0, 900.0], "false": 3, "hours": 48.0}}
