@@ -269,3 +269,25 @@ def test_hospital_transport_benchmark_runs_a_small_case(tmp_path):
     assert rows["| native"][3:6] == ["20", "0", "0"]                            # the native path never does
     healthy = [line for line in text.splitlines() if line.startswith(("| MQTT 3.1.1", "| native JetStream publish"))]
     assert len(healthy) == 2 and all(line.endswith("| 20 |") for line in healthy)   # every alarm stored
+
+
+def test_posture_benchmark_measures_how_wide_a_body_touches_the_mat():
+    posture = load("posture")
+    from appliance.alerts.anatomy import BodyView
+
+    def body(across_cells: int, head_cells: int = 4) -> BodyView:
+        kpa = np.zeros((64, 30))
+        kpa[12:50, 15 - across_cells // 2:15 + across_cells // 2] = 3.0       # the trunk
+        kpa[2:8, 15 - head_cells // 2:15 + head_cells // 2] = 4.0               # the head, narrower
+        kpa[52:60, 14:16] = 0.2                                                  # legs under the load floor
+        return BodyView(kpa, (30.0, 30.0), True)
+
+    assert posture.contact_width_mm(body(20)) == pytest.approx(600.0)
+    assert posture.contact_width_mm(body(10)) == pytest.approx(300.0)
+    assert posture.contact_width_mm(BodyView(np.zeros((64, 30)), (30.0, 30.0), True)) == 0.0
+    sides = list(posture.SIDE_POSTURES)
+    views = {1: ([body(w) for w in (16, 12, 8, 20, 14, 10)], sides),
+             2: ([body(w) for w in (12, 12, 10, 18, 16, 8)], sides)}
+    rows = posture.width_rows(views)
+    assert rows[0] == ["S1", "480", "360", "240", "600", "420", "300"]
+    assert rows[-1] == ["median", "420", "360", "270", "570", "450", "270"]
