@@ -291,3 +291,16 @@ def test_posture_benchmark_measures_how_wide_a_body_touches_the_mat():
     rows = posture.width_rows(views)
     assert rows[0] == ["S1", "480", "360", "240", "600", "420", "300"]
     assert rows[-1] == ["median", "420", "360", "270", "570", "450", "270"]
+
+
+def test_calibration_curve_benchmark_counts_places_read_loaded_where_nothing_is():
+    curves = load("calibration_curve")
+    truth = np.zeros((10, 20))
+    truth[2:5, 2:5] = 45.0                              # a real load
+    truth[7, 15] = 27.0                                  # a light one, under 28 mmHg
+    read = truth.copy()
+    read[7, 15] = 40.0                                   # read over the threshold: a false spot
+    read[8, 2] = 33.0                                    # load read where there is none at all
+    read[3, 3] = 60.0                                    # a real load read high is no false spot
+    assert curves.false_spots(read, truth) == 2
+    assert curves.false_spots(truth, truth) == 0
