@@ -36,7 +36,6 @@ HEAD_END_MM = 240.0                 # where a lying patient's head rests on a be
 HEAD_END = "head-end"
 FLAT_FROM_MMHG = 10.0               # a map tells a pixel's gain where it loads the pixel to this or more
 FLAT_PRIOR_MAPS = 3.0               # a pixel's gain is shrunk towards 1 as if this many more maps had read it true
-FLAT_ROUNDS = 2                     # the gains and the curves are fitted in turn this many times
 
 
 @dataclass(frozen=True)
@@ -163,7 +162,7 @@ def foot_end_mask(layout, grid) -> np.ndarray:
 
 
 def map_curves(images, truths, layout, grid, *, fit: Callable = matched_curve, head_end: bool = True,
-               flat_rounds: int = FLAT_ROUNDS) -> tuple[PressureCurve, tuple[ZoneCurve, ...], np.ndarray | None]:
+               flat_rounds: int = 0) -> tuple[PressureCurve, tuple[ZoneCurve, ...], np.ndarray | None]:
     """The curve, on a bed the head end's own, and the flat field, fitted to every pixel of people's maps
     (``truths``, kPa) and their ``images``.
 
@@ -172,10 +171,15 @@ def map_curves(images, truths, layout, grid, *, fit: Callable = matched_curve, h
     largest change reads the k-th largest pressure) rather than a regression of pressure on change, whose mean
     pressure for a change pulls every peak toward the middle (the change is noisy), and a site's peak is what its
     dose follows. The head, at the mat's end where the image is least sensitive, is read low by the body's curve,
-    so the first ``HEAD_END_MM`` of a bed gets its own. The image reads a pixel over an electrode higher than one
-    between two, the same for everyone, so each pixel's gain is learnt from the maps too (:func:`map_flat_field`,
-    ``flat_rounds`` times, the curves fitted again each time; 0: none). benchmarks/calibration_curve.md chose all
-    three on people left out of the fit.
+    so the first ``HEAD_END_MM`` of a bed gets its own. benchmarks/calibration_curve.md chose both on people left
+    out of the fit.
+
+    With ``flat_rounds`` each pixel's gain is learnt from the maps too (:func:`map_flat_field`, that many times, the
+    curves fitted again each time): the image reads neighbouring pixels of one load high and low by turns, the
+    same for every body. It reads people's spots closer (calibration_curve.md), but not their alarms: a pixel
+    whose gain light loads taught reads a heavy one high (a heel, through the steep top of the curve), and the
+    nights through the chain raised no fewer false site alarms with it and the held-out ones later, so the
+    shipped calibration has none (0).
     """
     inside = np.isfinite(images[0])
     zone = head_end_mask(layout, grid) if head_end else np.zeros_like(inside)
@@ -266,9 +270,9 @@ def pressure_calibration(acquire: Callable, place: Callable, model: Reconstructi
     if any(isinstance(load, MapLoad) for load in loads):
         if not all(isinstance(load, MapLoad) for load in loads):
             raise ConfigError("a pressure calibration takes either weights or whole maps, not both")
-        curve, head_zone, map_flat = map_curves(images, truths, setup.layout, grid)
+        curve, head_zone, _ = map_curves(images, truths, setup.layout, grid)
         return PressureCalibration(setup.layout.name, layout_fingerprint(setup.layout), setup.options.algorithm,
-                                   grid.shape, curve, reference_temperature, flat_field=map_flat, zones=head_zone,
+                                   grid.shape, curve, reference_temperature, zones=head_zone,
                                    notes={**notes, "kind": "maps",
                                           "maps": [load.name for load in loads if isinstance(load, MapLoad)]})
     weights = [load for load in loads if isinstance(load, Load)]      # all of them: maps were returned above

@@ -58,10 +58,7 @@ def test_maps_calibrate_a_bed_and_read_a_person_left_out(bed, tmp_path):
     model, source = bed
     calibration = pressure_calibration(source.acquire, source.place, model,
                                        pmat_map_loads(PMAT, [1, 2], postures=(1, 4, 6, 15)))
-    assert calibration.notes["kind"] == "maps"
-    flat = calibration.flat_field                       # each pixel's own gain, learnt from the maps
-    assert flat.shape == model.reconstructor.grid.shape and np.exp(np.log(flat).mean()) == pytest.approx(1.0)
-    assert flat.min() < 0.9 and flat.max() > 1.1
+    assert calibration.notes["kind"] == "maps" and calibration.flat_field is None    # map_curves' flat field: unshipped
     curve = calibration.curve
     assert curve.change[0] == 0 and curve.pressure[0] == 0 and np.all(np.diff(curve.pressure) >= 0)
     (head,) = calibration.zones                         # the bed's head end reads by a curve of its own
@@ -99,7 +96,7 @@ def test_the_flat_field_learnt_from_maps_takes_out_each_pixels_own_gain():
             truth += rng.uniform(2, 8) * np.exp(-((rows - r) ** 2 + (cols - c) ** 2) / (2 * w * w))
         truths.append(truth)
         images.append(-0.05 * truth ** 0.8 * gain)       # a monotone mat, each pixel's gain on top
-    curve, zones, flat = map_curves(images, truths, None, None, head_end=False)
+    curve, zones, flat = map_curves(images, truths, None, None, head_end=False, flat_rounds=2)
     assert zones == () and np.corrcoef(np.log(flat).ravel(), np.log(gain).ravel())[0, 1] > 0.98
     plain, _, none = map_curves(images, truths, None, None, head_end=False, flat_rounds=0)
     loaded = np.array(truths) > 2.0
