@@ -51,7 +51,7 @@ L2 = 1e-4
 """The logistic regression's L2 penalty. With FLOOR_KPA, chosen by leave one training subject out
 (``benchmarks/posture_choices.py``: S1-S3, S5, S7-S10 only, their maps clean, blurred and read through the
 virtual bed; the held-out S4, S6 and S11 play no part): floor 0.3 kPa and L2 1e-4 took no group wrong on any of
-them and gave the true group the most probability, where no floor got 1 to 6 wrong and read 77-81 % of the
+them and gave the true group the most probability, where no floor got 1 to 6 wrong and read 77-80 % of the
 chain's tilts against 94 %, and a floor of 0.5 kPa 11 wrong on the clean maps."""
 
 AUGMENTED_COPIES = 3
