@@ -19,8 +19,8 @@ import numpy as np
 
 from appliance.core.iterative import affordable_iterate
 from appliance.core.model_cache import ReconstructionModel
-from appliance.core.pressure import (KPA_PER_MMHG, PressureCalibration, PressureCurve, ZoneCurve,
-                                     fit_pressure_curve, layout_fingerprint, matched_curve, temperature_corrected)
+from appliance.core.pressure import (PressureCalibration, PressureCurve, ZoneCurve, fit_pressure_curve,
+                                     layout_fingerprint, matched_curve, temperature_corrected)
 from appliance.errors import ConfigError
 
 KPA_PER_GRAM_PER_CM2 = 0.0980665    # 1 g on 1 cm2 (Table 6.3.1: 100 g on 4 cm2 is 2.45 kPa)
@@ -34,8 +34,6 @@ HEEL_SIDE_MM = 50.0                 # a heel's contact on foam: ~20-25 cm2 at or
 FOOT_END = "foot-end"
 HEAD_END_MM = 240.0                 # where a lying patient's head rests on a bed: its own curve from people's maps
 HEAD_END = "head-end"
-FLAT_FROM_MMHG = 10.0               # a map tells a pixel's gain where it loads the pixel to this or more
-FLAT_PRIOR_MAPS = 3.0               # a pixel's gain is shrunk towards 1 as if this many more maps had read it true
 
 
 @dataclass(frozen=True)
@@ -161,10 +159,10 @@ def foot_end_mask(layout, grid) -> np.ndarray:
     return (along >= long - FOOT_END_MM).reshape(grid.shape)
 
 
-def map_curves(images, truths, layout, grid, *, fit: Callable = matched_curve, head_end: bool = True,
-               flat_rounds: int = 0) -> tuple[PressureCurve, tuple[ZoneCurve, ...], np.ndarray | None]:
-    """The curve, on a bed the head end's own, and the flat field, fitted to every pixel of people's maps
-    (``truths``, kPa) and their ``images``.
+def map_curves(images, truths, layout, grid, *, fit: Callable = matched_curve,
+               head_end: bool = True) -> tuple[PressureCurve, tuple[ZoneCurve, ...]]:
+    """The curve, and on a bed the head end's own, fitted to every pixel of people's maps (``truths``, kPa) and
+    their ``images``.
 
     Every pixel of every map counts: a body's loads come in every size, and the curve learns how the mat and
     the reconstruction read them all, narrow heels with wide buttocks. ``fit`` is :func:`matched_curve` (the k-th
@@ -173,47 +171,14 @@ def map_curves(images, truths, layout, grid, *, fit: Callable = matched_curve, h
     dose follows. The head, at the mat's end where the image is least sensitive, is read low by the body's curve,
     so the first ``HEAD_END_MM`` of a bed gets its own. benchmarks/calibration_curve.md chose both on people left
     out of the fit.
-
-    With ``flat_rounds`` each pixel's gain is learnt from the maps too (:func:`map_flat_field`, that many times, the
-    curves fitted again each time): the image reads neighbouring pixels of one load high and low by turns, the
-    same for every body. It reads people's spots closer (calibration_curve.md), but not their alarms: a pixel
-    whose gain light loads taught reads a heavy one high (a heel, through the steep top of the curve), and the
-    nights through the chain raised no fewer false site alarms with it and the held-out ones later, so the
-    shipped calibration has none (0).
     """
     inside = np.isfinite(images[0])
     zone = head_end_mask(layout, grid) if head_end else np.zeros_like(inside)
-    sizes = np.array([np.clip(-np.nan_to_num(image), 0.0, None) for image in images])
-    truths = np.array(truths, dtype=float)
-    flat = np.ones(inside.shape)
-    curve, zones = _curves_on(sizes, truths, inside, zone, fit)
-    for _ in range(flat_rounds):
-        flat = map_flat_field(sizes, truths, curve, zones, inside)
-        curve, zones = _curves_on(sizes / flat, truths, inside, zone, fit)
-    return curve, zones, (flat if flat_rounds else None)
-
-
-def _curves_on(sizes, truths, inside: np.ndarray, zone: np.ndarray, fit) -> tuple[PressureCurve, tuple[ZoneCurve, ...]]:
-    """The body's curve and, where ``zone`` holds pixels, the head end's, fitted to the maps' ``sizes``."""
-    body, head = inside & ~zone, inside & zone
-    curve = fit(sizes[:, body], truths[:, body])
+    head, body = zone & inside, inside & ~zone
+    curve = fit(_sizes(images, body), np.array([truth[body] for truth in truths]))
     if not head.any():
         return curve, ()
-    return curve, (ZoneCurve(HEAD_END, zone, fit(sizes[:, head], truths[:, head])),)
-
-
-def map_flat_field(sizes, truths, curve: PressureCurve, zones, inside: np.ndarray) -> np.ndarray:
-    """Each pixel's gain: the geometric mean, over the maps that load it to ``FLAT_FROM_MMHG`` or more, of the change
-    it read against the change the curves read its true pressure from, shrunk towards 1 as if
-    ``FLAT_PRIOR_MAPS`` more maps had read it true; scaled to a geometric mean of 1 over the mat."""
-    expected = np.broadcast_to(np.interp(truths, curve.pressure, curve.change), sizes.shape).copy()
-    for zone in zones:
-        expected[:, zone.mask] = np.interp(truths[:, zone.mask], zone.curve.pressure, zone.curve.change)
-    used = (truths >= FLAT_FROM_MMHG * KPA_PER_MMHG) & (expected > 0) & (sizes > 0) & inside
-    log_ratio = np.log(np.where(used, sizes, 1.0) / np.where(used, expected, 1.0))
-    log_gain = log_ratio.sum(axis=0) / (used.sum(axis=0) + FLAT_PRIOR_MAPS)
-    log_gain = np.where(inside, log_gain - log_gain[inside].mean(), 0.0)
-    return np.exp(log_gain)
+    return curve, (ZoneCurve(HEAD_END, zone, fit(_sizes(images, head), np.array([truth[head] for truth in truths]))),)
 
 
 def head_end_mask(layout, grid) -> np.ndarray:
@@ -222,6 +187,11 @@ def head_end_mask(layout, grid) -> np.ndarray:
     long, _, along_x = _long_axis(layout)
     along = grid.centres_mm[:, 0 if along_x else 1]
     return ((along < HEAD_END_MM) & (long >= BED_MIN_LENGTH_MM)).reshape(grid.shape)
+
+
+def _sizes(images, mask: np.ndarray) -> np.ndarray:
+    """The size of each image's change on ``mask``'s pixels (a rise reads nothing)."""
+    return np.clip(-np.array([image[mask] for image in images]), 0.0, None)
 
 
 def grams_for(load: Load) -> float:
@@ -270,7 +240,7 @@ def pressure_calibration(acquire: Callable, place: Callable, model: Reconstructi
     if any(isinstance(load, MapLoad) for load in loads):
         if not all(isinstance(load, MapLoad) for load in loads):
             raise ConfigError("a pressure calibration takes either weights or whole maps, not both")
-        curve, head_zone, _ = map_curves(images, truths, setup.layout, grid)
+        curve, head_zone = map_curves(images, truths, setup.layout, grid)
         return PressureCalibration(setup.layout.name, layout_fingerprint(setup.layout), setup.options.algorithm,
                                    grid.shape, curve, reference_temperature, zones=head_zone,
                                    notes={**notes, "kind": "maps",
@@ -284,8 +254,7 @@ def pressure_calibration(acquire: Callable, place: Callable, model: Reconstructi
     foot = [k for k, load in enumerate(weights) if load.zone == FOOT_END]
     zones: tuple[ZoneCurve, ...] = ()
     if foot:
-        gain = np.ones(grid.shape) if flat is None else flat
-        peaks = [np.nanmax(np.where(truths[k] > 0, -images[k] / gain, np.nan)) for k in foot]
+        peaks = [np.nanmax(np.where(truths[k] > 0, -images[k], np.nan)) for k in foot]
         zones = (ZoneCurve(FOOT_END, foot_end_mask(setup.layout, grid),
                            fit_pressure_curve(np.array(peaks), np.array([weights[k].pressure_kpa for k in foot]))),)
     return PressureCalibration(setup.layout.name, layout_fingerprint(setup.layout), setup.options.algorithm,

@@ -14,7 +14,7 @@ the other. Two ways to fit it:
 * **matched, head end its own**: as matched, with a second matched curve for the first ``HEAD_END_MM`` of the
   bed, where the head lies (:func:`appliance.calibration.map_curves`, as the shipped calibration is made);
 * **and a flat field**: as that, with each pixel's gain learnt from the maps too and divided out before the
-  curves (``map_curves(flat_rounds=...)``; studied, not shipped).
+  curves (:func:`fitted` with :func:`flat_field`; studied, not shipped).
 
 The choice is made on the training subjects alone (S1-S3, S5, S7-S10), leave one subject out: each subject's
 maps read by the curve fitted on the seven others. The held-out subjects (S4, S6, S11), read by the curve
@@ -39,13 +39,16 @@ sys.path.insert(0, str(Path(__file__).parent))
 import bed
 from report import machine, table
 
-from appliance.calibration import FLAT_PRIOR_MAPS, HEAD_END_MM, affordable_iterate, map_curves
+from appliance.calibration import HEAD_END_MM, affordable_iterate, map_curves
 from appliance.core.model_cache import cached_model
 from appliance.core.pressure import KPA_PER_MMHG, fit_pressure_curve, matched_curve
 from appliance.sim.recordings import pmat_map_loads
 
-FLAT_ROUNDS = 2
-"""The flat field's gains and curves are fitted in turn this many times (chosen below; not shipped)."""
+FLAT_FROM_MMHG = 10.0
+"""A map tells a pixel's gain where it loads the pixel to this or more."""
+FLAT_PRIOR_MAPS, FLAT_ROUNDS = 3.0, 2
+"""A pixel's gain is shrunk towards 1 as if this many more maps had read it true; the gains and the curves are
+fitted in turn this many times (chosen below; the flat field is not shipped)."""
 SHIPPED, FLAT = "matched, head end its own", "matched, head end its own, flat field"
 FITS = {"regression": (fit_pressure_curve, False, 0), "matched": (matched_curve, False, 0),
         SHIPPED: (matched_curve, True, 0), FLAT: (matched_curve, True, FLAT_ROUNDS)}
@@ -78,12 +81,37 @@ def images(cache: Path) -> tuple[dict, object, object]:
     return out, model.setup.layout, model.reconstructor.grid
 
 
-def fitted(how: str, maps: dict, subjects, layout, grid, flat_rounds: int | None = None):
-    """(curve, zone curves, flat field) of ``how`` fitted to the maps of ``subjects``."""
+def fitted(how: str, maps: dict, subjects, layout, grid, flat_rounds: int | None = None,
+           prior_maps: float = FLAT_PRIOR_MAPS):
+    """(curve, zone curves, flat field or None) of ``how`` fitted to the maps of ``subjects``."""
     fit, head_end, rounds = FITS[how]
+    rounds = rounds if flat_rounds is None else flat_rounds
     pairs = [maps[k] for k in maps if k[0] in subjects]
-    return map_curves([image for image, _ in pairs], [truth for _, truth in pairs], layout, grid, fit=fit,
-                      head_end=head_end, flat_rounds=rounds if flat_rounds is None else flat_rounds)
+    images, truths = [image for image, _ in pairs], [truth for _, truth in pairs]
+    curve, zones = map_curves(images, truths, layout, grid, fit=fit, head_end=head_end)
+    flat = None
+    for _ in range(rounds):
+        flat = flat_field(images, truths, curve, zones, prior_maps)
+        curve, zones = map_curves([image / flat for image in images], truths, layout, grid, fit=fit,
+                                  head_end=head_end)
+    return curve, zones, flat
+
+
+def flat_field(images, truths, curve, zones, prior_maps: float = FLAT_PRIOR_MAPS) -> np.ndarray:
+    """Each pixel's gain: the geometric mean, over the maps that load it to ``FLAT_FROM_MMHG`` or more, of the change
+    it read against the change the curves (read backwards) give its true pressure, shrunk towards 1 as if
+    ``prior_maps`` more maps had read it true; a geometric mean of 1 over the mat."""
+    inside = np.isfinite(images[0])
+    sizes = np.array([np.clip(-np.nan_to_num(image), 0.0, None) for image in images])
+    truths = np.array(truths, dtype=float)
+    expected = np.broadcast_to(np.interp(truths, curve.pressure, curve.change), sizes.shape).copy()
+    for zone in zones:
+        expected[:, zone.mask] = np.interp(truths[:, zone.mask], zone.curve.pressure, zone.curve.change)
+    used = (truths >= FLAT_FROM_MMHG * KPA_PER_MMHG) & (expected > 0) & (sizes > 0) & inside
+    log_gain = (np.log(np.where(used, sizes, 1.0) / np.where(used, expected, 1.0)).sum(axis=0)
+                / (used.sum(axis=0) + prior_maps))
+    log_gain = np.where(inside, log_gain - log_gain[inside].mean(), 0.0)
+    return np.exp(log_gain)
 
 
 @contextlib.contextmanager
@@ -100,6 +128,8 @@ def patched(name: str, value: float):
 
 
 def read_kpa(curves, image: np.ndarray) -> np.ndarray:
+    """The map ``curves`` read from ``image``: a flat field, where there is one, divides the change before every
+    curve."""
     curve, zones, flat = curves
     pressure = curve.pressure_kpa(image, flat)
     for zone in zones:
@@ -132,10 +162,11 @@ def judged(curves, maps: dict, subjects) -> tuple[list, int, int, int]:
     return spots, quiet_read, false_read, count
 
 
-def left_out_in_turn(how: str, maps: dict, layout, grid, flat_rounds: int | None = None) -> tuple[list, int, int, int]:
-    """:func:`judged` over the training subjects, each read by ``how`` fitted on the seven others."""
-    parts = [judged(fitted(how, maps, [s for s in bed.TRAINING if s != left], layout, grid, flat_rounds), maps,
-                    [left]) for left in bed.TRAINING]
+def left_out_in_turn(how: str, maps: dict, layout, grid, **flat) -> tuple[list, int, int, int]:
+    """:func:`judged` over the training subjects, each read by ``how`` fitted on the seven others (``flat``: the
+    flat field's rounds and prior maps, for :func:`fitted`)."""
+    parts = [judged(fitted(how, maps, [s for s in bed.TRAINING if s != left], layout, grid, **flat), maps, [left])
+             for left in bed.TRAINING]
     return ([s for spots, *_ in parts for s in spots], sum(p[1] for p in parts), sum(p[2] for p in parts),
             sum(p[3] for p in parts))
 
@@ -169,8 +200,8 @@ def main() -> None:
                      f"{np.median([s.error for s in spots if s.site == 'head']):+.1%}"])
     flats = []
     for prior, rounds in FLAT_CHOICES:
-        with patched("FLAT_PRIOR_MAPS", prior):
-            spots, _, false_read, count = left_out_in_turn(FLAT, maps, layout, grid, flat_rounds=rounds)
+        spots, _, false_read, count = left_out_in_turn(FLAT, maps, layout, grid, flat_rounds=rounds,
+                                                       prior_maps=prior)
         errors = np.array([s.error for s in spots])
         flats.append([f"{prior:g}", rounds, f"{np.mean([s.seen for s in spots]):.1%}",
                       f"{np.median(np.abs(errors)):.1%}", f"{np.median(errors):+.1%}", f"{false_read / count:.2f}"]

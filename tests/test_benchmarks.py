@@ -304,3 +304,30 @@ def test_calibration_curve_benchmark_counts_places_read_loaded_where_nothing_is(
     read[3, 3] = 60.0                                    # a real load read high is no false spot
     assert curves.false_spots(read, truth) == 2
     assert curves.false_spots(truth, truth) == 0
+
+
+def test_calibration_curve_benchmark_learns_each_pixels_gain_from_maps():
+    """Maps read through a mat whose pixels read high and low by turns (as the bed's image does, at its electrode
+    pitch): the flat field the benchmark studies finds that pattern, and reads the maps back far closer."""
+    curves = load("calibration_curve")
+    rng = np.random.default_rng(3)
+    rows, cols = np.indices((12, 24))
+    gain = np.where((rows + cols) % 2 == 0, 1.3, 0.77)
+    maps = {}
+    for k in range(60):                                  # bodies of blobs, 0 to about 12 kPa
+        truth = np.zeros((12, 24))
+        for _ in range(4):
+            r, c, w = rng.uniform(0, 12), rng.uniform(0, 24), rng.uniform(1.5, 4.0)
+            truth += rng.uniform(2, 8) * np.exp(-((rows - r) ** 2 + (cols - c) ** 2) / (2 * w * w))
+        maps[(1, k)] = (-0.05 * truth ** 0.8 * gain, truth)   # a monotone mat, each pixel's gain on top
+    with_flat = curves.fitted("matched", maps, [1], None, None, flat_rounds=2)
+    without = curves.fitted("matched", maps, [1], None, None)
+    assert without[2] is None and np.corrcoef(np.log(with_flat[2]).ravel(), np.log(gain).ravel())[0, 1] > 0.98
+    truths = np.array([truth for _, truth in maps.values()])
+    loaded = truths > 2.0
+
+    def error(fit):
+        read = np.array([curves.read_kpa(fit, image) for image, _ in maps.values()])
+        return np.median(np.abs(read[loaded] / truths[loaded] - 1))
+
+    assert error(with_flat) < 0.05 < 0.15 < error(without)

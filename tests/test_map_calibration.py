@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from appliance.calibration import HEAD_END, HEAD_END_MM, Load, MapLoad, map_curves, pressure_calibration
+from appliance.calibration import HEAD_END, HEAD_END_MM, Load, MapLoad, pressure_calibration
 from appliance.core.model_cache import cached_model, default_setup
 from appliance.core.named_layouts import get_layout
 from appliance.core.pixels import pixel_grid
@@ -58,7 +58,7 @@ def test_maps_calibrate_a_bed_and_read_a_person_left_out(bed, tmp_path):
     model, source = bed
     calibration = pressure_calibration(source.acquire, source.place, model,
                                        pmat_map_loads(PMAT, [1, 2], postures=(1, 4, 6, 15)))
-    assert calibration.notes["kind"] == "maps" and calibration.flat_field is None    # map_curves' flat field: unshipped
+    assert calibration.notes["kind"] == "maps" and calibration.flat_field is None
     curve = calibration.curve
     assert curve.change[0] == 0 and curve.pressure[0] == 0 and np.all(np.diff(curve.pressure) >= 0)
     (head,) = calibration.zones                         # the bed's head end reads by a curve of its own
@@ -80,33 +80,6 @@ def test_maps_calibrate_a_bed_and_read_a_person_left_out(bed, tmp_path):
     assert 0.3 * truth.sum() < np.nansum(read) < 3 * truth.sum()
     far = truth == 0
     assert np.nanmax(read[far]) < 32, "nothing read at 32 mmHg where nobody lies"
-
-
-def test_the_flat_field_learnt_from_maps_takes_out_each_pixels_own_gain():
-    """Maps read through a mat whose pixels read high and low by turns (as the bed's image does, at its electrode
-    pitch): the fit finds that pattern, and reads the maps back far closer with it than without."""
-    rng = np.random.default_rng(3)
-    rows, cols = np.indices((12, 24))
-    gain = np.where((rows + cols) % 2 == 0, 1.3, 0.77)
-    truths, images = [], []
-    for _ in range(60):                                  # bodies of blobs, 0 to about 12 kPa
-        truth = np.zeros((12, 24))
-        for _ in range(4):
-            r, c, w = rng.uniform(0, 12), rng.uniform(0, 24), rng.uniform(1.5, 4.0)
-            truth += rng.uniform(2, 8) * np.exp(-((rows - r) ** 2 + (cols - c) ** 2) / (2 * w * w))
-        truths.append(truth)
-        images.append(-0.05 * truth ** 0.8 * gain)       # a monotone mat, each pixel's gain on top
-    curve, zones, flat = map_curves(images, truths, None, None, head_end=False, flat_rounds=2)
-    assert zones == () and np.corrcoef(np.log(flat).ravel(), np.log(gain).ravel())[0, 1] > 0.98
-    plain, _, none = map_curves(images, truths, None, None, head_end=False, flat_rounds=0)
-    loaded = np.array(truths) > 2.0
-
-    def error(read):
-        return np.median(np.abs(read[loaded] / np.array(truths)[loaded] - 1))
-
-    with_flat = error(np.array([curve.pressure_kpa(image, flat) for image in images]))
-    without = error(np.array([plain.pressure_kpa(image) for image in images]))
-    assert none is None and with_flat < 0.05 < 0.15 < without
 
 
 def test_weights_and_maps_are_not_mixed(bed):

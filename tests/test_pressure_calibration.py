@@ -140,30 +140,6 @@ def test_a_zone_curve_reads_its_own_pixels_and_survives_the_file(tmp_path):
     assert np.array_equal(back.pressure_kpa(image), read) and back.zones[0].name == FOOT_END
 
 
-def test_a_zone_reads_the_change_after_the_flat_field_and_an_older_file_mixing_them_is_refused(tmp_path):
-    mask = np.zeros((16, 16), dtype=bool)
-    mask[:, 12:] = True
-    flat = np.ones((16, 16))
-    flat[:, 14:] = 2.0                                  # two of the zone's columns read twice what they bear
-    zone = ZoneCurve(FOOT_END, mask, PressureCurve(np.array([0.0, 1.0]), np.array([0.0, 30.0])))
-    made = PressureCalibration(**{**calibration().__dict__, "zones": (zone,), "flat_field": flat})
-    read = made.pressure_kpa(-0.5 * np.ones((16, 16)))
-    assert np.allclose(read[:, 12:14], 15.0) and np.allclose(read[:, 14:], 7.5)
-    assert np.allclose(read[:, :12], 25.0)              # the main curve, 50 kPa a unit of change
-
-    save_pressure_calibration(tmp_path / "cal.json", made)
-    data = json.loads((tmp_path / "cal.json").read_text())
-    assert data["format"] == "appliance-pressure-calibration/2"
-    data["format"] = "appliance-pressure-calibration/1"  # an earlier version's file: its zone ignored the flat field
-    (tmp_path / "old.json").write_text(json.dumps(data))
-    with pytest.raises(DataFileInvalid, match="earlier version.*calibrate the mat again"):
-        load_pressure_calibration(tmp_path / "old.json")
-    data["zones"] = []                                   # without zones it reads the same in both formats
-    (tmp_path / "old.json").write_text(json.dumps(data))
-    old = load_pressure_calibration(tmp_path / "old.json").pressure_kpa(-0.5 * np.ones((16, 16)))
-    assert np.allclose(old[:, :14], 25.0) and np.allclose(old[:, 14:], 12.5)
-
-
 def test_heel_size_loads_go_to_the_foot_end_of_a_bed_only():
     bed = get_layout("grid-8x16")                      # 1900 mm along x
     loads = foot_end_loads(bed, (5.0,))

@@ -9,9 +9,9 @@ electrodes), so a calibration holds
 - a monotone curve: pressure against the size of the change, fitted by isotonic
   regression to calibration loads (known weights on known areas, as the thesis's
   Table 6.3.1), through zero;
-- optionally a flat field: each pixel's own gain (from known weights placed across
-  the mat, or from people's maps), which divides the change before any curve is
-  applied, a zone's too;
+- optionally a flat field: the response of each pixel to one standard load
+  placed there (the thesis's experimental sensitivity procedure), which divides
+  the change before the curve is applied;
 - the temperature at which it was made: saline's conductivity rises about 2 %
   per degree, so readings are brought to that temperature before reconstruction.
 
@@ -39,10 +39,7 @@ from appliance.core.layouts import Layout
 from appliance.errors import ConfigError, DataFileInvalid
 from appliance.files import write_atomic
 
-FORMAT = "appliance-pressure-calibration/2"
-FORMAT_1 = "appliance-pressure-calibration/1"
-"""Files of the first format are read too, but for one with both a flat field and zones: its zones' curves read the
-change before the flat field, which this format no longer does."""
+FORMAT = "appliance-pressure-calibration/1"
 KPA_PER_MMHG = 0.133322
 SALINE_COEFFICIENT_PER_C = 0.02
 CURVE_KNOTS = 24
@@ -144,8 +141,7 @@ class ZoneCurve:
 
     A reconstruction spreads a contact smaller than its resolution over several
     pixels, so one curve cannot read both a pelvis and a heel: at a bed's foot end,
-    where only heels and feet lie, a curve from heel-size loads reads them. Like the
-    main curve, it reads the change after the calibration's flat field.
+    where only heels and feet lie, a curve from heel-size loads reads them.
     """
 
     name: str
@@ -183,7 +179,7 @@ class PressureCalibration:
             raise ConfigError(f"image of shape {image.shape} given to a calibration for {self.pixels}")
         pressure = self.curve.pressure_kpa(image, self.flat_field)
         for zone in self.zones:
-            pressure = np.where(zone.mask, zone.curve.pressure_kpa(image, self.flat_field), pressure)
+            pressure = np.where(zone.mask, zone.curve.pressure_kpa(image), pressure)
         return pressure
 
 
@@ -210,11 +206,8 @@ def load_pressure_calibration(path: Path) -> PressureCalibration:
         raise DataFileInvalid(f"pressure calibration {path} does not exist") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DataFileInvalid(f"pressure calibration {path} is not valid JSON: {exc}") from None
-    if not isinstance(data, dict) or data.get("format") not in (FORMAT, FORMAT_1):
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise DataFileInvalid(f"{path} is not a pressure calibration ({FORMAT})")
-    if data["format"] == FORMAT_1 and data.get("flat_field") is not None and data.get("zones"):
-        raise DataFileInvalid(f"pressure calibration {path} was made by an earlier version, whose zones read the "
-                              f"change before the flat field: calibrate the mat again")
     try:
         change = np.array(data["curve"]["change"], dtype=float)
         pressure = np.array(data["curve"]["pressure_kpa"], dtype=float)
