@@ -115,16 +115,15 @@ def flat_field(images, truths, curve, zones, prior_maps: float = FLAT_PRIOR_MAPS
 
 
 @contextlib.contextmanager
-def patched(name: str, value: float):
-    """The calibration's constant ``name`` set to ``value`` for a while."""
+def patched_head_end(length_mm: float):
+    """The calibration's head end set to ``length_mm`` for a while."""
     import appliance.calibration as calibration
 
-    kept = getattr(calibration, name)
-    setattr(calibration, name, value)
+    kept, calibration.HEAD_END_MM = calibration.HEAD_END_MM, length_mm
     try:
         yield
     finally:
-        setattr(calibration, name, kept)
+        calibration.HEAD_END_MM = kept
 
 
 def read_kpa(curves, image: np.ndarray) -> np.ndarray:
@@ -193,7 +192,7 @@ def main() -> None:
         rows.append(row("training, leave one subject out", how, *left_out_in_turn(how, maps, layout, grid)))
     ends = []
     for length in HEAD_ENDS_MM:
-        with patched("HEAD_END_MM", length):
+        with patched_head_end(length):
             spots = left_out_in_turn(SHIPPED, maps, layout, grid)[0]
         errors = np.array([s.error for s in spots])
         ends.append([f"{length:g}", f"{np.median(np.abs(errors)):.1%}", f"{np.median(errors):+.1%}",
@@ -229,10 +228,10 @@ The head end's curve covers the first {HEAD_END_MM:g} mm of the bed, the middle 
 {table(["head end (mm)", "median |peak error|", "median peak error", "heads' median peak error"], ends)}
 
 The flat field: each pixel's gain is the geometric mean of the change it read against the change the curves read
-its true pressure from, over the maps loading it to 10 mmHg or more, shrunk towards 1 as if "prior maps" more had
-read it true; the gains and the curves are fitted in turn "rounds" times (median peak error per body site in the
-last columns). The flat field below takes {FLAT_PRIOR_MAPS:g} prior maps and {FLAT_ROUNDS} rounds, in the middle of
-the settings that did alike; with fewer prior maps a pixel few maps load takes a gain from too few of them (the
+its true pressure from, over the maps loading it to {FLAT_FROM_MMHG:g} mmHg or more, shrunk towards 1 as if
+"prior maps" more had read it true; the gains and the curves are fitted in turn "rounds" times (median peak
+error per body site in the last columns). The flat field below takes {FLAT_PRIOR_MAPS:g} prior maps and
+{FLAT_ROUNDS} rounds, in the middle of the settings that did alike; with fewer prior maps a pixel few maps load takes a gain from too few of them (the
 sacrum and hips read low), with more the gains are held back where the heels lie (read low, a spot missed):
 
 {table(["prior maps", "rounds", "seen", "median |peak error|", "median peak error", "false spots per map"]

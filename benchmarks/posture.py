@@ -101,12 +101,16 @@ def contact_width_mm(view: BodyView) -> float:
     return float(np.percentile(rows[rows > 0], 90) * view.pitch_mm[1]) if rows.any() else 0.0
 
 
+def side_widths(views_by_subject: dict) -> dict[int, dict[str, float]]:
+    """{subject: {side posture: the median contact width (mm) of its frames}}."""
+    return {subject: {posture: float(np.median([contact_width_mm(v) for v, n in zip(views, names) if n == posture]))
+                      for posture in SIDE_POSTURES}
+            for subject, (views, names) in views_by_subject.items()}
+
+
 def width_rows(views_by_subject: dict) -> list[list]:
-    """Per subject, the median contact width of the frames of each side posture, and the medians over
-    subjects."""
-    widths = {subject: {posture: np.median([contact_width_mm(v) for v, n in zip(views, names) if n == posture])
-                        for posture in SIDE_POSTURES}
-              for subject, (views, names) in views_by_subject.items()}
+    """The table of :func:`side_widths`: a row a subject, and the medians over subjects."""
+    widths = side_widths(views_by_subject)
     rows = [[f"S{subject}"] + [f"{w[p]:.0f}" for p in SIDE_POSTURES] for subject, w in widths.items()]
     return rows + [["median"] + [f"{np.median([w[p] for w in widths.values()]):.0f}" for p in SIDE_POSTURES]]
 
@@ -173,9 +177,10 @@ def main() -> None:
     prone = [k for k, n in enumerate(popu_names) if n == "prone"]
     ms = classify_ms(shipped, args.pmat)
     widths = width_rows(views_by_subject)
-    each = [[float(w) for w in row[1:]] for row in widths[:-1]]          # left 30, 60, 90, right 30, 60, 90
-    left_narrower = sum(w[0] < w[3] for w in each)
-    flat_left, flat_right = sum(w[0] <= w[1] for w in each), sum(w[3] <= w[4] for w in each)
+    each = side_widths(views_by_subject).values()
+    left_narrower = sum(w["left-30"] < w["right-30"] for w in each)
+    flat_left = sum(w["left-30"] <= w["left-60"] for w in each)
+    flat_right = sum(w["right-30"] <= w["right-60"] for w in each)
 
     header = ["maps", "n", "exact posture", "4 groups", "tilt 30/60/90 (side maps)"]
     report = f"""# Posture classification

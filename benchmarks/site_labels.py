@@ -192,7 +192,8 @@ def read_through_chain(cache: Path, subjects=HELD_OUT):
     for subject in subjects:
         for posture_file in sorted({s.posture_file for s in spots if s.subject == subject}):
             frame = true_frame(subject, posture_file)
-            yield chain.true_view(frame), body_view(chain.read_still(frame), chain.grid), [s for s in spots if s.subject == subject and s.posture_file == posture_file]
+            labelled = [s for s in spots if s.subject == subject and s.posture_file == posture_file]
+            yield chain.true_view(frame), body_view(chain.read_still(frame), chain.grid), labelled
 
 
 def chain_pairs(cache: Path) -> list[tuple[str | None, str | None, str]]:
