@@ -231,8 +231,8 @@ The flat field: each pixel's gain is the geometric mean of the change it read ag
 its true pressure from, over the maps loading it to {FLAT_FROM_MMHG:g} mmHg or more, shrunk towards 1 as if
 "prior maps" more had read it true; the gains and the curves are fitted in turn "rounds" times (median peak
 error per body site in the last columns). The flat field below takes {FLAT_PRIOR_MAPS:g} prior maps and
-{FLAT_ROUNDS} rounds, in the middle of the settings that did alike; with fewer prior maps a pixel few maps load takes a gain from too few of them (the
-sacrum and hips read low), with more the gains are held back where the heels lie (read low, a spot missed):
+{FLAT_ROUNDS} rounds, in the middle of the settings that did alike; with fewer prior maps a pixel few maps load
+takes a gain from too few of them (the sacrum and hips read low), with more the gains are held back where the heels lie (read low, a spot missed):
 
 {table(["prior maps", "rounds", "seen", "median |peak error|", "median peak error", "false spots per map"]
        + list(bed.SITES), flats)}
