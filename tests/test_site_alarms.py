@@ -115,6 +115,24 @@ def test_a_site_the_locator_stops_naming_is_dosed_where_it_lay_until_that_place_
     assert [e.key for e in relieved if e.kind == "ended" and e.key.startswith("pressure:")] == ["pressure:sacrum"]
 
 
+def test_a_site_last_seen_unloaded_is_not_dosed_with_a_neighbours_load_when_the_locator_loses_it():
+    body = ScriptedBody()
+    pipeline = pipeline_for(body)
+    run(pipeline, body, 60, posture="supine", sacrum=(SACRUM_MMHG, 850.0, 450.0))
+    assert pipeline.dose.doses()["sacrum"] > 0.1
+    run(pipeline, body, 3, start=60, posture="supine", sacrum=(25.0, 850.0, 450.0))    # offloaded, still named
+    body.readings = []                                  # then lost; the frames' 50 mmHg lies within reach of it
+    run(pipeline, body, 15, start=63)
+    assert pipeline.dose.doses()["sacrum"] == 0.0       # relieved for 18 min: the neighbour's load is not its own
+    body.lie("supine", sacrum=(SACRUM_MMHG, 850.0, 450.0))
+    run(pipeline, body, 1, start=78)
+    body.readings = []                                  # lost while loaded: followed again
+    run(pipeline, body, 5, start=79)
+    assert pipeline.dose.doses()["sacrum"] == pytest.approx(
+        MIN / pipeline.curve.tolerable_s(SACRUM_MMHG * KPA_PER_MMHG)
+        + 5 * MIN / pipeline.curve.tolerable_s(50 * KPA_PER_MMHG), rel=1e-9)
+
+
 def test_a_turn_to_another_posture_group_stops_following_where_the_sites_lay():
     body = ScriptedBody()
     pipeline = pipeline_for(body)
