@@ -97,6 +97,20 @@ def test_a_hand_beside_the_head_is_no_occiput(side):
     assert all(names[head_r + k, hand_c + j] is None for k in range(3) for j in range(2))
 
 
+@pytest.mark.parametrize("side", [-1, 1])
+def test_a_hand_pressing_harder_than_the_head_beside_it_does_not_take_the_occiput(side):
+    """Arms raised, hands by the head: a hand 120 mm beside the head's peak pressing three times as hard (one held-out
+    subject's lay 120 mm aside at 313 mmHg, the head at 182) is no site, and the occiput stays on the head."""
+    view, truth = virtual_back("supine", 450, 0, 0)
+    kpa = np.array(view.kpa, dtype=float)
+    head_r, head_c = np.unravel_index(np.argmax(np.where(np.arange(kpa.shape[0])[:, None] < 10, kpa, 0)), kpa.shape)
+    hand_cols = head_c + side * np.array([4, 5])           # 120 and 150 mm aside
+    kpa[head_r:head_r + 3, hand_cols.min():hand_cols.max() + 1] = 3.0 * kpa[head_r, head_c]
+    names = label_cells(BodyView(kpa, view.pitch_mm, view.transposed), "supine")
+    assert names[head_r, head_c] == "occiput"
+    assert all(names[head_r + k, c] is None for k in range(3) for c in hand_cols)
+
+
 def test_a_map_with_no_contact_has_no_levels():
     marks = back_landmarks(BodyView(np.zeros((64, 30)), PITCH, True), FLOOR_KPA)
     assert marks.shoulder_mm is None and marks.sacral_peak_mm is None

@@ -110,6 +110,13 @@ hand or forearm beside the head, which the table may also call occiput, is no si
 leave-one-subject-out over the training subjects 0.831 -> 0.833 of the loaded spots right (60 and 100 mm: 0.830 and
 0.832; trimming the table's occiput without naming the loaded cells within reach: the same)."""
 
+HEAD_HALF_MM = 75.0
+"""The head's hottest cell is sought within this of the midline (half an adult head's breadth, about 15 cm): hands
+raised to the head lie beside its outline and may press harder than it, and the convention names them no site.
+Leave-one-subject-out over the training subjects: 0.854 of the loaded spots right with or without it (60 and 90 mm
+the same, 45 mm 0.852). A held-out subject's hand 120 mm beside the head, hotter than the head, took the occiput's
+place on the maps of a restless night, where the table called it occiput."""
+
 SHOULDER_REACH_MM, BLADE_BELOW_SHOULDER_MM = 85.0, 90.0
 """A side-lying shoulder is the loaded cells within this of its hot spot (found as the trochanter's is), as the
 convention says (every spot within 85 mm of the down shoulder's hottest cell). Leave-one-subject-out over the
@@ -329,8 +336,8 @@ def _name_the_back(view: BodyView, posture: str, names: np.ndarray, loaded: np.n
     peak and the landmarks (``OCCIPUT_REACH_MM``, ``SACRUM_HALF_MM`` and the others): the table's cells for a site
     outside its place become unnamed, loaded cells inside take it. Ischia are named head up only (lying flat they
     bear no weight)."""
-    _occiput_around_its_peak(view, names, loaded)
     marks = back_landmarks(view, floor_kpa)
+    _occiput_around_its_peak(view, names, loaded, marks.from_midline(view))
     u = across_the_back(view, marks)
     along = np.broadcast_to(((np.arange(view.shape[0]) + 0.5) * view.pitch_mm[0])[:, None], u.shape)
     pelvis = int(marks.sacral_peak_mm // view.pitch_mm[0]) if marks.sacral_peak_mm is not None else view.shape[0] // 2
@@ -367,11 +374,16 @@ def _sacral_pull_mm(view: BodyView, marks: BackLandmarks) -> float:
     return float(SACRAL_PULL * (marks.sacral_peak_across_mm - marks.midline_mm[row]))
 
 
-def _occiput_around_its_peak(view: BodyView, names: np.ndarray, loaded: np.ndarray) -> None:
-    """The occiput is every loaded cell within ``OCCIPUT_REACH_MM`` of the hottest cell the table names occiput."""
+def _occiput_around_its_peak(view: BodyView, names: np.ndarray, loaded: np.ndarray, from_midline: np.ndarray) -> None:
+    """The occiput is every loaded cell within ``OCCIPUT_REACH_MM`` of the hottest cell the table names occiput
+    within ``HEAD_HALF_MM`` of the midline (``from_midline``: each cell's distance across from it, mm), or of the
+    hottest it names anywhere if none lies there."""
     head = names == "occiput"
     if not head.any():
         return
+    on_the_midline = head & (np.abs(from_midline) <= HEAD_HALF_MM)
+    if on_the_midline.any():
+        head = on_the_midline
     kpa = np.asarray(view.kpa, dtype=float)
     r, c = np.unravel_index(np.argmax(np.where(head, kpa, -np.inf)), kpa.shape)
     near = _near_cell(view, int(r), int(c), OCCIPUT_REACH_MM)
