@@ -75,6 +75,19 @@ def test_a_site_relieved_for_the_relief_time_has_recovered_and_no_longer_makes_a
     assert kinds(floated) == ["repositioned"] and floated[0].time_s == 138 * MIN
 
 
+def test_a_posture_misread_for_a_few_minutes_leaves_no_sites_at_risk_that_make_the_return_look_like_a_turn():
+    """A supine patient with the arms raised read as lying on the right for 5 min: while misread, the back's own
+    sites go unnamed (offloaded, as the clock sees them) and the side's are loaded; back on the back those are
+    unloaded. Neither is a turn: the back's sites bore the load throughout but for those minutes."""
+    clock = TurnClock()
+    back = {"occiput": 10.0, "sacrum": 8.0, "scapula-left": 5.0}
+    side = {"ear-right": 20.0, "shoulder-right": 15.0, "trochanter-right": 6.0}
+    frames = (lying("supine", 60, peaks=back) + lying("right-90", 5, peaks=side, start=60)
+              + lying("supine", 60, peaks=back, start=65))
+    assert kinds(run(clock, frames)) == ["lay-down"]
+    assert clock.reminder(125 * MIN) == ("due", 0)
+
+
 def test_a_new_position_counts_only_once_held_for_the_relief_time_and_reminders_wait_meanwhile():
     clock = TurnClock()
     run(clock, lying("supine", 120))

@@ -33,6 +33,7 @@ monitoring are MEDIUM.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -57,12 +58,12 @@ FOLLOW_MM = 45.0
 """A loaded site the locator does not name on a map keeps being dosed with the load where it last lay, within this
 distance (one and a half 30 mm pixels: a restless patient's shift between two namings), as long as the patient
 lies in the posture group it was named in: the tissue is still loaded whatever the names do. A turn to another
-group ends it, and so does a map on which the site, named or followed, lies below the threshold: a site last seen
-unloaded that the locator then loses has been offloaded further, and the load within reach of it is a neighbour's
-(a spine or a blade beside it), not its own. Followed after an unloaded map, a held-out subject's shoulder blade
-flickering in and out of the locator's names at 22 mmHg took a neighbour's 35 mmHg in turn, never relieved over a
-2-hour tilt and raised a false alarm through the chain; over the training subjects' nights the rule changes no
-alarm (benchmarks/training_nights.md)."""
+group ends it. A site last named below the threshold keeps the peak it was named with instead: the load within
+reach of it is a neighbour's (a spine or a blade beside it), not its own, and a site named at 25 mmHg a minute ago
+is not offloaded now either (the turn clock would count it so). Following such a site, a held-out subject's
+shoulder blade flickering in and out of the locator's names at 22 mmHg took a neighbour's 35 mmHg in turn, never
+relieved over a 2-hour tilt and raised a false alarm through the chain; over the training subjects' nights the rule
+changes no alarm (benchmarks/training_nights.md)."""
 MAX_COUNTED_GAP_S = 12 * 3600.0
 """A gap between maps (the monitor off, or paused for maintenance) counts as the new map's pressure held since
 the last one, as every frame does, up to this long: by then any loaded tissue is long past its tolerance, and a
@@ -174,7 +175,7 @@ class AlertPipeline:
         self.places: dict[str, tuple[float, float]] = {}         # where each site was last found, mm
         self.place_groups: dict[str, str] = {}                   # and in which posture group
         self.held: set[str] = set()                              # sites whose alarm outlives a settings change
-        self.loaded_sites: set[str] = set()                      # sites dosed loaded on the last map
+        self.named_kpa: dict[str, float] = {}                    # each site's peak when last named, kPa
 
     # --- frames ----------------------------------------------------------
 
@@ -184,7 +185,6 @@ class AlertPipeline:
         now = pressure_map.time_s
         posture, located = self._read_body(pressure_map)
         peaks = {**self._where_sites_lay(pressure_map, posture, located), **{s.site: s.peak_kpa for s in located}}
-        self.loaded_sites = {site for site, kpa in peaks.items() if kpa >= self.settings.threshold_kpa}
         if self.last_time_s is not None and now > self.last_time_s:
             gap = min(now - self.last_time_s, MAX_COUNTED_GAP_S)
             while gap > 0:                          # a gap (a restart, a pause for maintenance) in steps
@@ -194,6 +194,7 @@ class AlertPipeline:
         self.last_time_s = now
         self.posture, self.sites = posture, located
         self.places.update({s.site: (s.x_mm, s.y_mm) for s in located})
+        self.named_kpa.update({s.site: s.peak_kpa for s in located})
         if in_bed(posture):
             self.place_groups.update({s.site: posture_group(posture) for s in located})
         self.tracked = self._named_regions(pressure_map, located)
@@ -246,17 +247,21 @@ class AlertPipeline:
         return posture, located
 
     def _where_sites_lay(self, pressure_map: PressureMap, posture: str | None, located: list[LocatedSite]) -> dict:
-        """The load within ``FOLLOW_MM`` of where each site not named on this map last lay, for the sites named in
-        the posture group the patient still lies in and loaded on the last map."""
+        """For the sites named in the posture group the patient still lies in and not named on this map: the load
+        within ``FOLLOW_MM`` of where each last lay if it was loaded when last named, else its peak then."""
         group = posture_group(posture) if in_bed(posture) else None
         named = {s.site for s in located}
         kpa = np.nan_to_num(np.asarray(pressure_map.pressure_kpa, dtype=float)).ravel()
         out = {}
         for site, (x, y) in self.places.items():
-            if (site not in named and site in self.loaded_sites and group is not None
-                    and self.place_groups.get(site) == group):
-                near = np.hypot(self.grid.centres_mm[:, 0] - x, self.grid.centres_mm[:, 1] - y) <= FOLLOW_MM
-                out[site] = float(kpa[near].max()) if near.any() else 0.0
+            if site in named or group is None or self.place_groups.get(site) != group:
+                continue
+            named_kpa = self.named_kpa.get(site, math.inf)
+            if named_kpa < self.settings.threshold_kpa:
+                out[site] = named_kpa
+                continue
+            near = np.hypot(self.grid.centres_mm[:, 0] - x, self.grid.centres_mm[:, 1] - y) <= FOLLOW_MM
+            out[site] = float(kpa[near].max()) if near.any() else 0.0
         return out
 
     def _sure_posture(self, estimate: PostureEstimate) -> str:
@@ -381,7 +386,7 @@ class AlertPipeline:
         return {"regions": self.regions.state(), "dose": self.dose.state(), "turns": self.turns.state(),
                 "alarms": self.engine.state(), "last_time_s": self.last_time_s, "posture": self.posture,
                 "places": {site: list(xy) for site, xy in self.places.items()}, "place_groups": self.place_groups,
-                "loaded_sites": sorted(self.loaded_sites),
+                "named_kpa": self.named_kpa,
                 "episode": None if self.episode is None else self.episode.to_dict(),
                 "clinical": [[c.to_dict(), detail] for c, detail in self.clinical.values()],
                 "held": sorted(self.held), "settings": settings_record(self.settings)}
@@ -410,7 +415,7 @@ class AlertPipeline:
         pipeline.posture = state.get("posture")
         pipeline.places = {site: (float(x), float(y)) for site, (x, y) in (state.get("places") or {}).items()}
         pipeline.place_groups = {str(site): str(group) for site, group in (state.get("place_groups") or {}).items()}
-        pipeline.loaded_sites = {str(site) for site in state.get("loaded_sites", pipeline.place_groups)}
+        pipeline.named_kpa = {str(site): float(kpa) for site, kpa in (state.get("named_kpa") or {}).items()}
         pipeline.clinical = {c["key"]: (AlarmCondition.from_dict(c), detail) for c, detail in state.get("clinical", [])}
         pipeline.held = {str(site) for site in state.get("held", [])}
         if state.get("settings") is not None and state["settings"] != settings_record(settings):

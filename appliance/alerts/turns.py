@@ -158,6 +158,8 @@ class TurnClock:
             return []
         since, previous = self.candidate_since, self.posture
         self.posture, self.candidate, self.candidate_since = posture, None, None
+        if in_bed(previous) and in_bed(posture) and posture_group(posture) != posture_group(previous):
+            self._at_risk_afresh()
         if posture == "out-of-bed":
             self.away_since = since
             return []
@@ -210,11 +212,19 @@ class TurnClock:
         return [TurnEvent(since, "repositioned", self.posture, self.posture,
                           f"offloaded {', '.join(sorted(relieved))}")]
 
-    def _turned(self, time_s: float) -> None:
-        self.last_turn_s = time_s
+    def _at_risk_afresh(self) -> None:
+        """A new posture group: an offloading turn is judged within one posture, so the sites at risk are those
+        loaded in it from now on. Kept across, the sites of a posture misread for a few minutes (a supine patient
+        with the arms raised read as on the side) were at risk back on the back, unloaded there, and with the
+        back's own sites unloaded while it was misread they held an offloading for 15 min: a turn no one made."""
         self.at_risk.clear()
         self.relieved_since.clear()
-        self.offloaded_since = self.moved_since = None
+        self.offloaded_since = None
+
+    def _turned(self, time_s: float) -> None:
+        self.last_turn_s = time_s
+        self._at_risk_afresh()
+        self.moved_since = None
         self.loaded_since = {s: max(since, time_s) for s, since in self.loaded_since.items()}
 
     def _still_loaded(self, now_s: float, loaded: set[str], alarmed: frozenset[str]) -> list[TurnEvent]:
